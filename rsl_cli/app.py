@@ -1,0 +1,82 @@
+"""Entry point `rsl`: a typer app whose commands live in rsl_cli/commands/ (one module each)."""
+from __future__ import annotations
+
+import importlib
+import os
+import pkgutil
+import sys
+
+# Physics runs in float64 (DESIGN §6); must be set before jax is imported anywhere.
+os.environ.setdefault("JAX_ENABLE_X64", "1")
+if not os.environ.get("RSL_USE_GPU"):
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import typer
+
+from rsl_cli import commands
+from rsl_cli.console import console, error, state
+
+app = typer.Typer(
+    name="rsl",
+    help="RealSimLoop: keep a soft-body simulation in step with a real object seen by cameras.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode="rich",
+)
+
+
+@app.callback()
+def _global(
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars or info lines."),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="More detail; tracebacks on errors."),
+) -> None:
+    state["quiet"], state["verbose"] = quiet, verbose
+
+
+def _register_commands() -> None:
+    mods = []
+    for info in pkgutil.iter_modules(commands.__path__):
+        mod = importlib.import_module(f"rsl_cli.commands.{info.name}")
+        if hasattr(mod, "register"):
+            mods.append(mod)
+    for mod in sorted(mods, key=lambda m: getattr(m, "ORDER", 100)):
+        mod.register(app)
+
+
+_register_commands()
+
+
+def main() -> None:
+    """Run the CLI; an RslError or a bad path ends with one red sentence and exit 1."""
+    from stages.errors import RslError
+
+    try:
+        rc = app(standalone_mode=False)
+        if isinstance(rc, int) and rc != 0:
+            sys.exit(rc)
+    except RslError as e:
+        error(str(e))
+        sys.exit(1)
+    except KeyboardInterrupt:
+        error("interrupted.")
+        sys.exit(130)
+    except SystemExit:
+        raise
+    except Exception as e:  # click usage errors and unexpected failures
+        import click
+
+        if isinstance(e, click.exceptions.ClickException):
+            e.show()
+            sys.exit(e.exit_code)
+        if isinstance(e, click.exceptions.Abort):
+            error("aborted.")
+            sys.exit(1)
+        if state["verbose"]:
+            console.print_exception()
+        error(f"{type(e).__name__}: {e}")
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

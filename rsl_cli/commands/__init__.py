@@ -1,0 +1,1 @@
+"""One module per command; each defines ``ORDER`` (position in --help) and ``register(app)``."""

@@ -1,0 +1,82 @@
+"""The one rich console of the program and the Reporter the stages talk to."""
+from __future__ import annotations
+
+import contextlib
+import sys
+from typing import Iterator
+
+from rich.console import Console
+from rich.progress import (BarColumn, MofNCompleteColumn, Progress, ProgressColumn, SpinnerColumn,
+                           TextColumn, TimeElapsedColumn, TimeRemainingColumn)
+from rich.text import Text
+
+console = Console(stderr=True, highlight=False)
+state = {"quiet": False, "verbose": False}
+
+
+class RateColumn(ProgressColumn):
+    """Steps per second (or seconds per step when slower than one a second)."""
+
+    def render(self, task) -> Text:
+        speed = task.finished_speed or task.speed
+        if not speed:
+            return Text("-- it/s", style="dim")
+        return Text(f"{speed:.2f} it/s" if speed >= 1 else f"{1 / speed:.2f} s/it", style="cyan")
+
+
+class _RichTask:
+    def __init__(self, progress: Progress, task_id: int):
+        self.progress, self.task_id = progress, task_id
+
+    def advance(self, n: float = 1, **fields: object) -> None:
+        text = "  ".join(f"{k}={_fmt(v)}" for k, v in fields.items())
+        self.progress.update(self.task_id, advance=n, fields=text)
+
+
+def _fmt(v: object) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+class _NullTask:
+    def advance(self, n: float = 1, **fields: object) -> None:
+        pass
+
+
+class RichReporter:
+    """Progress bars with rate and ETA on stderr; --quiet keeps only warnings and summaries."""
+
+    @contextlib.contextmanager
+    def task(self, description: str, total: float | None) -> Iterator[object]:
+        if state["quiet"] or not console.is_terminal and not state["verbose"]:
+            # Not a terminal (a log, CI): no bar redraws; one line at start.
+            if not state["quiet"]:
+                console.print(f"[dim]{description} …[/]")
+            yield _NullTask()
+            return
+        columns = [SpinnerColumn(), TextColumn("[bold]{task.description}"), BarColumn(),
+                   MofNCompleteColumn(), RateColumn(), TimeElapsedColumn(), TextColumn("eta"),
+                   TimeRemainingColumn(), TextColumn("{task.fields[fields]}")]
+        with Progress(*columns, console=console, transient=False) as progress:
+            tid = progress.add_task(description, total=total, fields="")
+            yield _RichTask(progress, tid)
+
+    def info(self, message: str) -> None:
+        if not state["quiet"]:
+            console.print(message)
+
+    def warn(self, message: str) -> None:
+        console.print(f"[yellow]warning:[/] {message}")
+
+    def summary(self, message: str) -> None:
+        console.print(f"[green]✓[/] {message}")
+
+
+def error(message: str) -> None:
+    console.print(f"[bold red]error:[/] {message}", soft_wrap=True)
+
+
+def out(message: str) -> None:
+    """Results meant for stdout (e.g. `rsl info`)."""
+    Console(highlight=False, soft_wrap=True).print(message)

@@ -1,0 +1,5 @@
+"""The one exception type that ends a stage with a clear message and exit code 1."""
+
+
+class RslError(Exception):
+    """Bad input or a failed stage; the message is one sentence naming the file and the problem."""

@@ -1,0 +1,1 @@
+"""Gaussians bound to tets and a differentiable CPU rasterizer (PyTorch, float32)."""

@@ -1,0 +1,1 @@
+"""Full-space FEM in JAX (float64): materials, incremental potential, Newton, contact, adjoint."""

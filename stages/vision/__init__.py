@@ -1,0 +1,1 @@
+"""Calibration, segmentation and video input (OpenCV, pycolmap)."""
