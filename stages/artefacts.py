@@ -646,6 +646,8 @@ ARTEFACT_TYPES = {
 def load_any(path: str | Path):
     """Load an artefact of whatever kind it says it is (validated)."""
     kind = artefact_kind(path)
+    if not kind:
+        raise ArtefactError(f"{path}: not an rsl artefact (no 'rsl_kind' attribute).")
     if kind not in ARTEFACT_TYPES:
         raise ArtefactError(f"{path}: unknown artefact kind '{kind}'.")
     return ARTEFACT_TYPES[kind].load(path)

@@ -1,0 +1,97 @@
+"""`rsl info FILE.h5`: an artefact's kind, provenance and datasets; `rsl info CAPTURE`: a capture folder checked."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from rsl_cli.console import out
+
+ORDER = 90
+
+_ROOT_KEYS = ("rsl_kind", "schema_version", "rsl_version", "created", "config", "inputs")
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("info", help="Kind, provenance (config and hashed inputs) and datasets with shapes of an "
+                              "artefact file; given a capture folder, reads and checks all of it.")
+    def _cmd(
+        path: Path = typer.Argument(..., help="An artefact file (WS/mesh.h5, ...) or a capture folder."),
+        as_json: bool = typer.Option(False, "--json", help="Print everything as one JSON object."),
+        check: bool = typer.Option(True, "--check/--no-check",
+                                   help="Validate the artefact fully (kind, version, shapes, finite values)."),
+    ) -> None:
+        if path.is_dir():
+            _capture_info(path, as_json)
+        else:
+            _artefact_info(path, as_json, check)
+
+
+def _artefact_info(path: Path, as_json: bool, check: bool) -> None:
+    from stages.artefacts import ARTEFACT_TYPES, KIND_FILES, describe, load_any
+    from stages.errors import RslError
+
+    d = describe(path)
+    attrs = d["attrs"]
+    if not attrs.get("rsl_kind"):
+        raise RslError(f"{path}: not an rsl artefact (no 'rsl_kind' attribute).")
+    if check:
+        # A file with a workspace name (mesh.h5, ...) must hold that kind, as the stages expect.
+        expected = {f: k for k, f in KIND_FILES.items()}.get(path.name)
+        ARTEFACT_TYPES[expected].load(path) if expected else load_any(path)
+    if as_json:
+        out(json.dumps({"path": d["path"], "attrs": attrs,
+                        "datasets": [{"name": n, "shape": list(s), "dtype": t} for n, s, t in d["datasets"]]},
+                       indent=1, default=str))
+        return
+    out(f"[bold]{path}[/]  kind [cyan]{attrs.get('rsl_kind')}[/]  schema {attrs.get('schema_version')}  "
+        f"rsl {attrs.get('rsl_version')}  created {attrs.get('created')}")
+    config = attrs.get("config") or {}
+    if config:
+        out("[bold]config[/]")
+        for k, v in config.items():
+            out(f"  {k} = {json.dumps(v)}")
+    inputs = attrs.get("inputs") or []
+    out(f"[bold]inputs[/] ({len(inputs)})")
+    for item in inputs:
+        out(f"  {item.get('path')}  sha256 {str(item.get('sha256', ''))[:12]}…")
+    other = {k: v for k, v in attrs.items() if k not in _ROOT_KEYS}
+    if other:
+        out("[bold]attributes[/]")
+        for k, v in other.items():
+            text = v if isinstance(v, str) else json.dumps(v, default=str)
+            out(f"  {k} = {text if len(text) <= 200 else text[:200] + '…'}")
+    out(f"[bold]datasets[/] ({len(d['datasets'])})")
+    for name, shape, dtype in d["datasets"]:
+        out(f"  {name:<32} {str(shape):<20} {dtype}")
+
+
+def _capture_info(root: Path, as_json: bool) -> None:
+    """Read every part of a capture folder (capture.toml, controls, cameras, frames, markers) and list it."""
+    from stages.capture import load_capture, read_cameras_json
+
+    cap = load_capture(root)
+    controls = cap.controls()
+    info: dict = {
+        "capture": str(root), "name": cap.name, "fps": cap.fps, "gravity": cap.gravity.tolist(),
+        "mesh": str(cap.mesh_path), "density": cap.density, "material": cap.material.__dict__,
+        "regions": {k: str(v) for k, v in cap.region_meshes().items()},
+        "cameras": cap.camera_names,
+        "frames": cap.frame_count() if cap.camera_names else 0,
+        "known_cameras": [c.name for c in read_cameras_json(cap.cameras_json)] if cap.cameras_json.exists() else [],
+        "calibration_views": {c: len(v) for c, v in cap.calib_views().items()},
+        "controls": {"handles": [h.name for h in controls.handles], "loads": [ld.name for ld in controls.loads],
+                     "obstacles": [f"{o.name} ({o.shape})" for o in controls.obstacles],
+                     "frames": controls.n_frames, "friction": controls.friction},
+    }
+    markers = cap.markers()
+    info["markers"] = None if markers is None else list(markers.shape)
+    info["truth"] = cap.truth_dir.is_dir()
+    if as_json:
+        out(json.dumps(info, indent=1, default=str))
+        return
+    out(f"[bold]{root}[/]  capture [cyan]{cap.name}[/]  {cap.fps:g} fps")
+    for key, value in info.items():
+        if key not in ("capture", "name", "fps"):
+            out(f"  {key:<18} {json.dumps(value, default=str)}")

@@ -1,0 +1,221 @@
+"""Window losses of ``rsl adapt`` and their gradients with respect to vertex positions.
+
+Two observation models, each a pure function of simulated positions X (w, n, 3):
+
+* markers (paper Eq. 4, windowed): L = Σ_t Σ_i ‖m_i(x_t) − p_t^i‖², with each marker
+  bound to the surface point nearest its frame-0 position, m_i(x) = Σ_k b_ik x[f_ik]
+  (barycentric on the nearest surface triangle), so dL/dx_t = Σ_i 2 (m_i − p^i) ⊗ b_i.
+* vision (paper Eq. 7): L = Σ_t Σ_c |R(G(x_t), c) − Ĩ_t^c|, the L1 distance between the
+  render of the Gaussians bound to the mesh and the masked image Ĩ = I·m + bg·(1 − m);
+  dL/dx_t comes from torch autograd through the rasterizer (stages/render).
+
+Nothing here reads files or prints.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+# =========================================================================== markers
+@dataclass(frozen=True)
+class MarkerBinding:
+    """Markers bound to surface triangles: m_i(x) = Σ_k bary[i, k] · x[faces[i, k]]."""
+
+    faces: np.ndarray  # (M, 3) vertex ids of each marker's triangle
+    bary: np.ndarray  # (M, 3) barycentric weights, rows sum to 1
+    distance: np.ndarray  # (M,) m, distance from the frame-0 marker to the surface
+
+    def positions(self, x: np.ndarray) -> np.ndarray:
+        """Marker positions (…, M, 3) of vertex positions x (…, n, 3)."""
+        return np.einsum("...mkd,mk->...md", x[..., self.faces, :], self.bary)
+
+    def scatter(self, g: np.ndarray, n_vertices: int) -> np.ndarray:
+        """Adjoint of :meth:`positions`: per-marker gradients (…, M, 3) -> per-vertex (…, n, 3)."""
+        lead = g.shape[:-2]
+        out = np.zeros(lead + (n_vertices, 3))
+        contrib = g[..., :, None, :] * self.bary[:, :, None]  # (…, M, 3, 3)
+        flat_out = out.reshape(-1, n_vertices, 3)
+        flat_c = contrib.reshape(-1, *contrib.shape[-3:])
+        for b in range(flat_out.shape[0]):
+            np.add.at(flat_out[b], self.faces.reshape(-1), flat_c[b].reshape(-1, 3))
+        return flat_out.reshape(out.shape)
+
+
+def closest_points_on_triangles(points: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest point on each triangle to each point (Ericson, Real-Time Collision Detection §5.1.5).
+
+    points (P, 3), tri (F, 3, 3) -> (closest (P, F, 3), barycentric (P, F, 3)).
+    """
+    a, b, c = tri[None, :, 0], tri[None, :, 1], tri[None, :, 2]
+    p = points[:, None, :]
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = np.sum(ab * ap, -1), np.sum(ac * ap, -1)
+    bp = p - b
+    d3, d4 = np.sum(ab * bp, -1), np.sum(ac * bp, -1)
+    cp = p - c
+    d5, d6 = np.sum(ab * cp, -1), np.sum(ac * cp, -1)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    shape = d1.shape
+    bary = np.zeros(shape + (3,))
+    done = np.zeros(shape, bool)
+
+    def put(mask, u, v, w):
+        nonlocal done
+        m = mask & ~done
+        bary[m] = np.stack([u[m] if np.ndim(u) else np.full(m.sum(), u),
+                            v[m] if np.ndim(v) else np.full(m.sum(), v),
+                            w[m] if np.ndim(w) else np.full(m.sum(), w)], -1)
+        done = done | m
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        put((d1 <= 0) & (d2 <= 0), 1.0, 0.0, 0.0)  # vertex a
+        put((d3 >= 0) & (d4 <= d3), 0.0, 1.0, 0.0)  # vertex b
+        t = d1 / (d1 - d3)
+        put((vc <= 0) & (d1 >= 0) & (d3 <= 0), 1 - t, t, 0.0)  # edge ab
+        put((d6 >= 0) & (d5 <= d6), 0.0, 0.0, 1.0)  # vertex c
+        t = d2 / (d2 - d6)
+        put((vb <= 0) & (d2 >= 0) & (d6 <= 0), 1 - t, 0.0, t)  # edge ac
+        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        put((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), 0.0, 1 - t, t)  # edge bc
+        denom = 1.0 / (va + vb + vc)
+        v, w = vb * denom, vc * denom
+        put(np.ones(shape, bool), 1 - v - w, v, w)  # interior
+    closest = np.einsum("pfk,fkd->pfd", bary, tri)
+    return closest, bary
+
+
+def bind_markers(vertices: np.ndarray, faces: np.ndarray, markers0: np.ndarray,
+                 chunk: int = 64) -> MarkerBinding:
+    """Bind each marker (M, 3) to the nearest point of the surface (vertices (n, 3), faces (F, 3))."""
+    tri = vertices[faces]
+    fids, barys, dists = [], [], []
+    for s in range(0, len(markers0), chunk):
+        p = markers0[s:s + chunk]
+        closest, bary = closest_points_on_triangles(p, tri)
+        d = np.linalg.norm(closest - p[:, None], axis=-1)
+        k = np.argmin(d, axis=1)
+        r = np.arange(len(p))
+        fids.append(k)
+        barys.append(bary[r, k])
+        dists.append(d[r, k])
+    fid = np.concatenate(fids)
+    return MarkerBinding(faces[fid].astype(np.int64), np.concatenate(barys), np.concatenate(dists))
+
+
+def marker_loss(binding: MarkerBinding, X: np.ndarray, P: np.ndarray) -> tuple[float, np.ndarray]:
+    """L = Σ_t Σ_i ‖m_i(x_t) − p_t^i‖² and dL/dX, for X (w, n, 3) and observed markers P (w, M, 3)."""
+    r = binding.positions(X) - P  # (w, M, 3)
+    return float(np.sum(r * r)), binding.scatter(2.0 * r, X.shape[1])
+
+
+# =========================================================================== parameters
+def theta_from_params(log_young: np.ndarray, s_poisson: np.ndarray, poisson_range: tuple[float, float]
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """E = exp(log E);  ν = ν_lo + (ν_hi − ν_lo)·sigmoid(s)  (per region)."""
+    lo, hi = poisson_range
+    return np.exp(log_young), lo + (hi - lo) / (1.0 + np.exp(-s_poisson))
+
+
+def params_from_theta(young: np.ndarray, poisson: np.ndarray, poisson_range: tuple[float, float]
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of :func:`theta_from_params` (ν is clipped strictly inside the range)."""
+    lo, hi = poisson_range
+    if hi - lo < 1e-9:
+        return np.log(young), np.zeros_like(np.asarray(poisson, float))
+    u = np.clip((np.asarray(poisson, float) - lo) / (hi - lo), 1e-4, 1 - 1e-4)
+    return np.log(young), np.log(u / (1 - u))
+
+
+def chain_params(dL_dE: np.ndarray, dL_dnu: np.ndarray, young: np.ndarray, s_poisson: np.ndarray,
+                 poisson_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """dL/dlog E = E · dL/dE;  dL/ds = (ν_hi − ν_lo) σ(s)(1 − σ(s)) · dL/dν."""
+    lo, hi = poisson_range
+    sig = 1.0 / (1.0 + np.exp(-s_poisson))
+    return young * dL_dE, (hi - lo) * sig * (1 - sig) * dL_dnu
+
+
+class Adam:
+    """Adam (Kingma & Ba 2015) on a flat numpy vector: m ← β₁m + (1−β₁)g, v ← β₂v + (1−β₂)g²,
+    p ← p − lr · m̂ / (√v̂ + ε),  ε = eps · max √v̂ (relative, so that a component whose gradient
+    is only round-off next to the others does not take full-size steps)."""
+
+    def __init__(self, lr: np.ndarray | float, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-6):
+        self.lr, self.b1, self.b2, self.eps = lr, beta1, beta2, eps
+        self.m = self.v = None
+        self.k = 0
+
+    def step(self, p: np.ndarray, g: np.ndarray) -> np.ndarray:
+        if self.m is None:
+            self.m, self.v = np.zeros_like(g), np.zeros_like(g)
+        self.k += 1
+        self.m = self.b1 * self.m + (1 - self.b1) * g
+        self.v = self.b2 * self.v + (1 - self.b2) * g * g
+        mh = self.m / (1 - self.b1 ** self.k)
+        vh = self.v / (1 - self.b2 ** self.k)
+        eps = self.eps * float(np.sqrt(np.max(vh, initial=0.0))) + 1e-300
+        return p - self.lr * mh / (np.sqrt(vh) + eps)
+
+
+# =========================================================================== vision
+class ImageLoss:
+    """L = Σ_c |R(G(x), c) − Ĩ^c|₁ (sum over pixels and channels, paper Eq. 7) and dL/dx.
+
+    G(x) are the Gaussians bound to the mesh (stages.render.gaussians.BoundGaussians); dL/dx flows
+    image → Gaussian centres and covariances → vertex positions through torch autograd.  With
+    ``appearance`` the Gaussians' colours and opacities take an Adam step on the same loss at each
+    evaluation (paper §4.3: θ and the Gaussian attributes are optimised together).
+    """
+
+    def __init__(self, gaussians, mesh, cameras: list, appearance: bool = False, lr_appearance: float = 2e-3,
+                 rasterizer: str = "fast"):
+        import torch
+
+        from stages.render.gaussians import BoundGaussians
+
+        self.torch = torch
+        self.g = BoundGaussians.from_artefact(gaussians, mesh)
+        for p in self.g.parameters():
+            p.requires_grad_(False)
+        self.cams = [self.g.camera(c) for c in cameras]
+        self.background = self.g.background.detach().numpy().astype(np.float32)  # (3,)
+        self.rasterizer = rasterizer
+        self.backgrounds: list = [None] * len(self.cams)
+        self.opt = None
+        if appearance:
+            ps = [self.g.sh, self.g.opacity_logit]
+            for p in ps:
+                p.requires_grad_(True)
+            self.opt = torch.optim.Adam(ps, lr=lr_appearance)
+
+    def set_backgrounds(self, backgrounds: list[np.ndarray | None]) -> None:
+        """Per camera: None (the Gaussians' background colour) or an (H, W, 3) plate in [0, 1]."""
+        self.backgrounds = [None if b is None else self.torch.as_tensor(np.asarray(b, np.float32))
+                            for b in backgrounds]
+
+    def __call__(self, x: np.ndarray, targets: list[np.ndarray]) -> tuple[float, np.ndarray]:
+        """(L, dL/dx (n, 3)) for positions x (n, 3) and one target image (H, W, 3) in [0, 1] per camera."""
+        torch = self.torch
+        xt = torch.tensor(np.asarray(x, np.float64), requires_grad=True)
+        if self.opt is not None:
+            self.opt.zero_grad()
+        total = 0.0
+        for cam, bg, target in zip(self.cams, self.backgrounds, targets):
+            img = self.g.render(xt, cam, background=bg, rasterizer=self.rasterizer).image
+            loss = (img - torch.as_tensor(target, dtype=torch.float32)).abs().sum()
+            loss.backward()
+            total += float(loss.detach())
+        if self.opt is not None:
+            self.opt.step()
+        return total, xt.grad.numpy().copy()
+
+    def render(self, x: np.ndarray) -> list[np.ndarray]:
+        """Images (H, W, 3) float32 in [0, 1], one per camera, at positions x (n, 3)."""
+        torch = self.torch
+        with torch.no_grad():
+            xt = torch.tensor(np.asarray(x, np.float64))
+            return [self.g.render(xt, cam, background=bg, rasterizer=self.rasterizer).image.numpy().copy()
+                    for cam, bg in zip(self.cams, self.backgrounds)]

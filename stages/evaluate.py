@@ -1,0 +1,206 @@
+"""Stage ``rsl evaluate``: compare adapt.h5 with the truth of a synthetic capture (DESIGN §7).
+
+* E and ν per frame and region: e_E = |E − E_true| / E_true, e_ν = |ν − ν_true|.
+* Vertex error: the symmetric mean distance between the simulated surface (mesh.h5 surface
+  faces over adapt.h5 positions) and truth/surface.npz — the meshes need not match:
+  d(A, B) = ½ (mean_{p∈A} dist(p, B) + mean_{q∈B} dist(q, A)), the means taken over a 3-point
+  area-weighted quadrature of each triangle, dist a point-to-triangle distance (open3d).
+  It is also given over the truth's bounding-box diagonal.
+* PSNR of the Gaussians rendered on the adapted mesh against the (masked) images, when
+  gaussians.h5 exists: PSNR = 10 log10(1 / MSE) on [0, 1] RGB.
+
+Writes WS/evaluation.json (atomic) and WS/evaluation_young.png (E(t) estimated vs truth).
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from stages.artefacts import KIND_FILES, AdaptArtefact, MeshArtefact, Provenance, _jsonable
+from stages.capture import load_capture, read_truth
+from stages.errors import RslError
+from stages.progress import Reporter, SilentReporter
+
+_QUAD = np.array([[2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])  # (3, 3) barycentrics
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    capture: Path
+    """Synthetic capture folder with truth/ (material.csv, surface.npz)."""
+    workspace: Path
+    """Workspace holding adapt.h5 and mesh.h5; evaluation.json is written there."""
+    psnr_frames: int = 8
+    """Frames (evenly spaced) at which renders are compared with the images (0: skip PSNR)."""
+    plot: bool = True
+    """Write evaluation_young.png (E(t) estimated vs truth)."""
+
+
+def surface_samples(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Quadrature points (3F, 3) on the triangles and their weights (3F,) = area/3, normalised to 1."""
+    tri = vertices[faces]  # (F, 3, 3)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    pts = np.einsum("qk,fkd->fqd", _QUAD, tri).reshape(-1, 3)
+    w = np.repeat(area / 3.0, 3)
+    return pts, w / max(w.sum(), 1e-300)
+
+
+def point_surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Distance (P,) from each point to the triangle surface (vertices (n, 3), faces (F, 3))."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    centre = vertices.mean(0)  # centre for float32 accuracy
+    scene.add_triangles(o3d.core.Tensor((vertices - centre).astype(np.float32)),
+                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
+    d = scene.compute_distance(o3d.core.Tensor((points - centre).astype(np.float32)))
+    return d.numpy().astype(np.float64)
+
+
+def symmetric_surface_distance(va: np.ndarray, fa: np.ndarray, vb: np.ndarray, fb: np.ndarray) -> float:
+    """½ (mean over A of dist to B + mean over B of dist to A), area-weighted (m)."""
+    pa, wa = surface_samples(va, fa)
+    pb, wb = surface_samples(vb, fb)
+    return 0.5 * (float(wa @ point_surface_distance(pa, vb, fb)) + float(wb @ point_surface_distance(pb, va, fa)))
+
+
+def _write_json_atomic(path: Path, data: dict) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(_jsonable(data), f, indent=1)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def run(config: EvaluateConfig, reporter: Reporter = SilentReporter()) -> Path:
+    """Errors of adapt.h5 against CAPTURE/truth; writes WS/evaluation.json."""
+    ws = Path(config.workspace)
+    capture = load_capture(config.capture)
+    truth = read_truth(capture)
+    adapt_path, mesh_path = ws / KIND_FILES["adapt"], ws / KIND_FILES["mesh"]
+    adapt = AdaptArtefact.load(adapt_path)
+    mesh = MeshArtefact.load(mesh_path)
+    frames = adapt.frames
+    if adapt.positions.shape[1] != mesh.n_vertices:
+        raise RslError(f"{adapt_path}: positions hold {adapt.positions.shape[1]} vertices but {mesh_path} has "
+                       f"{mesh.n_vertices}; rerun rsl adapt.")
+    t_truth = min(len(truth.young), len(truth.vertices))
+    if frames.max() >= t_truth:
+        raise RslError(f"{capture.truth_dir}: truth covers {t_truth} frames but adapt.h5 holds frame "
+                       f"{int(frames.max())}.")
+    missing = [r for r in adapt.region_names if r not in truth.region_names]
+    if missing:
+        raise RslError(f"{capture.truth_dir / 'material.csv'}: lists no region '{missing[0]}' of adapt.h5 "
+                       f"(it lists {', '.join(truth.region_names)}).")
+    idx = [truth.region_names.index(r) for r in adapt.region_names]
+    e_true = truth.young[frames][:, idx]
+    nu_true = truth.poisson[frames][:, idx]
+    e_rel = np.abs(adapt.young - e_true) / e_true  # (T, R)
+    nu_abs = np.abs(adapt.poisson - nu_true)
+
+    diag = float(np.linalg.norm(np.ptp(truth.vertices[0], axis=0)))
+    vert_err = np.zeros(len(frames))
+    with reporter.task("surface distance to truth", len(frames)) as task:
+        for i, t in enumerate(frames):
+            vert_err[i] = symmetric_surface_distance(adapt.positions[i], mesh.surface_faces,
+                                                     truth.vertices[t], truth.faces)
+            task.advance(1)
+
+    psnr, psnr_frames = _psnr(config, ws, capture, adapt, mesh, reporter)
+    out = {
+        "capture": str(Path(config.capture).resolve()),
+        "mode": adapt.mode, "space": adapt.space, "loss_kind": adapt.loss_kind, "window": adapt.window,
+        "frames": frames.tolist(),
+        "region_names": adapt.region_names,
+        "young_rel_error_median": float(np.median(e_rel.max(axis=1))),
+        "young_rel_error_per_frame": e_rel.max(axis=1).tolist(),
+        "young_rel_error_per_region": {r: e_rel[:, k].tolist() for k, r in enumerate(adapt.region_names)},
+        "young_rel_error_final": float(e_rel[-1].max()),
+        "poisson_abs_error_median": float(np.median(nu_abs.max(axis=1))),
+        "poisson_abs_error_per_frame": nu_abs.max(axis=1).tolist(),
+        "vertex_error_mean_m": float(vert_err.mean()),
+        "vertex_error_rel_mean": float(vert_err.mean() / diag),
+        "vertex_error_per_frame_m": vert_err.tolist(),
+        "bbox_diagonal_m": diag,
+        "psnr_mean": float(np.mean(psnr)) if psnr else None,
+        "psnr_per_frame": dict(zip(map(str, psnr_frames), psnr)),
+        "provenance": Provenance.make(config, [adapt_path, mesh_path]).inputs,
+    }
+    path = ws / "evaluation.json"
+    _write_json_atomic(path, out)
+    if config.plot:
+        _plot(ws / "evaluation_young.png", frames, adapt, truth, idx, vert_err)
+    ps = f", PSNR {out['psnr_mean']:.2f} dB" if psnr else ""
+    reporter.summary(f"E error median {out['young_rel_error_median']:.1%} (final {out['young_rel_error_final']:.1%}), "
+                     f"ν error median {out['poisson_abs_error_median']:.3f}, vertex error "
+                     f"{out['vertex_error_mean_m'] * 1e3:.2f} mm ({out['vertex_error_rel_mean']:.2%} of the "
+                     f"diagonal){ps} → {path}")
+    return path
+
+
+def _psnr(config, ws, capture, adapt, mesh, reporter) -> tuple[list[float], list[int]]:
+    gpath, cpath = ws / KIND_FILES["gaussians"], ws / KIND_FILES["cameras"]
+    if config.psnr_frames <= 0 or not gpath.exists() or not cpath.exists():
+        return [], []
+    from stages.adapt_loss import ImageLoss
+    from stages.artefacts import CamerasArtefact, GaussiansArtefact, MasksArtefact
+
+    cams = CamerasArtefact.load(cpath)
+    names = [c.name for c in cams.cameras if c.name in capture.camera_names]
+    if not names:
+        return [], []
+    masks_path = ws / KIND_FILES["masks"]
+    masks = MasksArtefact.load(masks_path).masks if masks_path.exists() else None
+    renderer = ImageLoss(GaussiansArtefact.load(gpath), mesh, [cams.by_name(c) for c in names])
+    plates = [None if masks is not None and c in masks else capture.background(c) for c in names]
+    renderer.set_backgrounds([None if p is None else p.astype(np.float32) / 255.0 for p in plates])
+    pick = np.unique(np.linspace(0, len(adapt.frames) - 1, min(config.psnr_frames, len(adapt.frames))).round()
+                     .astype(int))
+    out = []
+    with reporter.task("PSNR of renders", len(pick)) as task:
+        for i in pick:
+            t = int(adapt.frames[i])
+            imgs = renderer.render(adapt.positions[i])
+            mse = []
+            for c, img in zip(names, imgs):
+                ref = capture.frame_source(c).read(t).astype(np.float32) / 255.0
+                if masks is not None and c in masks and t < len(masks[c]):
+                    m = masks[c][t][..., None].astype(np.float32)
+                    ref = ref * m + renderer.background[None, None, :] * (1 - m)
+                mse.append(float(np.mean((img - ref) ** 2)))
+            out.append(float(10 * np.log10(1.0 / max(np.mean(mse), 1e-12))))
+            task.advance(1)
+    return out, [int(adapt.frames[i]) for i in pick]
+
+
+def _plot(path: Path, frames, adapt, truth, idx, vert_err) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a0, a1) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    for k, r in enumerate(adapt.region_names):
+        line, = a0.plot(frames, adapt.young[:, k], label=f"{r} estimated")
+        a0.plot(frames, truth.young[frames, idx[k]], "--", color=line.get_color(), label=f"{r} truth")
+    a0.set_yscale("log")
+    a0.set_ylabel("Young's modulus E (Pa)")
+    a0.set_title(f"rsl adapt: {adapt.mode}, {adapt.space} space, {adapt.loss_kind}, w={adapt.window}")
+    a0.legend(fontsize=8)
+    a1.plot(frames, vert_err * 1e3, color="k")
+    a1.set_ylabel("surface error (mm)")
+    a1.set_xlabel("frame")
+    fig.tight_layout()
+    tmp = path.with_name("." + path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, path)

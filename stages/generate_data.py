@@ -1,0 +1,294 @@
+"""`rsl generate-data`: training snapshots for the subspace (paper §5.1) → snapshots.h5.
+
+Random interaction sequences stay within the envelope of the capture's own controls:
+each sequence is a keyframed track whose keyframe k takes every handle, load and obstacle
+to its value at a random frame s_k of controls.json (shared by all controls, or drawn for
+each), jittered by a fraction of that control's range; keyframe 0 is the capture's frame 0,
+so every sequence starts at rest.  Material is sampled per frame across the prior range of
+capture.toml: per sequence and region, end points log E_a, log E_b ~ U(log range) and
+ν_a, ν_b ~ U(range), linearly interpolated over the frames ("ramp"), or held ("constant").
+
+Sequences run in a local process pool ('spawn' context: JAX does not fork safely) or as Ray
+tasks on an existing cluster; the plan is drawn from the seed in this process, so the
+result does not depend on where or in which order the sequences ran.
+"""
+from __future__ import annotations
+
+import multiprocessing
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from stages.artefacts import KIND_FILES, MeshArtefact, Provenance, SnapshotsArtefact
+from stages.capture import Controls, Track, load_capture, parse_controls
+from stages.errors import RslError
+from stages.progress import Reporter, SilentReporter
+
+
+@dataclass(frozen=True)
+class GenerateDataConfig:
+    capture: Path
+    """Capture folder (capture.toml for the material range and gravity, controls.json for the envelope)."""
+    workspace: Path
+    """Workspace folder holding mesh.h5; snapshots.h5 is written there."""
+    sequences: int = 20
+    """Number of random interaction sequences."""
+    frames: int = 60
+    """Frames simulated per sequence."""
+    workers: int = 2
+    """Local worker processes (1 = run in this process)."""
+    ray: str = ""
+    """Address of an existing Ray cluster to run the sequences on ('auto', 'ray://host:10001', or 'local' to start one here); empty = local process pool."""
+    material_sampling: Literal["ramp", "constant"] = "ramp"
+    """Per-frame material: 'ramp' interpolates between two random end points of each sequence (log E, ν); 'constant' holds one random value."""
+    keyframe_gap: int = 0
+    """Frames between random keyframes (drawn in [gap, 2·gap]); 0 = a quarter of the capture's control length, at least 5."""
+    jitter: float = 0.1
+    """Random offset of each keyframe as a fraction of its control's range over the capture (translation, rotation angle, force)."""
+    newton_iterations: int = 300
+    """Most Newton iterations per time step before a sequence is given up."""
+    seed: int = 0
+    """Seed of every random choice; equal seeds give identical snapshots."""
+
+
+# =========================================================================== planning
+@dataclass
+class SequencePlan:
+    """Everything one worker needs: controls (as JSON), per-frame material (T, R) and the scene settings."""
+
+    index: int
+    controls: dict
+    young: np.ndarray  # (T, R) Pa
+    poisson: np.ndarray  # (T, R)
+
+
+def _rotation_angle(q0: np.ndarray, q1: np.ndarray) -> float:
+    """Angle of the relative rotation between unit quaternions, rad."""
+    d = abs(float(np.dot(q0 / np.linalg.norm(q0), q1 / np.linalg.norm(q1))))
+    return 2.0 * float(np.arccos(min(1.0, d)))
+
+
+def _axis_angle_quat(axis: np.ndarray, angle: float) -> np.ndarray:
+    axis = axis / np.linalg.norm(axis)
+    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+
+
+def _random_track(track: Track, n_ref: int, key_frames: np.ndarray, ref_frames: np.ndarray, jitter: float,
+                  rng: np.random.Generator) -> Track:
+    """A keyframed track whose keyframe k is ``track`` at ``ref_frames[k]`` plus a jitter within its range."""
+    ref = track.sample(n_ref)  # (n_ref, D)
+    vals = []
+    if track.is_pose:
+        span_t = np.ptp(ref[:, :3], axis=0)  # (3,) translation range, m
+        max_angle = max(_rotation_angle(ref[0, 3:], q) for q in ref[:, 3:])
+        for k, s in enumerate(ref_frames):
+            v = track.at(int(s)).copy()
+            if k > 0 and jitter > 0:
+                v[:3] += jitter * span_t * rng.uniform(-1, 1, 3)
+                if max_angle > 0:
+                    dq = _axis_angle_quat(rng.normal(size=3), jitter * max_angle * rng.uniform(-1, 1))
+                    v[3:] = _quat_mul(dq, v[3:])
+                    v[3:] /= np.linalg.norm(v[3:])
+            vals.append(v)
+    else:
+        span = np.ptp(ref, axis=0)
+        for k, s in enumerate(ref_frames):
+            v = track.at(int(s)).copy()
+            if k > 0 and jitter > 0:
+                v += jitter * span * rng.uniform(-1, 1, v.shape)
+            vals.append(v)
+    return Track(np.asarray(key_frames, np.int64), np.array(vals), track.is_pose)
+
+
+def random_controls(controls: Controls, frames: int, gap: int, jitter: float, rng: np.random.Generator) -> Controls:
+    """One random interaction sequence of ``frames`` frames within the envelope of ``controls``."""
+    n_ref = controls.n_frames or 1
+    keys = [0]
+    while keys[-1] < frames - 1:
+        keys.append(min(frames - 1, keys[-1] + int(rng.integers(gap, 2 * gap + 1))))
+    keys = np.array(keys)
+    tracks = [h.poses for h in controls.handles] + [ld.force for ld in controls.loads] + \
+             [o.poses for o in controls.obstacles]
+    shared = rng.random() < 0.5
+    common = rng.integers(0, n_ref, size=len(keys))
+    new = []
+    for tr in tracks:
+        refs = common.copy() if shared else rng.integers(0, n_ref, size=len(keys))
+        refs[0] = 0
+        new.append(_random_track(tr, n_ref, keys, refs, jitter, rng))
+    it = iter(new)
+    out = Controls(friction=controls.friction)
+    for h in controls.handles:
+        out.handles.append(type(h)(h.name, h.select, h.stiffness, next(it)))
+    for ld in controls.loads:
+        out.loads.append(type(ld)(ld.name, ld.select, next(it)))
+    for o in controls.obstacles:
+        out.obstacles.append(type(o)(o.name, o.shape, o.normal, o.offset, o.radius, o.half_extents, next(it)))
+    return out
+
+
+def sample_material(young_range: tuple[float, float], poisson_range: tuple[float, float], n_regions: int,
+                    frames: int, mode: str, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame material (T, R) each: log E and ν drawn uniformly at both ends of the sequence and
+    interpolated linearly over the frames (``ramp``) or held (``constant``)."""
+    lo, hi = np.log(young_range[0]), np.log(young_range[1])
+    e_ends = rng.uniform(lo, hi, size=(2, n_regions))
+    nu_ends = rng.uniform(poisson_range[0], poisson_range[1], size=(2, n_regions))
+    if mode == "constant":
+        e_ends[1], nu_ends[1] = e_ends[0], nu_ends[0]
+    a = (np.arange(frames) / max(frames - 1, 1))[:, None]
+    young = np.exp((1 - a) * e_ends[0] + a * e_ends[1])
+    young = np.clip(young, young_range[0], young_range[1])  # exp(log) round-off stays inside the range
+    poisson = (1 - a) * nu_ends[0] + a * nu_ends[1]
+    return young, poisson
+
+
+def plan_sequences(config: GenerateDataConfig, controls: Controls, young_range, poisson_range,
+                   n_regions: int) -> list[SequencePlan]:
+    """The random plan of every sequence, drawn from the seed (sequence i uses the stream [seed, i])."""
+    n_ref = controls.n_frames or 1
+    gap = config.keyframe_gap if config.keyframe_gap > 0 else max(5, n_ref // 4)
+    plans = []
+    for i in range(config.sequences):
+        rng = np.random.default_rng([config.seed, i])
+        ctl = random_controls(controls, config.frames, gap, config.jitter, rng)
+        young, poisson = sample_material(young_range, poisson_range, n_regions, config.frames,
+                                         config.material_sampling, rng)
+        plans.append(SequencePlan(i, ctl.to_json(), young, poisson))
+    return plans
+
+
+# =========================================================================== one sequence (runs in a worker)
+def simulate_sequence(mesh: MeshArtefact, plan: SequencePlan, model: str, dt: float, gravity: np.ndarray,
+                      newton_iterations: int) -> tuple[int, np.ndarray | None, str]:
+    """(index, positions (T, n, 3) or None, error message) of one planned sequence."""
+    from stages.sim.scene import SimulationError, frame_inputs, make_scene, simulate
+
+    try:
+        ctl = parse_controls(plan.controls, Path(f"sequence {plan.index}"))
+        scene = make_scene(mesh, ctl, model, dt, gravity)
+        inputs = [frame_inputs(scene, ctl, f) for f in range(plan.young.shape[0])]
+        x = simulate(scene, inputs, plan.young, plan.poisson, max_iterations=newton_iterations)
+    except SimulationError as e:
+        return plan.index, None, str(e)
+    if not np.all(np.isfinite(x)):
+        return plan.index, None, "non-finite positions"
+    return plan.index, x, ""
+
+
+def _worker_init() -> None:
+    import os
+
+    os.environ.setdefault("JAX_ENABLE_X64", "1")
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+
+def _run_pool(tasks: list, workers: int, reporter: Reporter, task) -> list:
+    ctx = multiprocessing.get_context("spawn")
+    results = []
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init) as pool:
+        futures = [pool.submit(simulate_sequence, *t) for t in tasks]
+        for fut in as_completed(futures):
+            results.append(fut.result())
+            task.advance(1)
+    return results
+
+
+def _run_ray(tasks: list, address: str, reporter: Reporter, task) -> list:
+    try:
+        import ray
+    except ImportError:
+        raise RslError("--ray needs Ray, an optional extra of rsl: pip install 'rsl[ray]'.") from None
+    env = {"env_vars": {"JAX_ENABLE_X64": "1", "JAX_PLATFORMS": "cpu"}}
+    started_here = not ray.is_initialized()
+    try:
+        if started_here:
+            ray.init(address=None if address == "local" else address, runtime_env=env, log_to_driver=False,
+                     include_dashboard=False)
+    except Exception as e:  # ConnectionError and friends
+        raise RslError(f"--ray {address}: cannot connect to the Ray cluster ({type(e).__name__}: {e}).") from None
+    try:
+        remote = ray.remote(simulate_sequence)
+        mesh_ref = ray.put(tasks[0][0]) if tasks else None
+        refs = [remote.remote(mesh_ref, *t[1:]) for t in tasks]
+        pending, results = list(refs), []
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            results.append(ray.get(done[0]))
+            task.advance(1)
+        return results
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+# =========================================================================== the stage
+def run(config: GenerateDataConfig, reporter: Reporter = SilentReporter()) -> Path:
+    """Simulate the random sequences and write WS/snapshots.h5; returns its path."""
+    c = config
+    if c.sequences < 1 or c.frames < 1 or c.workers < 1:
+        raise RslError("--sequences, --frames and --workers should each be at least 1.")
+    if c.material_sampling not in ("ramp", "constant"):
+        raise RslError(f"--material-sampling {c.material_sampling!r} is unknown; use ramp or constant.")
+    if c.jitter < 0:
+        raise RslError(f"--jitter should not be negative, found {c.jitter}.")
+    cap = load_capture(c.capture)
+    mesh_path = Path(c.workspace) / KIND_FILES["mesh"]
+    if not mesh_path.exists():
+        raise RslError(f"{mesh_path}: file not found; run `rsl tetrahedralize {c.capture} -w {c.workspace}` first.")
+    mesh = MeshArtefact.load(mesh_path)
+    controls = cap.controls()
+    mat = cap.material
+    plans = plan_sequences(c, controls, mat.young_range, mat.poisson_range, len(mesh.region_names))
+    tasks = [(mesh, p, mat.model, cap.dt, cap.gravity, c.newton_iterations) for p in plans]
+
+    t0 = time.perf_counter()
+    where = f"Ray ({c.ray})" if c.ray else (f"{c.workers} workers" if c.workers > 1 else "this process")
+    with reporter.task(f"simulating {c.sequences} sequences × {c.frames} frames on {where}", c.sequences) as task:
+        if c.ray:
+            results = _run_ray(tasks, c.ray, reporter, task)
+        elif c.workers > 1 and c.sequences > 1:
+            results = _run_pool(tasks, min(c.workers, c.sequences), reporter, task)
+        else:
+            results = []
+            for t in tasks:
+                results.append(simulate_sequence(*t))
+                task.advance(1)
+    elapsed = time.perf_counter() - t0
+
+    results.sort(key=lambda r: r[0])
+    kept = [(i, x) for i, x, _ in results if x is not None]
+    for i, _, err in results:
+        if err:
+            reporter.warn(f"sequence {i} dropped: {err}")
+    if not kept:
+        raise RslError(f"{c.capture}: every one of the {c.sequences} sequences failed to simulate "
+                       f"(first: {results[0][2]}).")
+    T = c.frames
+    positions = np.concatenate([x for _, x in kept])
+    young = np.concatenate([plans[i].young for i, _ in kept])
+    poisson = np.concatenate([plans[i].poisson for i, _ in kept])
+    sequence = np.repeat([i for i, _ in kept], T)
+    frame = np.tile(np.arange(T), len(kept))
+    art = SnapshotsArtefact(positions, young, poisson, sequence, frame, list(mesh.region_names))
+    out = Path(c.workspace) / KIND_FILES["snapshots"]
+    inputs = [mesh_path, cap.toml_path] + ([cap.controls_path] if cap.controls_path.exists() else [])
+    art.save(out, Provenance.make(c, inputs))
+    disp = float(np.linalg.norm(positions - mesh.vertices[None], axis=2).max())
+    reporter.summary(
+        f"{out}: {len(kept)} sequences × {T} frames = {len(positions)} snapshots of {mesh.vertices.shape[0]} "
+        f"vertices; E {young.min():.3g}–{young.max():.3g} Pa, ν {poisson.min():.3f}–{poisson.max():.3f}; "
+        f"max displacement {disp * 1000:.1f} mm; {elapsed:.1f} s on {where}"
+        + (f"; {c.sequences - len(kept)} dropped" if len(kept) < c.sequences else ""))
+    return out

@@ -1,0 +1,202 @@
+"""3D Gaussians bound to the tets of a simulation mesh (paper §4.1), rendered with the CPU rasterizer.
+
+A Gaussian g lives in host tet h(g) with barycentric weights β (4,), a
+rest-frame rotation q and scales s.  Given the mesh's current vertex
+positions x (n, 3):
+
+    centre   μ_g = Σₖ βₖ x[tet_h, k]
+    F_h      = D_s(x) D_m⁻¹          (deformation gradient of the host tet)
+    Σ_g      = F_h R(q) S² R(q)ᵀ F_hᵀ,  S = diag(exp(log_scales))
+    colour   c_g = 0.5 + SH(sh_g, view direction)   (degree 0, optionally 1), clamped ≥ 0
+    opacity  o_g = sigmoid(opacity_logit_g)
+
+API for the stages (adapt, fit-gaussians, export)::
+
+    g = BoundGaussians.from_artefact(GaussiansArtefact.load(...), MeshArtefact.load(...))
+    out = g.render(positions, camera, background=None)   # positions: torch (n,3), any float dtype
+    out.image  # (H, W, 3) float32 = C + (1 − A) · background, differentiable w.r.t. positions
+    out.alpha  # (H, W) coverage A
+    g.parameters()  # appearance (sh, opacity_logit, log_scales, rotations, bary_logits) for torch.optim
+    g.to_artefact(fit_psnr={...}) -> GaussiansArtefact
+
+``camera`` is an ``artefacts.Camera`` (or a ``projection.CameraTensors``);
+``background`` is None (the artefact's colour), a (3,) colour or an (H, W, 3)
+image.  ``rasterizer="fast"`` (numba, default), ``"tiled"`` or ``"dense"``
+(the pure-PyTorch twins) pick the implementation.  Rendering runs in float32;
+gradients flow back to ``positions`` in its own dtype.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from stages.render import _torch_ref
+from stages.render.projection import CameraTensors, project_gaussians
+from stages.render.rasterize import rasterize
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+
+RASTERIZERS = {"fast": rasterize, "tiled": _torch_ref.rasterize_tiled, "dense": _torch_ref.rasterize_dense}
+
+
+def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
+    """Unit-normalised quaternion (N, 4) wxyz → rotation matrices (N, 3, 3)."""
+    q = q / q.norm(dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) → unit quaternions wxyz (N, 4), w ≥ 0 (numpy)."""
+    R = np.asarray(R, np.float64)
+    tr = np.trace(R, axis1=1, axis2=2)
+    q = np.empty((R.shape[0], 4))
+    # Shepperd's method, branch per row on the largest diagonal term.
+    d = np.stack([tr, R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], 1)
+    k = np.argmax(d, 1)
+    for i in range(R.shape[0]):
+        r = R[i]
+        if k[i] == 0:
+            s = 2 * np.sqrt(1 + tr[i])
+            q[i] = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+        elif k[i] == 1:
+            s = 2 * np.sqrt(1 + r[0, 0] - r[1, 1] - r[2, 2])
+            q[i] = [(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
+        elif k[i] == 2:
+            s = 2 * np.sqrt(1 + r[1, 1] - r[0, 0] - r[2, 2])
+            q[i] = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s]
+        else:
+            s = 2 * np.sqrt(1 + r[2, 2] - r[0, 0] - r[1, 1])
+            q[i] = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def sh_to_color(sh: torch.Tensor, dirs: torch.Tensor | None) -> torch.Tensor:
+    """RGB (N, 3) = 0.5 + C₀ sh₀ [− C₁ y sh₁ + C₁ z sh₂ − C₁ x sh₃], clamped ≥ 0 (3DGS convention).
+
+    sh (N, K, 3) with K = 1 or 4; dirs (N, 3) unit view directions (camera → Gaussian), needed for K = 4.
+    """
+    c = SH_C0 * sh[:, 0]
+    if sh.shape[1] >= 4:
+        x, y, z = dirs[:, 0:1], dirs[:, 1:2], dirs[:, 2:3]
+        c = c - SH_C1 * y * sh[:, 1] + SH_C1 * z * sh[:, 2] - SH_C1 * x * sh[:, 3]
+    return torch.clamp(c + 0.5, min=0.0)
+
+
+def color_to_sh0(rgb: np.ndarray) -> np.ndarray:
+    """Inverse of degree-0 ``sh_to_color``: (N, 3) RGB → (N, 3) DC coefficients."""
+    return (np.asarray(rgb) - 0.5) / SH_C0
+
+
+@dataclass
+class RenderOutput:
+    image: torch.Tensor  # (H, W, 3) composited over the background
+    alpha: torch.Tensor  # (H, W) coverage
+    premultiplied: torch.Tensor  # (H, W, 3) colour before the background
+
+
+class BoundGaussians(torch.nn.Module):
+    """Gaussians bound to tets; appearance parameters are torch Parameters (float32)."""
+
+    def __init__(self, tets: np.ndarray, dm_inv: np.ndarray, host_tet: np.ndarray, bary: np.ndarray,
+                 log_scales: np.ndarray, rotations: np.ndarray, opacity_logit: np.ndarray, sh: np.ndarray,
+                 background: np.ndarray | None = None):
+        super().__init__()
+        f32 = lambda a: torch.as_tensor(np.asarray(a, np.float64), dtype=torch.float32)  # noqa: E731
+        host_tet = np.asarray(host_tet, np.int64)
+        self.register_buffer("host_vertices", torch.as_tensor(np.asarray(tets, np.int64)[host_tet]))  # (G, 4)
+        self.register_buffer("dm_inv", f32(np.asarray(dm_inv)[host_tet]))  # (G, 3, 3)
+        self.host_tet = host_tet
+        self.bary_logits = torch.nn.Parameter(f32(np.log(np.clip(bary, 1e-6, None))))
+        self.log_scales = torch.nn.Parameter(f32(log_scales))
+        self.rotations = torch.nn.Parameter(f32(rotations))
+        self.opacity_logit = torch.nn.Parameter(f32(opacity_logit))
+        self.sh = torch.nn.Parameter(f32(sh))
+        self.register_buffer("background", f32(np.zeros(3) if background is None else background))
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_artefact(cls, gaussians, mesh) -> "BoundGaussians":
+        """From a GaussiansArtefact and the MeshArtefact it is bound to."""
+        return cls(mesh.tets, mesh.dm_inv, gaussians.host_tet, gaussians.bary, gaussians.log_scales,
+                   gaussians.rotations, gaussians.opacity_logit, gaussians.sh, gaussians.background)
+
+    def to_artefact(self, fit_psnr: dict | None = None):
+        """Current parameters as a GaussiansArtefact (bary renormalised, rotations unit)."""
+        from stages.artefacts import GaussiansArtefact
+
+        with torch.no_grad():
+            q = self.rotations / self.rotations.norm(dim=1, keepdim=True)
+            return GaussiansArtefact(
+                self.host_tet.copy(), self.bary().double().numpy(), self.log_scales.double().numpy(),
+                q.double().numpy(), self.opacity_logit.double().numpy(), self.sh.double().numpy(),
+                dict(fit_psnr or {}), self.background.double().numpy())
+
+    @property
+    def n(self) -> int:
+        return int(self.host_vertices.shape[0])
+
+    # ------------------------------------------------------------------ geometry
+    def bary(self) -> torch.Tensor:
+        """Barycentric weights (G, 4) = softmax(bary_logits): always inside the host tet."""
+        return torch.softmax(self.bary_logits, dim=1)
+
+    def _corners(self, positions: torch.Tensor) -> torch.Tensor:
+        x = positions.to(torch.float32)
+        return x[self.host_vertices]  # (G, 4, 3)
+
+    def centres(self, positions: torch.Tensor) -> torch.Tensor:
+        """μ = Σₖ βₖ x_k over the host tet's corners, (G, 3)."""
+        return (self.bary()[:, :, None] * self._corners(positions)).sum(1)
+
+    def deformation(self, positions: torch.Tensor) -> torch.Tensor:
+        """F = D_s D_m⁻¹ of each Gaussian's host tet, (G, 3, 3)."""
+        p = self._corners(positions)
+        ds = (p[:, 1:4] - p[:, 0:1]).transpose(1, 2)
+        return ds @ self.dm_inv
+
+    def rest_covariances(self) -> torch.Tensor:
+        """R S² Rᵀ, (G, 3, 3) m²."""
+        R = quat_to_rotmat(self.rotations)
+        s2 = torch.exp(2 * self.log_scales)
+        return (R * s2[:, None, :]) @ R.transpose(1, 2)
+
+    def covariances(self, positions: torch.Tensor) -> torch.Tensor:
+        """F R S² Rᵀ Fᵀ, (G, 3, 3) m²."""
+        F = self.deformation(positions)
+        return F @ self.rest_covariances() @ F.transpose(1, 2)
+
+    def opacities(self) -> torch.Tensor:
+        return torch.sigmoid(self.opacity_logit)
+
+    # ------------------------------------------------------------------ rendering
+    def camera(self, camera) -> CameraTensors:
+        if isinstance(camera, CameraTensors):
+            return camera
+        return CameraTensors.from_camera(camera, torch.float32)
+
+    def render(self, positions: torch.Tensor, camera, background: torch.Tensor | np.ndarray | None = None,
+               rasterizer: str = "fast") -> RenderOutput:
+        """Render the Gaussians at mesh positions (n, 3) into ``camera``; see the module docstring."""
+        cam = self.camera(camera)
+        means = self.centres(positions)
+        covs = self.covariances(positions)
+        proj = project_gaussians(means, covs, cam)
+        dirs = None
+        if self.sh.shape[1] >= 4:
+            d = means - cam.centre
+            dirs = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        colors = sh_to_color(self.sh, dirs)
+        premult, alpha = RASTERIZERS[rasterizer](proj.means2d, proj.conics, colors, self.opacities(),
+                                                 proj.depths, proj.visible, cam.width, cam.height)
+        bg = self.background if background is None else torch.as_tensor(background, dtype=torch.float32)
+        image = premult + (1 - alpha)[..., None] * bg
+        return RenderOutput(image, alpha, premult)

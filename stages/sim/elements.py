@@ -1,0 +1,366 @@
+"""Per-tet energy, gradient and PSD-projected Hessian: a compiled (numba) stable Neo-Hookean
+kernel with the analytic eigensystem of Smith et al. 2019, and its JAX twin for every material.
+
+Element unknowns are x_e = [x_0, x_1, x_2, x_3] (12,). With G (4, 3) the shape-function gradients
+(G_a = row a−1 of Dm⁻¹ for a ≥ 1, G_0 = −Σ_a G_a), F = Σ_a x_a ⊗ G_a, so
+    ∂(VΨ)/∂x_a = V P G_a,    ∂²(VΨ)/∂x_{a,i}∂x_{b,k} = V Σ_{jl} ∂²Ψ/∂F_ij∂F_kl G_aj G_bl.
+The 9×9 Hessian ∂²Ψ/∂F² = Σ_k λ_k vec(Q_k) vec(Q_k)ᵀ with, for F = U Σ Vᵀ (U, V rotations,
+σ_3 may be negative), Ψ = Ψ(I₂, J), I₂ = Σσ², J = σ₁σ₂σ₃:
+  - twist  Q = U (e_i e_jᵀ − e_j e_iᵀ)/√2 Vᵀ,  λ = 2Ψ_I₂ + Ψ_J σ_k,
+  - flip   Q = U (e_i e_jᵀ + e_j e_iᵀ)/√2 Vᵀ,  λ = 2Ψ_I₂ − Ψ_J σ_k,
+  - scaling Q = U diag(q) Vᵀ with (λ, q) the eigenpairs of ∂²Ψ/∂σ² (3×3).
+Projection to positive semi-definite clamps λ_k at 0; that equals clamping the eigenvalues of the
+9×9 matrix, which is what the JAX twin does with ``eigh``.
+"""
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numba as nb
+import numpy as np
+
+from .materials import energy_density
+
+jax.config.update("jax_enable_x64", True)
+
+ENERGY, GRADIENT, HESSIAN = 0, 1, 2  # what a kernel call computes (each includes the previous)
+
+
+def shape_gradients(dm_inv: np.ndarray) -> np.ndarray:
+    """G (m, 4, 3): gradients of the linear shape functions, F = Σ_a x_a ⊗ G_a."""
+    g = np.empty(dm_inv.shape[:-2] + (4, 3))
+    g[..., 1:, :] = dm_inv
+    g[..., 0, :] = -dm_inv.sum(axis=-2)
+    return g
+
+
+# =========================================================================== numba kernel
+@nb.njit(cache=True)
+def _sym3_eig_into(a, w, q):
+    """Eigenpairs of a symmetric 3×3 matrix by cyclic Jacobi, in place: a is destroyed,
+    w (3,) eigenvalues, q (3, 3) eigenvectors as columns."""
+    for i in range(3):
+        for j in range(3):
+            q[i, j] = 1.0 if i == j else 0.0
+    for _sweep in range(30):
+        off = a[0, 1] ** 2 + a[0, 2] ** 2 + a[1, 2] ** 2
+        scale = a[0, 0] ** 2 + a[1, 1] ** 2 + a[2, 2] ** 2
+        if off <= 1e-32 * scale or off == 0.0:
+            break
+        for p in range(2):
+            for r in range(p + 1, 3):
+                apr = a[p, r]
+                if apr == 0.0:
+                    continue
+                theta = (a[r, r] - a[p, p]) / (2.0 * apr)
+                t = (1.0 if theta >= 0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(3):  # a = Jᵀ a J
+                    akp, akr = a[k, p], a[k, r]
+                    a[k, p] = c * akp - s * akr
+                    a[k, r] = s * akp + c * akr
+                for k in range(3):
+                    apk, ark = a[p, k], a[r, k]
+                    a[p, k] = c * apk - s * ark
+                    a[r, k] = s * apk + c * ark
+                for k in range(3):
+                    qkp, qkr = q[k, p], q[k, r]
+                    q[k, p] = c * qkp - s * qkr
+                    q[k, r] = s * qkp + c * qkr
+    for i in range(3):
+        w[i] = a[i, i]
+
+
+@nb.njit(cache=True)
+def _sym3_eig(a):
+    """(w, Q) of a symmetric 3×3 matrix (allocating wrapper of :func:`_sym3_eig_into`)."""
+    w = np.empty(3)
+    q = np.empty((3, 3))
+    _sym3_eig_into(a.copy(), w, q)
+    return w, q
+
+
+@nb.njit(cache=True)
+def _rotation_svd_into(F, U, sig, V, work, wv):
+    """F = U diag(σ) Vᵀ with U, V proper rotations (σ₃ carries the sign of det F); in place.
+    work (3, 3) and wv (3,) are scratch."""
+    for i in range(3):
+        for j in range(3):
+            work[i, j] = F[0, i] * F[0, j] + F[1, i] * F[1, j] + F[2, i] * F[2, j]  # FᵀF
+    _sym3_eig_into(work, wv, U)  # U holds the eigenvectors of FᵀF for now
+    # sort descending into V
+    o0, o1, o2 = 0, 1, 2
+    if wv[o0] < wv[o1]:
+        o0, o1 = o1, o0
+    if wv[o1] < wv[o2]:
+        o1, o2 = o2, o1
+    if wv[o0] < wv[o1]:
+        o0, o1 = o1, o0
+    for i in range(3):
+        V[i, 0], V[i, 1], V[i, 2] = U[i, o0], U[i, o1], U[i, o2]
+    detv = (V[0, 0] * (V[1, 1] * V[2, 2] - V[2, 1] * V[1, 2]) - V[0, 1] * (V[1, 0] * V[2, 2] - V[2, 0] * V[1, 2])
+            + V[0, 2] * (V[1, 0] * V[2, 1] - V[2, 0] * V[1, 1]))
+    if detv < 0.0:
+        for i in range(3):
+            V[i, 2] = -V[i, 2]
+    # u0 = F v0 / |F v0|
+    f0 = wv  # scratch from here on
+    for i in range(3):
+        f0[i] = F[i, 0] * V[0, 0] + F[i, 1] * V[1, 0] + F[i, 2] * V[2, 0]
+    n0 = math.sqrt(f0[0] ** 2 + f0[1] ** 2 + f0[2] ** 2)
+    if n0 > 1e-300:
+        for i in range(3):
+            U[i, 0] = f0[i] / n0
+    else:
+        U[0, 0], U[1, 0], U[2, 0] = 1.0, 0.0, 0.0
+    sig[0] = n0
+    for i in range(3):
+        f0[i] = F[i, 0] * V[0, 1] + F[i, 1] * V[1, 1] + F[i, 2] * V[2, 1]
+    d = U[0, 0] * f0[0] + U[1, 0] * f0[1] + U[2, 0] * f0[2]
+    for i in range(3):
+        f0[i] -= d * U[i, 0]
+    n1 = math.sqrt(f0[0] ** 2 + f0[1] ** 2 + f0[2] ** 2)
+    if n1 > 1e-12 * max(n0, 1e-300):
+        for i in range(3):
+            U[i, 1] = f0[i] / n1
+    else:  # any unit vector orthogonal to u0
+        if abs(U[0, 0]) < 0.9:
+            e0, e1, e2 = 1.0, 0.0, 0.0
+        else:
+            e0, e1, e2 = 0.0, 1.0, 0.0
+        d = U[0, 0] * e0 + U[1, 0] * e1 + U[2, 0] * e2
+        e0, e1, e2 = e0 - d * U[0, 0], e1 - d * U[1, 0], e2 - d * U[2, 0]
+        ne = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        U[0, 1], U[1, 1], U[2, 1] = e0 / ne, e1 / ne, e2 / ne
+    U[0, 2] = U[1, 0] * U[2, 1] - U[2, 0] * U[1, 1]
+    U[1, 2] = U[2, 0] * U[0, 1] - U[0, 0] * U[2, 1]
+    U[2, 2] = U[0, 0] * U[1, 1] - U[1, 0] * U[0, 1]
+    for k in range(1, 3):
+        acc = 0.0
+        for i in range(3):
+            acc += U[i, k] * (F[i, 0] * V[0, k] + F[i, 1] * V[1, k] + F[i, 2] * V[2, k])
+        sig[k] = acc
+
+
+@nb.njit(cache=True)
+def _rotation_svd(F):
+    """(U, σ, V) with U, V rotations (allocating wrapper of :func:`_rotation_svd_into`)."""
+    U, V, work = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    sig, wv = np.empty(3), np.empty(3)
+    _rotation_svd_into(np.ascontiguousarray(F), U, sig, V, work, wv)
+    return U, sig, V
+
+
+@nb.njit(cache=True)
+def snh_kernel(x, tets, dm_inv, vol, mu, lam, want, project):
+    """Stable Neo-Hookean per tet (materials.stable_neohookean, μ' = 4μ/3, λ' = λ + 5μ/6):
+    energies V Ψ (m,), gradients (m, 12) and Hessians (m, 12, 12) w.r.t. x_e, projected to PSD
+    when ``project``. ``want``: ENERGY, GRADIENT or HESSIAN. x (n, 3), tets (m, 4), dm_inv (m, 3, 3)."""
+    m = tets.shape[0]
+    energy = np.empty(m)
+    grad = np.empty((m if want >= 1 else 0, 12))
+    hess = np.empty((m if want >= 2 else 0, 12, 12))
+    G = np.empty((4, 3))
+    F = np.empty((3, 3))
+    C = np.empty((3, 3))  # cof(F) = ∂J/∂F
+    U, Vr, A, Qs, work = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    sig, Ji, w3, wv = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    lams9 = np.empty(9)
+    Q = np.empty((9, 9))  # row k: vec(Q_k), row-major vec
+    wk = np.empty(12)
+    HF = np.empty((9, 9))
+    T = np.empty((9, 12))
+    O = np.empty((3, 3, 9))  # O[i, j] = vec(u_i v_jᵀ)
+    s2 = 1.0 / math.sqrt(2.0)
+    log4 = math.log(4.0)
+    for e in range(m):
+        for j in range(3):
+            G[1, j], G[2, j], G[3, j] = dm_inv[e, 0, j], dm_inv[e, 1, j], dm_inv[e, 2, j]
+            G[0, j] = -(G[1, j] + G[2, j] + G[3, j])
+        t0, t1, t2, t3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+        ic = 0.0
+        for i in range(3):
+            for j in range(3):
+                F[i, j] = x[t0, i] * G[0, j] + x[t1, i] * G[1, j] + x[t2, i] * G[2, j] + x[t3, i] * G[3, j]
+                ic += F[i, j] * F[i, j]
+        mus = 4.0 / 3.0 * mu[e]
+        lams = lam[e] + 5.0 / 6.0 * mu[e]
+        alpha = 1.0 + 0.75 * mus / lams
+        for i in range(3):  # columns: f1×f2, f2×f0, f0×f1
+            i1, i2 = (i + 1) % 3, (i + 2) % 3
+            C[i, 0] = F[i1, 1] * F[i2, 2] - F[i2, 1] * F[i1, 2]
+            C[i, 1] = F[i1, 2] * F[i2, 0] - F[i2, 2] * F[i1, 0]
+            C[i, 2] = F[i1, 0] * F[i2, 1] - F[i2, 0] * F[i1, 1]
+        J = F[0, 0] * C[0, 0] + F[1, 0] * C[1, 0] + F[2, 0] * C[2, 0]
+        rest = 0.5 * lams * (1.0 - alpha) ** 2 - 0.5 * mus * log4
+        psi = 0.5 * mus * (ic - 3.0) + 0.5 * lams * (J - alpha) ** 2 - 0.5 * mus * math.log(ic + 1.0) - rest
+        V = vol[e]
+        energy[e] = V * psi
+        if want < 1:
+            continue
+        d2 = 0.5 * mus * (1.0 - 1.0 / (ic + 1.0))  # ∂Ψ/∂I₂
+        dJ = lams * (J - alpha)  # ∂Ψ/∂J
+        d22 = 0.5 * mus / (ic + 1.0) ** 2  # ∂²Ψ/∂I₂²
+        for a in range(4):
+            for i in range(3):
+                acc = 0.0
+                for j in range(3):
+                    acc += (2.0 * d2 * F[i, j] + dJ * C[i, j]) * G[a, j]
+                grad[e, 3 * a + i] = V * acc
+        if want < 2:
+            continue
+        H = hess[e]
+        if not project:
+            # exact: ∂²Ψ/∂F_ij∂F_kl = 2Ψ_I₂ δ_ik δ_jl + 4Ψ_I₂I₂ F_ij F_kl + λ' C_ij C_kl + Ψ_J ε_ikp ε_jlq F_pq
+            for i in range(3):
+                for j in range(3):
+                    r = 3 * i + j
+                    for k in range(3):
+                        for l in range(3):
+                            h = 4.0 * d22 * F[i, j] * F[k, l] + lams * C[i, j] * C[k, l]
+                            if i == k and j == l:
+                                h += 2.0 * d2
+                            elif i != k and j != l:
+                                pp, qq = 3 - i - k, 3 - j - l
+                                sgn = (1.0 if k == (i + 1) % 3 else -1.0) * (1.0 if l == (j + 1) % 3 else -1.0)
+                                h += dJ * sgn * F[pp, qq]
+                            HF[r, 3 * k + l] = h
+            for r in range(9):  # T[(i,j), (b,k)] = Σ_l HF[(i,j),(k,l)] G[b,l]
+                for b in range(4):
+                    for k in range(3):
+                        T[r, 3 * b + k] = (HF[r, 3 * k] * G[b, 0] + HF[r, 3 * k + 1] * G[b, 1]
+                                           + HF[r, 3 * k + 2] * G[b, 2])
+            for a in range(4):  # H[(a,i),(b,k)] = V Σ_j G[a,j] T[(i,j),(b,k)]
+                for i in range(3):
+                    for c in range(12):
+                        H[3 * a + i, c] = V * (G[a, 0] * T[3 * i, c] + G[a, 1] * T[3 * i + 1, c]
+                                               + G[a, 2] * T[3 * i + 2, c])
+            continue
+        _rotation_svd_into(F, U, sig, Vr, work, wv)
+        Ji[0], Ji[1], Ji[2] = sig[1] * sig[2], sig[0] * sig[2], sig[0] * sig[1]
+        for i in range(3):  # scaling block ∂²Ψ/∂σ²
+            for j in range(3):
+                A[i, j] = 4.0 * d22 * sig[i] * sig[j] + lams * Ji[i] * Ji[j]
+                if i == j:
+                    A[i, j] += 2.0 * d2
+                else:
+                    A[i, j] += dJ * sig[3 - i - j]
+        _sym3_eig_into(A, w3, Qs)
+        for i in range(3):
+            for j in range(3):
+                for r in range(3):
+                    for c in range(3):
+                        O[i, j, 3 * r + c] = U[r, i] * Vr[c, j]
+        for k in range(3):
+            lams9[k] = w3[k]
+            for z in range(9):
+                Q[k, z] = Qs[0, k] * O[0, 0, z] + Qs[1, k] * O[1, 1, z] + Qs[2, k] * O[2, 2, z]
+        for p in range(3):
+            i, j = (0, 1) if p == 0 else ((0, 2) if p == 1 else (1, 2))
+            kk = 3 - i - j
+            lams9[3 + p] = 2.0 * d2 + dJ * sig[kk]  # twist
+            lams9[6 + p] = 2.0 * d2 - dJ * sig[kk]  # flip
+            for z in range(9):
+                Q[3 + p, z] = s2 * (O[i, j, z] - O[j, i, z])
+                Q[6 + p, z] = s2 * (O[i, j, z] + O[j, i, z])
+        for r in range(12):
+            for c in range(12):
+                H[r, c] = 0.0
+        for k in range(9):
+            lk = lams9[k]
+            if project and lk <= 0.0:
+                continue
+            # w = B vec(Q_k): w[(a,i)] = Σ_j Q_k[i, j] G[a, j]
+            for a in range(4):
+                for i in range(3):
+                    wk[3 * a + i] = Q[k, 3 * i] * G[a, 0] + Q[k, 3 * i + 1] * G[a, 1] + Q[k, 3 * i + 2] * G[a, 2]
+            c0 = V * lk
+            for r in range(12):
+                cr = c0 * wk[r]
+                for c in range(r, 12):
+                    H[r, c] += cr * wk[c]
+        for r in range(12):
+            for c in range(r):
+                H[r, c] = H[c, r]
+    return energy, grad, hess
+
+
+# =========================================================================== JAX twin
+def _element_energy(material):
+    psi = energy_density(material)
+
+    def f(xe, g, vol, mu, lam):
+        """V Ψ(F) of one tet from its vertices xe (4, 3) and shape gradients g (4, 3)."""
+        F = xe.T @ g
+        return vol * psi(F, mu, lam)
+
+    return f
+
+
+def _project_psd(h):
+    """Clamp the eigenvalues of a symmetric matrix at 0."""
+    w, q = jnp.linalg.eigh(0.5 * (h + h.T))
+    return (q * jnp.maximum(w, 0.0)) @ q.T
+
+
+def element_terms_jax(x, tets, dm_inv, vol, mu, lam, material: str, project: bool = True):
+    """JAX twin of :func:`snh_kernel` for any material: (energies (m,), gradients (m, 12),
+    Hessians (m, 12, 12)); the Hessian is Bᵀ proj(∂²Ψ/∂F²) B V with proj an eigenvalue clamp."""
+    return _element_terms_jit(jnp.asarray(x), jnp.asarray(tets), jnp.asarray(dm_inv), jnp.asarray(vol),
+                              jnp.asarray(mu), jnp.asarray(lam), material, project)
+
+
+def _element_terms_impl(x, tets, dm_inv, vol, mu, lam, material, project):
+    psi = energy_density(material)
+    xe = x[tets]  # (m, 4, 3)
+    g = jnp.concatenate([-jnp.sum(dm_inv, axis=1, keepdims=True), dm_inv], axis=1)  # (m, 4, 3)
+    fe = _element_energy(material)
+    energy = jax.vmap(fe)(xe, g, vol, mu, lam)
+    grad = jax.vmap(jax.grad(fe))(xe, g, vol, mu, lam).reshape(-1, 12)
+
+    def hess_one(xe1, g1, v, m1, l1):
+        F = xe1.T @ g1
+        hf = jax.hessian(psi)(F, m1, l1).reshape(9, 9)  # row-major vec(F)
+        if project:
+            hf = _project_psd(hf)
+        # B (9, 12): ∂F_ij/∂x_{a,k} = δ_ik G_aj
+        B = jnp.einsum("ik,aj->ijak", jnp.eye(3), g1).reshape(9, 12)
+        return v * B.T @ hf @ B
+
+    hess = jax.vmap(hess_one)(xe, g, vol, mu, lam)
+    return energy, grad, hess
+
+
+_element_terms_jit = jax.jit(_element_terms_impl, static_argnums=(6, 7))
+
+
+def _element_eg_impl(x, tets, dm_inv, vol, mu, lam, material):
+    xe = x[tets]
+    g = jnp.concatenate([-jnp.sum(dm_inv, axis=1, keepdims=True), dm_inv], axis=1)
+    fe = _element_energy(material)
+    energy = jax.vmap(fe)(xe, g, vol, mu, lam)
+    grad = jax.vmap(jax.grad(fe))(xe, g, vol, mu, lam).reshape(-1, 12)
+    return energy, grad
+
+
+_element_eg_jit = jax.jit(_element_eg_impl, static_argnums=(6,))
+
+
+def element_terms(x, tets, dm_inv, vol, mu, lam, material: str, want: int = HESSIAN, project: bool = True,
+                  backend: str = "auto"):
+    """Per-tet (energies, gradients, Hessians) in numpy: numba for stable Neo-Hookean (backend
+    "auto"/"numba"), else the JAX twin (backend "jax", and every other material)."""
+    if backend == "numba" and material != "stable_neohookean":
+        raise ValueError(f"the numba kernel covers stable_neohookean only, not {material!r}")
+    if material == "stable_neohookean" and backend in ("auto", "numba"):
+        return snh_kernel(np.ascontiguousarray(x, np.float64), tets, dm_inv, vol, np.asarray(mu, np.float64),
+                          np.asarray(lam, np.float64), want, project)
+    if want < HESSIAN:
+        e, g = _element_eg_jit(jnp.asarray(x), jnp.asarray(tets), jnp.asarray(dm_inv), jnp.asarray(vol),
+                               jnp.asarray(mu), jnp.asarray(lam), material)
+        return np.asarray(e), np.asarray(g), np.empty((0, 12, 12))
+    e, g, h = element_terms_jax(x, tets, dm_inv, vol, mu, lam, material, project)
+    return np.asarray(e), np.asarray(g), np.asarray(h)

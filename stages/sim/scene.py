@@ -1,0 +1,498 @@
+"""Full-space implicit-Euler FEM: the scene, one time step by Newton, a sequence, and the window adjoint.
+
+Step (paper Eq. 1):  x_t = argmin_x Φ_t(x),  Φ_t = ½/Δt² ‖x − y_t‖²_M + Σ_e V_e Ψ(F_e; θ_t)
+                     − (M g + f_t)·x + Σ_h ½ k_h ‖x_h − x̄_h,t‖² + contact,   y_t = 2x_{t−1} − x_{t−2}.
+Newton: H Δx = −∇Φ with the exact Hessian while CHOLMOD accepts it, else with element Hessians
+projected to PSD (analytic eigensystem, elements.py) — SNH is indefinite near rest —,
+sparse assembly on a fixed pattern and a sparse direct solve (linsolve.py); backtracking line
+search on Φ; converged when ‖∇Φ‖ ≤ rtol · (‖∇Φ(x_init)‖ + ‖M g‖ + ‖f‖).
+
+Adjoint over a window (paper Eqs. 9–12 in full space): with r_t = ∇_x Φ_t(x_t; x_{t−1}, x_{t−2}, θ_t) = 0,
+    H_t a_t = ∂L/∂x_t − (∂r_{t+1}/∂x_t)ᵀ a_{t+1} − (∂r_{t+2}/∂x_t)ᵀ a_{t+2}     (backward in t)
+    dL/dθ_t = −(∂r_t/∂θ_t)ᵀ a_t,
+H_t the exact (unprojected) Hessian; the cross terms are JAX vector–Jacobian products.
+"""
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import RslError
+from . import potential as pot
+from .elements import GRADIENT, HESSIAN, element_terms
+from .linsolve import LinearSolver, NotPositiveDefinite, SparsePattern, resolve_solver
+from .materials import MODELS, lame
+
+jax.config.update("jax_enable_x64", True)
+
+
+# =========================================================================== scene description
+@dataclass(frozen=True, eq=False)
+class HandleSpec:
+    name: str
+    ids: np.ndarray  # (k,) vertex ids
+    stiffness: float  # N/m per vertex
+
+
+@dataclass(frozen=True, eq=False)
+class LoadSpec:
+    name: str
+    ids: np.ndarray  # (k,) vertex ids; the total force is spread evenly over them
+
+
+@dataclass(frozen=True, eq=False)
+class ObstacleSpec:
+    name: str
+    shape: str  # plane | sphere | box
+    normal: np.ndarray | None  # plane normal in the obstacle frame
+    offset: float  # plane: n·p ≥ offset is outside, m
+    radius: float  # sphere, m
+    half_extents: np.ndarray | None  # box, (3,) m
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """Everything constant over a sequence (numpy float64)."""
+
+    rest: np.ndarray  # (n, 3) m
+    tets: np.ndarray  # (m, 4)
+    dm_inv: np.ndarray  # (m, 3, 3)
+    volumes: np.ndarray  # (m,) m³
+    masses: np.ndarray  # (n,) kg
+    tet_region: np.ndarray  # (m,) region index
+    n_regions: int
+    region_names: tuple[str, ...]
+    material: str  # stable_neohookean | yeoh | linear
+    dt: float  # s
+    gravity: np.ndarray  # (3,) m/s²
+    handles: tuple[HandleSpec, ...]
+    loads: tuple[LoadSpec, ...]
+    obstacles: tuple[ObstacleSpec, ...]
+    friction: float  # Coulomb coefficient μ_f (0: frictionless)
+    contact_stiffness: float  # κ, N/m per vertex
+    contact_margin: float = 0.0  # d̂, m: the penalty acts below this distance
+    friction_eps: float = 1e-5  # m, smoothing of the friction norm
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.rest.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class FrameInputs:
+    """The known inputs of one frame."""
+
+    handle_targets: tuple[np.ndarray, ...]  # per handle, (k, 3) target positions, m
+    load_forces: np.ndarray  # (n, 3) per-vertex external force, N
+    obstacle_poses: np.ndarray  # (n_obstacles, 7) [t, q]
+
+
+jax.tree_util.register_pytree_node(
+    FrameInputs,
+    lambda f: ((tuple(f.handle_targets), f.load_forces, f.obstacle_poses), None),
+    lambda _, c: FrameInputs(tuple(c[0]), c[1], c[2]))
+
+
+class SimulationError(RslError):
+    """A time step that failed (Newton did not converge, non-finite state)."""
+
+
+def make_scene(mesh, controls, material: str, dt: float, gravity, contact_stiffness: float | None = None,
+               contact_margin: float | None = None, friction_eps: float = 1e-5) -> Scene:
+    """Scene from a MeshArtefact and Controls. Handles use the mesh's stored vertex sets when it has
+    them, else the controls' selections. Default κ = 100 M max(|g|, 9.81) / d̂ (the whole weight on one
+    vertex sinks d̂/100) and d̂ = 10⁻³ × the bounding-box diagonal."""
+    from ..capture import select_handles  # capture imports nothing from sim
+
+    if material not in MODELS:
+        raise RslError(f"unknown material model {material!r}; use one of {', '.join(MODELS)}.")
+    rest = np.ascontiguousarray(mesh.vertices, np.float64)
+    tets = np.ascontiguousarray(mesh.tets, np.int64)
+    ids_by_name = dict(getattr(mesh, "handles", {}) or {})
+    missing = [h for h in controls.handles if h.name not in ids_by_name]
+    if missing:
+        ids_by_name.update(select_handles(controls, rest))
+    handles = tuple(HandleSpec(h.name, np.asarray(ids_by_name[h.name], np.int64), float(h.stiffness))
+                    for h in controls.handles)
+    loads = tuple(LoadSpec(ld.name, np.asarray(ld.select.select(rest), np.int64)) for ld in controls.loads)
+    obstacles = []
+    for o in controls.obstacles:
+        normal = None if o.normal is None else np.asarray(o.normal, np.float64) / np.linalg.norm(o.normal)
+        half = None if o.half_extents is None else np.asarray(o.half_extents, np.float64)
+        obstacles.append(ObstacleSpec(o.name, o.shape, normal, float(o.offset), float(o.radius), half))
+    g = np.asarray(gravity, np.float64).reshape(3)
+    masses = np.ascontiguousarray(mesh.vertex_masses, np.float64)
+    diag = float(np.linalg.norm(rest.max(0) - rest.min(0)))
+    margin = 1e-3 * diag if contact_margin is None else float(contact_margin)
+    kappa = (100.0 * masses.sum() * max(np.linalg.norm(g), 9.81) / max(margin, 1e-9)
+             if contact_stiffness is None else float(contact_stiffness))
+    names = tuple(mesh.region_names)
+    return Scene(rest=rest, tets=tets, dm_inv=np.ascontiguousarray(mesh.dm_inv, np.float64),
+                 volumes=np.ascontiguousarray(mesh.rest_volumes, np.float64), masses=masses,
+                 tet_region=np.ascontiguousarray(mesh.tet_region, np.int64), n_regions=len(names),
+                 region_names=names, material=material, dt=float(dt), gravity=g, handles=handles,
+                 loads=loads, obstacles=tuple(obstacles), friction=float(controls.friction),
+                 contact_stiffness=kappa, contact_margin=margin, friction_eps=friction_eps)
+
+
+def frame_inputs(scene: Scene, controls, frame: int) -> FrameInputs:
+    """Handle targets (rigidly moved rest positions), per-vertex load forces and obstacle poses at a frame."""
+    from ..capture import apply_pose
+
+    targets = tuple(apply_pose(h.poses.at(frame), scene.rest[hs.ids])
+                    for h, hs in zip(controls.handles, scene.handles))
+    forces = np.zeros_like(scene.rest)
+    for ld, ls in zip(controls.loads, scene.loads):
+        np.add.at(forces, ls.ids, np.asarray(ld.force.at(frame), np.float64) / len(ls.ids))
+    poses = np.array([o.poses.at(frame) for o in controls.obstacles], np.float64).reshape(-1, 7)
+    return FrameInputs(targets, forces, poses)
+
+
+# =========================================================================== per-scene caches
+class _SceneCache:
+    def __init__(self, scene: Scene):
+        self.pattern = SparsePattern(scene.tets, scene.n_vertices)
+        self.solvers: dict[str, LinearSolver] = {}
+
+    def solver(self, name: str) -> LinearSolver:
+        kind = resolve_solver(name)
+        if kind not in self.solvers:
+            self.solvers[kind] = LinearSolver(self.pattern, kind)
+        return self.solvers[kind]
+
+
+_CACHE: "weakref.WeakKeyDictionary[Scene, _SceneCache]" = weakref.WeakKeyDictionary()
+
+
+def _cache(scene: Scene) -> _SceneCache:
+    c = _CACHE.get(scene)
+    if c is None:
+        c = _CACHE[scene] = _SceneCache(scene)
+    return c
+
+
+def _region_lame(scene: Scene, young, poisson) -> tuple[np.ndarray, np.ndarray]:
+    """(μ_e, λ_e) per tet (numpy) from per-region (R,) θ."""
+    young = np.broadcast_to(np.asarray(young, np.float64), (scene.n_regions,))
+    poisson = np.broadcast_to(np.asarray(poisson, np.float64), (scene.n_regions,))
+    mu, lam = lame(young, poisson)
+    return np.ascontiguousarray(mu[scene.tet_region]), np.ascontiguousarray(lam[scene.tet_region])
+
+
+# =========================================================================== vertex terms
+@jax.jit
+def _contact_terms_jit(x, x_prev, s, poses):
+    """Per-vertex contact/friction energies (n,), gradients (n, 3), Hessians (n, 3, 3)."""
+    f = lambda p, q: pot.vertex_contact_energy(p, q, s, poses)  # noqa: E731
+    e = jax.vmap(f)(x, x_prev)
+    g = jax.vmap(jax.grad(f))(x, x_prev)
+    h = jax.vmap(jax.hessian(f))(x, x_prev)
+    return e, g, h
+
+
+def _vertex_terms(scene: Scene, inputs: FrameInputs, x, y, x_prev, want: int, project: bool):
+    """Inertia, gravity, loads, handles and contact: energy (scalar), gradient (n, 3), blocks (n, 3, 3)."""
+    m = scene.masses[:, None]
+    inv_dt2 = 1.0 / scene.dt ** 2
+    d = x - y
+    energy = 0.5 * inv_dt2 * np.sum(m * d * d) - np.sum(m * x * scene.gravity) - np.sum(inputs.load_forces * x)
+    grad = inv_dt2 * m * d - m * scene.gravity - inputs.load_forces if want >= GRADIENT else None
+    blocks = None
+    if want >= HESSIAN:
+        blocks = np.zeros((scene.n_vertices, 3, 3))
+        blocks += (inv_dt2 * scene.masses)[:, None, None] * np.eye(3)
+    for h, target in zip(scene.handles, inputs.handle_targets):
+        dh = x[h.ids] - target
+        energy += 0.5 * h.stiffness * np.sum(dh * dh)
+        if grad is not None:
+            np.add.at(grad, h.ids, h.stiffness * dh)
+        if blocks is not None:
+            np.add.at(blocks, h.ids, h.stiffness * np.eye(3))
+    if scene.obstacles:
+        s = pot.scene_data(scene)
+        xp = x if (x_prev is None or scene.friction <= 0.0) else x_prev
+        if x_prev is None or scene.friction <= 0.0:
+            # no friction: zero the friction coefficient contribution by passing x_prev = x and μ_f = 0
+            s = _frictionless(s)
+        e, g, hc = _contact_terms_jit(jnp.asarray(x), jnp.asarray(xp), s, jnp.asarray(inputs.obstacle_poses))
+        energy += float(jnp.sum(e))
+        if grad is not None:
+            grad = grad + np.asarray(g)
+        if blocks is not None:
+            hc = np.asarray(hc)
+            if project:
+                w, q = np.linalg.eigh(0.5 * (hc + hc.transpose(0, 2, 1)))
+                hc = (q * np.maximum(w, 0.0)[:, None, :]) @ q.transpose(0, 2, 1)
+            blocks += hc
+    return energy, grad, blocks
+
+
+_FRICTIONLESS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _frictionless(s: pot.SceneData) -> pot.SceneData:
+    leaves, aux = s.tree_flatten()
+    d = dict(zip(pot.SceneData.LEAVES, leaves))
+    d["friction"] = jnp.zeros((), jnp.float64)
+    return pot.SceneData(d, *aux)
+
+
+# =========================================================================== energy / forces
+def _elastic(scene: Scene, x, mu, lam, want: int, project: bool, kernels: str):
+    return element_terms(x, scene.tets, scene.dm_inv, scene.volumes, mu, lam, scene.material, want, project,
+                         kernels)
+
+
+def _scatter_grad(scene: Scene, elem_grad: np.ndarray) -> np.ndarray:
+    """Σ_e element gradients (m, 12) into vertex gradients (n, 3)."""
+    out = np.zeros(scene.n_vertices * 3)
+    dof = (3 * scene.tets[:, :, None] + np.arange(3)).reshape(-1)
+    return out + np.bincount(dof, weights=elem_grad.reshape(-1), minlength=out.size)
+
+
+def internal_forces(x, scene: Scene, young, poisson, kernels: str = "auto") -> np.ndarray:
+    """−∂(Σ V_e Ψ)/∂x, (n, 3) N, for per-region young (R,) Pa and poisson (R,)."""
+    mu, lam = _region_lame(scene, young, poisson)
+    _, g, _ = _elastic(scene, np.asarray(x, np.float64), mu, lam, GRADIENT, True, kernels)
+    return -_scatter_grad(scene, g).reshape(-1, 3)
+
+
+def total_energy(scene: Scene, inputs: FrameInputs, x, y, x_prev, mu, lam, kernels: str = "auto") -> float:
+    """Φ(x) in numpy (the value :func:`potential.incremental_potential` computes in JAX)."""
+    e, _, _ = _elastic(scene, x, mu, lam, 0, True, kernels)
+    ev, _, _ = _vertex_terms(scene, inputs, x, y, x_prev, 0, True)
+    return float(np.sum(e)) + ev
+
+
+def hessian(scene: Scene, inputs: FrameInputs, x, x_prev, young, poisson, project: bool,
+            kernels: str = "auto"):
+    """The assembled 3n×3n Hessian of Φ at x as scipy CSR (projected to PSD per element when ``project``)."""
+    mu, lam = _region_lame(scene, young, poisson)
+    _, _, he = _elastic(scene, x, mu, lam, HESSIAN, project, kernels)
+    _, _, hv = _vertex_terms(scene, inputs, x, x, x_prev, HESSIAN, project)
+    pattern = _cache(scene).pattern
+    return pattern.matrix(pattern.assemble(he, hv))
+
+
+# =========================================================================== Newton
+def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_init=None,
+         solver: str = "auto", *, rtol: float = 1e-8, xtol: float = 1e-12, max_iterations: int = 50, frame: int | None = None,
+         kernels: str = "auto", hessian_mode: str = "auto", timings: dict | None = None
+         ) -> tuple[np.ndarray, dict]:
+    """One implicit-Euler step: x_t (n, 3) and info {"iterations", "residual", "history"} (relative
+    residual ‖∇Φ‖ / (‖∇Φ(x_init)‖ + ‖M g‖ + ‖f‖) and its value at each iteration).
+    Converged when the residual ≤ rtol, or when a full Newton step moves no vertex by more than
+    xtol × the bounding-box diagonal (round-off floor).
+
+    young, poisson (R,) per region; x_prev = x_{t−1}, x_prev2 = x_{t−2} (n, 3); x_init the Newton start
+    (default y). Raises SimulationError when Newton does not converge in ``max_iterations``.
+    hessian_mode: "projected" (element Hessians clamped to PSD), "exact", or "auto" (exact while the
+    Cholesky factorisation succeeds, projected from the first failure on; projected with splu).
+    ``timings`` (optional dict) accumulates seconds spent in "elements", "assembly", "solve", "vertex".
+    """
+    import time
+
+    where = f"frame {frame}" if frame is not None else "this step"
+    x_prev = np.asarray(x_prev, np.float64)
+    x_prev2 = np.asarray(x_prev2, np.float64)
+    y = 2.0 * x_prev - x_prev2
+    x = np.array(y if x_init is None else x_init, np.float64)
+    mu, lam = _region_lame(scene, young, poisson)
+    cache = _cache(scene)
+    lin = cache.solver(solver)
+    tm = timings if timings is not None else {}
+    for k in ("elements", "assembly", "solve", "vertex", "line_search"):
+        tm.setdefault(k, 0.0)
+    force_scale = np.linalg.norm(scene.masses[:, None] * scene.gravity) + np.linalg.norm(inputs.load_forces)
+
+    def energy_at(z):
+        t0 = time.perf_counter()
+        e = total_energy(scene, inputs, z, y, x_prev, mu, lam, kernels)
+        tm["line_search"] += time.perf_counter() - t0
+        return e
+
+    scale = None
+    residual = np.inf
+    history: list[float] = []
+    size = float(np.linalg.norm(scene.rest.max(0) - scene.rest.min(0)))
+    e_x = None
+    if hessian_mode not in ("auto", "projected", "exact"):
+        raise ValueError(f"hessian_mode must be auto, projected or exact, not {hessian_mode!r}")
+    # "auto": the exact Hessian while a Cholesky factorisation accepts it (quadratic convergence),
+    # the PSD-projected one from the first iteration where it does not (or always, without CHOLMOD)
+    exact = hessian_mode == "exact" or (hessian_mode == "auto" and lin.kind == "cholmod")
+    for it in range(max_iterations + 1):
+        t0 = time.perf_counter()
+        ee, ge, he = _elastic(scene, x, mu, lam, HESSIAN, not exact, kernels)
+        t1 = time.perf_counter()
+        ev, gv, hv = _vertex_terms(scene, inputs, x, y, x_prev, HESSIAN, not exact)
+        t2 = time.perf_counter()
+        grad = _scatter_grad(scene, ge) + gv.reshape(-1)
+        e_x = float(np.sum(ee)) + ev
+        gnorm = float(np.linalg.norm(grad))
+        if not np.isfinite(gnorm):
+            raise SimulationError(f"Newton met a non-finite residual at {where} (iteration {it}).")
+        if scale is None:
+            scale = max(gnorm + force_scale, 1e-300)
+        residual = gnorm / scale
+        tm["elements"] += t1 - t0
+        tm["vertex"] += t2 - t1
+        if residual <= rtol or gnorm == 0.0:
+            history.append(residual)
+            return x, {"iterations": it, "residual": residual, "history": history}
+        if it == max_iterations:
+            break
+        data = cache.pattern.assemble(he, hv)
+        t3 = time.perf_counter()
+        try:
+            lin.factor(data)
+        except NotPositiveDefinite:
+            if hessian_mode == "exact":
+                lin = cache.solver("splu")
+                lin.factor(data)
+            else:
+                exact = False
+                t5 = time.perf_counter()
+                _, _, he = _elastic(scene, x, mu, lam, HESSIAN, True, kernels)
+                _, _, hv = _vertex_terms(scene, inputs, x, y, x_prev, HESSIAN, True)
+                data = cache.pattern.assemble(he, hv)
+                t3 += time.perf_counter() - t5
+                lin.factor(data)
+        dx = -lin.solve(grad)
+        t4 = time.perf_counter()
+        tm["assembly"] += t3 - t2
+        tm["solve"] += t4 - t3
+        slope = float(grad @ dx)
+        if slope >= 0.0:  # cannot happen for a positive definite H; guard against round-off
+            dx, slope = -grad, -gnorm ** 2
+        dx = dx.reshape(-1, 3)
+        alpha = 1.0
+        tol_round = 1e-12 * (abs(e_x) + 1e-300)
+        while True:
+            x_new = x + alpha * dx
+            e_new = energy_at(x_new)
+            if np.isfinite(e_new) and e_new <= e_x + 1e-4 * alpha * slope + tol_round:
+                break
+            alpha *= 0.5
+            if alpha < 1e-10:
+                break
+        if alpha < 1e-10:  # no decrease measurable: near round-off, take the Newton step
+            x_new = x + dx
+        x = x_new
+        history.append(residual)
+        if alpha == 1.0 and float(np.abs(dx).max()) <= xtol * size:
+            # the full Newton step moved no vertex by more than xtol × the object size: x is resolved
+            # to round-off (stiff handles can keep ‖∇Φ‖ above rtol by cancellation alone)
+            return x, {"iterations": it + 1, "residual": residual, "history": history}
+    raise SimulationError(f"Newton did not converge at {where} (residual {residual:.1e} after "
+                          f"{max_iterations} iterations).")
+
+
+def _per_frame(theta, T: int, R: int) -> np.ndarray:
+    a = np.asarray(theta, np.float64)
+    if a.ndim <= 1:
+        a = np.broadcast_to(a.reshape(-1) if a.ndim else a, (R,))
+        a = np.broadcast_to(a, (T, R))
+    if a.shape != (T, R):
+        raise ValueError(f"material parameters must have shape ({T}, {R}) or ({R},), got {a.shape}")
+    return a
+
+
+def simulate(scene: Scene, inputs: Sequence[FrameInputs], young, poisson, x_prev=None, x_prev2=None,
+             solver: str = "auto", callback: Callable[[int], None] | None = None, **step_kw) -> np.ndarray:
+    """Positions (T, n, 3) of frames 0..T−1 (young/poisson (T, R) or (R,)); x_prev/x_prev2 default to
+    the rest shape (start at rest); callback(t) after each frame."""
+    T, R = len(inputs), scene.n_regions
+    young, poisson = _per_frame(young, T, R), _per_frame(poisson, T, R)
+    xp = scene.rest.copy() if x_prev is None else np.asarray(x_prev, np.float64)
+    xpp = xp.copy() if x_prev2 is None else np.asarray(x_prev2, np.float64)
+    out = np.empty((T, scene.n_vertices, 3))
+    for t in range(T):
+        x, _ = step(scene, inputs[t], young[t], poisson[t], xp, xpp, None, solver, frame=t, **step_kw)
+        out[t] = x
+        xpp, xp = xp, x
+        if callback is not None:
+            callback(t)
+    return out
+
+
+# =========================================================================== adjoint
+def _residual(x, x_prev, x_prev2, young, poisson, s, inputs):
+    """r = ∇_x Φ_t (n, 3)."""
+    return jax.grad(pot.step_potential)(x, x_prev, x_prev2, young, poisson, s, inputs)
+
+
+@jax.jit
+def _residual_vjp(x, x_prev, x_prev2, young, poisson, s, inputs, a):
+    """(∂r/∂x_prev)ᵀa, (∂r/∂x_prev2)ᵀa, (∂r/∂E)ᵀa, (∂r/∂ν)ᵀa."""
+    _, vjp = jax.vjp(lambda xp, xpp, E, nu: _residual(x, xp, xpp, E, nu, s, inputs), x_prev, x_prev2, young,
+                     poisson)
+    return vjp(a)
+
+
+def _data_for(scene: Scene) -> pot.SceneData:
+    s = pot.scene_data(scene)
+    return s if scene.friction > 0.0 and scene.obstacles else _frictionless(s)
+
+
+def window_adjoint(scene: Scene, inputs: Sequence[FrameInputs], young, poisson, X, x_before, dL_dX,
+                   solver: str = "auto", kernels: str = "auto") -> dict:
+    """dL/dθ for a window of w solved frames: young/poisson (w, R) (θ of each frame), X (w, n, 3),
+    x_before (2, n, 3) = [x_{t0−2}, x_{t0−1}], dL_dX (w, n, 3). Returns {"young": (w, R),
+    "poisson": (w, R), "x_before": (2, n, 3)} (module docstring for the recursion)."""
+    X = np.asarray(X, np.float64)
+    w = X.shape[0]
+    R = scene.n_regions
+    young, poisson = _per_frame(young, w, R), _per_frame(poisson, w, R)
+    x_before = np.asarray(x_before, np.float64)
+    dL_dX = np.asarray(dL_dX, np.float64)
+    s = _data_for(scene)
+    cache = _cache(scene)
+    lin = cache.solver(solver)
+
+    def prev(k, j):  # x_{k−j} with the two frames before the window
+        i = k - j
+        return X[i] if i >= 0 else x_before[2 + i]
+
+    c1 = [None] * w  # (∂r_k/∂x_{k−1})ᵀ a_k
+    c2 = [None] * w  # (∂r_k/∂x_{k−2})ᵀ a_k
+    g_young = np.zeros((w, R))
+    g_poisson = np.zeros((w, R))
+    for k in range(w - 1, -1, -1):
+        rhs = dL_dX[k].reshape(-1).copy()
+        if k + 1 < w:
+            rhs -= c1[k + 1]
+        if k + 2 < w:
+            rhs -= c2[k + 2]
+        H = hessian(scene, inputs[k], X[k], prev(k, 1), young[k], poisson[k], project=False, kernels=kernels)
+        a = _solve_symmetric(lin, cache, H, rhs)
+        d_xp, d_xpp, d_e, d_nu = _residual_vjp(jnp.asarray(X[k]), jnp.asarray(prev(k, 1)), jnp.asarray(prev(k, 2)),
+                                               jnp.asarray(young[k]), jnp.asarray(poisson[k]), s, inputs[k],
+                                               jnp.asarray(a.reshape(-1, 3)))
+        c1[k] = np.asarray(d_xp).reshape(-1)
+        c2[k] = np.asarray(d_xpp).reshape(-1)
+        g_young[k] = -np.asarray(d_e)
+        g_poisson[k] = -np.asarray(d_nu)
+    gb = np.zeros_like(x_before)
+    gb[1] = -(c1[0] + (c2[1] if w > 1 else 0.0)).reshape(-1, 3)
+    gb[0] = -c2[0].reshape(-1, 3)
+    return {"young": g_young, "poisson": g_poisson, "x_before": gb}
+
+
+def _solve_symmetric(lin: LinearSolver, cache: _SceneCache, H, rhs: np.ndarray) -> np.ndarray:
+    """H⁻¹ rhs for the exact Hessian (Cholesky when positive definite, else LU)."""
+    data = np.asarray(H.data)
+    if not (H.indptr is cache.pattern.indptr or np.array_equal(H.indptr, cache.pattern.indptr)):
+        raise ValueError("Hessian pattern does not match the scene")
+    try:
+        lin.factor(data)
+        return lin.solve(rhs)
+    except NotPositiveDefinite:
+        lu = cache.solver("splu")
+        lu.factor(data)
+        return lu.solve(rhs)

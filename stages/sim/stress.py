@@ -1,0 +1,230 @@
+"""Stress and nodal forces of a deformed tet mesh (pure JAX/numpy, float64).
+
+What the adapted simulation reveals beyond the surface (paper §"Applications"):
+
+- first Piola–Kirchhoff stress  P = ∂Ψ/∂F  (jax.grad of the energy density of
+  stages/sim/materials, so every material model gets its exact stress),
+- Cauchy stress  σ = J⁻¹ P Fᵀ,  J = det F,
+- von Mises stress  σ_vM = √(1.5 s:s),  s = σ − tr(σ) I / 3,
+- per-vertex values by volume-weighted averaging of the tets around a vertex,
+- internal nodal forces  f = −∂(Σ_e V_e Ψ(F_e))/∂x, assembled from P:
+  for tet e with H_e = −V_e P_e D_m⁻ᵀ, vertices 1..3 get the columns of H_e and
+  vertex 0 gets minus their sum,
+- the force on a set of vertices (a handle, a cable, a contact patch): the
+  vector sum of the internal nodal forces over the set, and the sum of their
+  magnitudes (the paper's cable-tension estimate).
+
+No I/O and no printing here.
+"""
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stages.sim.materials import energy_density, lame
+
+jax.config.update("jax_enable_x64", True)
+
+
+# --------------------------------------------------------------------------- material per tet
+def tet_lame_from_regions(young: np.ndarray, poisson: np.ndarray, tet_region: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """(μ, λ) per tet, (m,) each, from θ per region: young (R,) Pa, poisson (R,), tet_region (m,) int."""
+    young = np.asarray(young, np.float64).reshape(-1)
+    poisson = np.asarray(poisson, np.float64).reshape(-1)
+    mu, lam = lame(young, poisson)
+    region = np.asarray(tet_region, np.int64)
+    return np.asarray(mu)[region], np.asarray(lam)[region]
+
+
+# --------------------------------------------------------------------------- stress measures
+@functools.lru_cache(maxsize=None)
+def _piola_fn(model: str):
+    """vmapped, jitted P(F, μ, λ) = ∂Ψ/∂F for one material model."""
+    psi = energy_density(model)
+    return jax.jit(jax.vmap(jax.grad(psi, argnums=0)))
+
+
+def first_piola(F: np.ndarray, mu: np.ndarray, lam: np.ndarray, model: str = "stable_neohookean"
+                ) -> np.ndarray:
+    """First Piola–Kirchhoff stress P = ∂Ψ/∂F, (m, 3, 3) Pa; F (m, 3, 3), μ and λ (m,) Pa."""
+    F = jnp.asarray(F, jnp.float64)
+    if F.shape[0] == 0:
+        return np.zeros((0, 3, 3))
+    return np.asarray(_piola_fn(model)(F, jnp.asarray(mu, jnp.float64), jnp.asarray(lam, jnp.float64)))
+
+
+def cauchy_stress(F: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Cauchy stress σ = J⁻¹ P Fᵀ, (m, 3, 3) Pa, from F and P (m, 3, 3); J = det F."""
+    F = np.asarray(F, np.float64)
+    J = np.linalg.det(F)
+    return np.einsum("mij,mkj->mik", P, F) / J[:, None, None]
+
+
+def von_mises(sigma: np.ndarray) -> np.ndarray:
+    """σ_vM = √(1.5 s:s), s = σ − tr(σ) I/3; sigma (..., 3, 3) Pa -> (...,) Pa."""
+    sigma = np.asarray(sigma, np.float64)
+    sym = 0.5 * (sigma + np.swapaxes(sigma, -1, -2))  # σ is symmetric; guard round-off
+    tr = np.trace(sym, axis1=-2, axis2=-1)
+    s = sym - tr[..., None, None] * np.eye(3) / 3.0
+    return np.sqrt(1.5 * np.sum(s * s, axis=(-2, -1)))
+
+
+def deformation_gradients(x: np.ndarray, tets: np.ndarray, dm_inv: np.ndarray) -> np.ndarray:
+    """F = D_s D_m⁻¹ per tet, (m, 3, 3); x (n, 3) m, tets (m, 4), dm_inv (m, 3, 3)."""
+    p = np.asarray(x, np.float64)[tets]
+    ds = (p[:, 1:4] - p[:, 0:1]).transpose(0, 2, 1)  # columns x_i − x_0
+    return ds @ dm_inv
+
+
+def tet_stress(x: np.ndarray, tets: np.ndarray, dm_inv: np.ndarray, mu: np.ndarray, lam: np.ndarray,
+               model: str = "stable_neohookean") -> dict[str, np.ndarray]:
+    """Stress state of every tet at positions x (n, 3) m.
+
+    Returns ``F`` (m,3,3), ``J`` (m,), ``P`` (m,3,3) Pa, ``sigma`` (m,3,3) Pa and
+    ``von_mises`` (m,) Pa.  μ, λ: (m,) Pa per tet.
+    """
+    F = deformation_gradients(x, tets, dm_inv)
+    P = first_piola(F, mu, lam, model)
+    sigma = cauchy_stress(F, P)
+    return {"F": F, "J": np.linalg.det(F), "P": P, "sigma": sigma, "von_mises": von_mises(sigma)}
+
+
+def principal_stresses(sigma: np.ndarray) -> np.ndarray:
+    """Eigenvalues of the symmetric Cauchy stress, descending, (..., 3) Pa."""
+    sym = 0.5 * (sigma + np.swapaxes(sigma, -1, -2))
+    return np.linalg.eigvalsh(sym)[..., ::-1]
+
+
+# --------------------------------------------------------------------------- per-vertex values
+def vertex_average(values: np.ndarray, tets: np.ndarray, volumes: np.ndarray, n_vertices: int
+                   ) -> np.ndarray:
+    """Volume-weighted average onto vertices: a_i = Σ_{e∋i} V_e a_e / Σ_{e∋i} V_e.
+
+    values (m, ...) per tet, tets (m, 4), volumes (m,) m³ -> (n, ...).  A vertex
+    that belongs to no tet gets 0.
+    """
+    values = np.asarray(values, np.float64)
+    vol = np.asarray(volumes, np.float64)
+    tail = values.shape[1:]
+    weighted = (values.reshape(len(vol), -1) * vol[:, None])
+    num = np.zeros((n_vertices, weighted.shape[1]))
+    den = np.zeros(n_vertices)
+    for k in range(4):
+        np.add.at(num, tets[:, k], weighted)
+        np.add.at(den, tets[:, k], vol)
+    out = np.divide(num, den[:, None], out=np.zeros_like(num), where=den[:, None] > 0)
+    return out.reshape((n_vertices,) + tail)
+
+
+# --------------------------------------------------------------------------- nodal forces
+def nodal_forces(P: np.ndarray, tets: np.ndarray, dm_inv: np.ndarray, volumes: np.ndarray,
+                 n_vertices: int) -> np.ndarray:
+    """Internal nodal forces f = −∂(Σ_e V_e Ψ(F_e))/∂x, (n, 3) N, from P (m,3,3) Pa.
+
+    With F = D_s D_m⁻¹, ∂(V Ψ)/∂D_s = V P D_m⁻ᵀ; so H_e = −V_e P_e D_m⁻ᵀ holds the
+    forces on vertices 1..3 as columns and vertex 0 gets −(h1 + h2 + h3).
+    """
+    H = -np.asarray(volumes, np.float64)[:, None, None] * np.einsum("mij,mkj->mik", P, dm_inv)
+    cols = np.swapaxes(H, 1, 2)  # (m, 3 vertices, 3 components)
+    f = np.zeros((n_vertices, 3))
+    np.add.at(f, tets[:, 0], -cols.sum(axis=1))
+    for k in range(3):
+        np.add.at(f, tets[:, k + 1], cols[:, k])
+    return f
+
+
+def elastic_energy(x, tets, dm_inv, volumes, mu, lam, model: str = "stable_neohookean"):
+    """Σ_e V_e Ψ(F_e) in JAX (J), the potential whose negative gradient :func:`nodal_forces` assembles."""
+    psi = jax.vmap(energy_density(model))
+    p = x[tets]
+    ds = jnp.swapaxes(p[:, 1:4] - p[:, 0:1], 1, 2)
+    F = ds @ dm_inv
+    return jnp.sum(volumes * psi(F, mu, lam))
+
+
+def force_sum(forces: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, float]:
+    """Force on a vertex set: (Σ_i f_i  (3,) N,  Σ_i ‖f_i‖  N) over ids; forces (n, 3) N."""
+    ids = np.asarray(ids, np.int64)
+    if ids.size == 0:
+        return np.zeros(3), 0.0
+    sel = np.asarray(forces, np.float64)[ids]
+    return sel.sum(axis=0), float(np.linalg.norm(sel, axis=1).sum())
+
+
+# --------------------------------------------------------------------------- summaries
+SUMMARY_PERCENTILES = (50.0, 90.0, 99.0)
+
+
+def stress_summary(vm: np.ndarray, volumes: np.ndarray | None = None) -> dict[str, float]:
+    """Max, mean (volume-weighted when volumes are given) and percentiles of a von Mises field (Pa)."""
+    vm = np.asarray(vm, np.float64)
+    out = {"max_pa": float(vm.max(initial=0.0))}
+    if volumes is not None and vm.size:
+        out["mean_pa"] = float(np.sum(vm * volumes) / np.sum(volumes))
+    else:
+        out["mean_pa"] = float(vm.mean()) if vm.size else 0.0
+    for q in SUMMARY_PERCENTILES:
+        out[f"p{int(q)}_pa"] = float(np.percentile(vm, q)) if vm.size else 0.0
+    return out
+
+
+# --------------------------------------------------------------------------- handle and contact forces
+@dataclass(frozen=True)
+class SetForce:
+    """The force on one handle or obstacle at one frame."""
+
+    name: str
+    kind: str  # "handle" | "obstacle"
+    internal: np.ndarray  # (3,) Σ_i f_int,i over its vertices, N (the body's pull on the handle)
+    magnitude_sum: float  # Σ_i ‖f_int,i‖, N (the paper's cable-tension estimate)
+    applied: np.ndarray  # (3,) what the handle springs / the contact exert on the body, N
+    n_vertices: int  # handle vertices, or vertices in contact with the obstacle
+
+
+def set_forces(scene, inputs, x: np.ndarray, x_prev: np.ndarray, f_int: np.ndarray,
+               contact_distance: float = 1.0e-3) -> list[SetForce]:
+    """Forces of every handle and obstacle of a stages.sim Scene at positions x (n, 3) m.
+
+    f_int (n, 3) N: internal nodal forces (:func:`nodal_forces`).  Handles sum over their vertex
+    set; ``applied`` = Σ k (x̄ − x), the springs' pull.  Obstacles sum over the vertices whose signed
+    distance is below the contact margin d̂ + ``contact_distance`` (m); ``applied`` = −∂E_c/∂x summed,
+    the penalty contact force (with the lagged friction from x_prev (n, 3) when friction is on).
+    """
+    out = []
+    for h, target in zip(scene.handles, inputs.handle_targets):
+        vec, mag = force_sum(f_int, h.ids)
+        applied = h.stiffness * np.sum(np.asarray(target) - x[h.ids], axis=0)
+        out.append(SetForce(h.name, "handle", vec, mag, applied, int(len(h.ids))))
+    for o, ob in enumerate(scene.obstacles):
+        ids, applied = contact_force(scene, inputs, o, x, x_prev, contact_distance)
+        vec, mag = force_sum(f_int, ids)
+        out.append(SetForce(ob.name, "obstacle", vec, mag, applied, int(len(ids))))
+    return out
+
+
+def contact_force(scene, inputs, o: int, x: np.ndarray, x_prev: np.ndarray, contact_distance: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(ids of the vertices touching obstacle o, (3,) total force it applies to the body, N)."""
+    import dataclasses
+
+    from stages.sim.potential import contact_energy, obstacle_distance
+
+    ob = scene.obstacles[o]
+    poses = np.asarray(inputs.obstacle_poses, np.float64).reshape(-1, 7)
+    pose = jnp.asarray(poses[o])
+    normal = jnp.asarray(ob.normal if ob.normal is not None else np.zeros(3), jnp.float64)
+    half = jnp.asarray(ob.half_extents if ob.half_extents is not None else np.zeros(3), jnp.float64)
+    dist = jax.vmap(lambda p: obstacle_distance(p, ob.shape, normal, float(ob.offset), float(ob.radius),
+                                                half, pose))(jnp.asarray(x, jnp.float64))
+    margin = float(getattr(scene, "contact_margin", 0.0))
+    ids = np.flatnonzero(np.asarray(dist) < margin + contact_distance)
+    one = dataclasses.replace(scene, obstacles=(ob,))
+    one_inputs = dataclasses.replace(inputs, obstacle_poses=poses[o:o + 1])
+    xp = jnp.asarray(x_prev, jnp.float64) if scene.friction > 0.0 else None
+    g = jax.grad(lambda y: contact_energy(y, one, one_inputs, xp))(jnp.asarray(x, jnp.float64))
+    return ids, -np.asarray(g).sum(axis=0)

@@ -1,0 +1,395 @@
+"""Reduced dynamics x = φ(z) and the reduced window adjoint (paper Eq. 3, 10–12), JAX float64.
+
+A frame solves h(z) = ∂E/∂z = J(z)ᵀ r(φ(z)) = 0 by Newton with a backtracking line search, where
+
+    E(z) = ½/Δt² (q − q_y)ᵀ G (q − q_y) − qᵀ Uᵀ(M g + f)                    inertia, gravity, loads
+           + Σ_{e∈C} w_e V_e Ψ(F_e(φ_C(z)))                                    elastic (cubature)
+           + handles(φ_H(z)) + contact(φ_S(z); φ_S(z_{t−1}))                 stages.sim.potential terms
+
+with q = q(z) the decoder's PCA coefficients (x = x̄ + U q), q_y = 2 q(z_{t−1}) − q(z_{t−2}) (so
+y = 2φ(z_{t−1}) − φ(z_{t−2}) = x̄ + U q_y exactly) and G = Uᵀ M U.  Inertia, gravity and loads are
+thus exact and cost O(p²) whatever the mesh: only the vertices touched by the cubature tets C,
+the handles H and, when the scene has obstacles, the surface S are decoded (rows of U).  The
+elastic, handle and contact terms are stages.sim.potential's own functions evaluated on a
+restricted SceneData (local vertex ids, volumes w_e V_e, zero masses).
+
+``reference=True`` instead evaluates the full incremental potential of stages.sim.potential on
+φ(z) over every tet and vertex: the literal Eq. 3, which tests hold the fast path to.
+
+Newton uses the exact reduced Hessian ∂²E/∂z² = Jqᵀ H_q Jq + Σ_k (∂E/∂q_k) ∂²q_k/∂z² (the decoder
+curvature term, zero for PCA), never a 3n×3n matrix; when it is not positive definite a multiple
+of the identity is added.  The window adjoint (Eq. 10–12) solves, backward over the window,
+
+    H_tᵀ λ_t = ∂L/∂z_t − Σ_{k=t+1}^{t+2} (∂h_k/∂z_t)ᵀ λ_k,      dL/dθ_t = −λ_tᵀ ∂h_t/∂θ_t,
+
+and returns dL/dz of the two states before the window, −Σ_k (∂h_k/∂z_before)ᵀ λ_k.
+"""
+from __future__ import annotations
+
+from functools import partial
+from typing import Callable, NamedTuple, Sequence
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from stages.errors import RslError  # noqa: E402
+from stages.sim import potential as P  # noqa: E402
+from stages.subspace.networks import SubspaceMap, net_decode  # noqa: E402
+
+
+class ReducedSolveError(RslError):
+    """The reduced Newton solve failed (non-finite energy or no convergence)."""
+
+
+class ReducedInputs(NamedTuple):
+    """A frame's known inputs in reduced form (a pytree)."""
+
+    handle_targets: tuple  # per handle (k, 3) m
+    load_q: jnp.ndarray  # (p,) Uᵀ f, loads projected on the basis
+    obstacle_poses: jnp.ndarray  # (n_obstacles, 7)
+    load_forces: jnp.ndarray  # (k_sub, 3) zeros: loads are carried by load_q
+
+
+def surface_vertices(tets: np.ndarray) -> np.ndarray:
+    """Vertices on the boundary (faces used by one tet only)."""
+    f = np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 3, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 1]]])
+    key = np.sort(f, axis=1)
+    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return np.unique(f[cnt[inv.ravel()] == 1])
+
+
+def _q_of_z(kind: str, net: dict, q_scale, z):
+    return z if kind == "pca" else q_scale * net_decode(net, z)
+
+
+class ReducedModel:
+    """Reduced dynamics of one scene in one subspace (module docstring).
+
+    sub: the map φ; scene: stages.sim.scene.Scene; cubature: (tet ids (c,), weights (c,)) or None for
+    all tets with weight 1; reference: evaluate the full potential on φ(z) (every tet, every vertex).
+    """
+
+    def __init__(self, sub: SubspaceMap, scene, cubature: tuple[np.ndarray, np.ndarray] | None = None,
+                 reference: bool = False):
+        self.sub, self.scene, self.reference = sub, scene, reference
+        self.kind, self.r, self.p = sub.kind, sub.dim, sub.p
+        n = len(scene.rest)
+        if sub.basis.shape[0] != n:
+            raise RslError(f"the subspace has {sub.basis.shape[0]} vertices but the mesh has {n}; "
+                           "retrain it on this mesh's snapshots.")
+        basis = np.asarray(sub.basis)
+        m = np.asarray(scene.masses)
+        self._basis_full = jnp.asarray(basis)
+        g_mat = np.einsum("nip,ni,niq->pq", basis, np.repeat(m[:, None], 3, 1), basis)  # Uᵀ M U
+        grav_q = np.einsum("nip,ni->p", basis, m[:, None] * np.asarray(scene.gravity)[None, :])  # Uᵀ M g
+        full = P.scene_data(scene)
+        if cubature is None:
+            tet_ids, weights = np.arange(len(scene.tets)), np.ones(len(scene.tets))
+        else:
+            tet_ids, weights = np.asarray(cubature[0], np.int64), np.asarray(cubature[1], np.float64)
+        self.cubature_tets, self.cubature_weights = tet_ids, weights
+        tets = np.asarray(scene.tets)
+        verts = [tets[tet_ids].ravel()] + [np.asarray(h.ids) for h in scene.handles]
+        if len(scene.obstacles):
+            verts.append(surface_vertices(tets))
+        vs = np.unique(np.concatenate(verts)) if verts else np.zeros(0, np.int64)
+        self.vertex_subset = vs
+        local = np.full(n, -1, np.int64)
+        local[vs] = np.arange(len(vs))
+        leaves = {k: getattr(full, k) for k in P.SceneData.LEAVES}
+        leaves.update(
+            rest=jnp.asarray(np.asarray(scene.rest)[vs]), tets=jnp.asarray(local[tets[tet_ids]], np.int32),
+            dm_inv=jnp.asarray(np.asarray(scene.dm_inv)[tet_ids]),
+            volumes=jnp.asarray(np.asarray(scene.volumes)[tet_ids] * weights),
+            masses=jnp.zeros(len(vs)), tet_region=jnp.asarray(np.asarray(scene.tet_region)[tet_ids], np.int32),
+            gravity=jnp.zeros(3),
+            handle_ids=tuple(jnp.asarray(local[np.asarray(h.ids)], np.int32) for h in scene.handles),
+        )
+        sub_scene = P.SceneData(leaves, full.material, full.shapes, full.n_regions)
+        self.data = dict(
+            net={k: jnp.asarray(v) for k, v in sub.net.items()}, q_scale=jnp.asarray(sub.q_scale),
+            rest_s=jnp.asarray(np.asarray(sub.rest)[vs]), basis_s=jnp.asarray(basis[vs]),
+            G=jnp.asarray(g_mat), grav_q=jnp.asarray(grav_q), scene_s=sub_scene,
+        )
+        if reference:
+            self.data.update(rest=jnp.asarray(sub.rest), basis=self._basis_full, scene=full)
+        self._build()
+
+    @classmethod
+    def from_artefacts(cls, subspace, scene, cubature: bool = True, reference: bool = False) -> "ReducedModel":
+        """Model from a SubspaceArtefact (its cubature unless cubature=False) and a Scene."""
+        from stages.subspace.networks import KINDS, required_weights
+
+        if subspace.subspace_kind not in KINDS:
+            raise RslError(f"subspace.h5: kind '{subspace.subspace_kind}' is not one of {', '.join(KINDS)}.")
+        missing = [k for k in required_weights(subspace.subspace_kind) if k not in subspace.weights]
+        if missing:
+            raise RslError(f"subspace.h5: weights {', '.join(missing)} are missing; retrain the subspace.")
+        sub = SubspaceMap.from_weights(subspace.subspace_kind, subspace.weights)
+        cub = None
+        if cubature and "cubature_tets" in subspace.extra:
+            cub = (np.asarray(subspace.extra["cubature_tets"], np.int64),
+                   np.asarray(subspace.extra["cubature_weights"], np.float64))
+        return cls(sub, scene, cub, reference)
+
+    from_artefact = from_artefacts
+
+    @property
+    def dim(self) -> int:
+        """Latent dimension r."""
+        return self.r
+
+    @property
+    def z_rest(self) -> np.ndarray:
+        """ψ(rest), the state of the undeformed object (0 for rsl's subspaces: φ(0) = x̄), (r,)."""
+        return self.encode(self.scene.rest)
+
+    # ------------------------------------------------------------------ the energy
+    def _build(self) -> None:
+        """Bind the module-level jitted kernels (shared by every model of the same shapes) to this model."""
+        d, kind, ref = self.data, self.kind, self.reference
+        self.energy_jax = lambda z, z1, z2, y, nu, rin: _energy(z, z1, z2, y, nu, rin, d, kind, ref)  # traceable
+        self._E = lambda *a: _E_jit(*a, d, kind, ref)
+        self._G = lambda *a: _G_jit(*a, d, kind, ref)
+        self._EGH = lambda *a: _EGH_jit(*a, d, kind, ref)
+        self._hvjp = lambda *a: _hvjp_jit(*a, d, kind, ref)
+        self._GN = lambda *a: _GN_jit(*a, d, kind, ref)
+
+    # ------------------------------------------------------------------ inputs
+    def reduce_inputs(self, inputs) -> ReducedInputs:
+        """FrameInputs → ReducedInputs (loads projected on U: Uᵀ f, only the loaded rows)."""
+        f = np.asarray(inputs.load_forces, np.float64)
+        rows = np.nonzero(np.any(f != 0.0, axis=1))[0]
+        basis = np.asarray(self.sub.basis)
+        lq = np.einsum("nip,ni->p", basis[rows], f[rows]) if len(rows) else np.zeros(self.p)
+        poses = np.asarray(inputs.obstacle_poses, np.float64).reshape(-1, 7)
+        nload = len(self.scene.rest) if self.reference else len(self.vertex_subset)
+        lf = jnp.asarray(f) if self.reference else jnp.zeros((nload, 3))
+        return ReducedInputs(tuple(jnp.asarray(t, jnp.float64) for t in inputs.handle_targets),
+                             jnp.zeros(self.p) if self.reference else jnp.asarray(lq), jnp.asarray(poses), lf)
+
+    # ------------------------------------------------------------------ maps
+    def decode(self, z) -> np.ndarray:
+        """x = φ(z), z (..., r) → (..., n, 3)."""
+        return np.asarray(self.sub.decode(jnp.asarray(z)))
+
+    def encode(self, x) -> np.ndarray:
+        """z = ψ(x), (r,)."""
+        return np.asarray(self.sub.encode(jnp.asarray(x)))
+
+    def jacobian(self, z) -> np.ndarray:
+        """J = ∂φ/∂z, (n, 3, r)."""
+        return np.asarray(self.sub.jacobian(jnp.asarray(z)))
+
+    def jacobian_transpose(self, z, v) -> np.ndarray:
+        """Jᵀ v for v (n, 3) → (r,) (one VJP, no J formed)."""
+        _, vjp = jax.vjp(self.sub.decode, jnp.asarray(z))
+        return np.asarray(vjp(jnp.asarray(v))[0])
+
+    # ------------------------------------------------------------------ energy, gradient, Hessian
+    def _args(self, z, z_prev, z_prev2, young, poisson, rin):
+        f = lambda a: jnp.asarray(a, jnp.float64)  # noqa: E731
+        return f(z), f(z_prev), f(z_prev2), f(young), f(poisson), rin
+
+    def energy(self, z, inputs, young, poisson, z_prev, z_prev2) -> float:
+        """E(z) (constants dropped; the reference path keeps them)."""
+        rin = inputs if isinstance(inputs, ReducedInputs) else self.reduce_inputs(inputs)
+        return float(self._E(*self._args(z, z_prev, z_prev2, young, poisson, rin)))
+
+    def gradient(self, z, inputs, young, poisson, z_prev, z_prev2) -> np.ndarray:
+        """h = ∂E/∂z = J(z)ᵀ r(φ(z)), (r,)."""
+        rin = inputs if isinstance(inputs, ReducedInputs) else self.reduce_inputs(inputs)
+        return np.asarray(self._G(*self._args(z, z_prev, z_prev2, young, poisson, rin)))
+
+    def hessian(self, z, inputs, young, poisson, z_prev, z_prev2, curvature: bool = True) -> np.ndarray:
+        """∂²E/∂z² (r, r); curvature=False drops the decoder-curvature term (Jᵀ H J only)."""
+        rin = inputs if isinstance(inputs, ReducedInputs) else self.reduce_inputs(inputs)
+        args = self._args(z, z_prev, z_prev2, young, poisson, rin)
+        if curvature:
+            return np.asarray(self._EGH(*args)[2])
+        return np.asarray(self._GN(*args))
+
+    # ------------------------------------------------------------------ forward
+    def step(self, inputs, young, poisson, z_prev, z_prev2, z_init=None, rtol: float = 1e-8,
+             max_iterations: int = 50, frame: int | None = None) -> tuple[np.ndarray, dict]:
+        """z_t = argmin E(z) by Newton + backtracking (warm start z_init, default 2 z_{t−1} − z_{t−2}).
+
+        Converged when ‖h‖ ≤ rtol · max(‖h(z_init)‖, ‖Jqᵀ Uᵀ M g‖) or a full step no longer lowers E.
+        Returns (z (r,), {"iterations", "residual"}).
+        """
+        rin = inputs if isinstance(inputs, ReducedInputs) else self.reduce_inputs(inputs)
+        z_prev, z_prev2 = np.asarray(z_prev, np.float64), np.asarray(z_prev2, np.float64)
+        z = (2.0 * z_prev - z_prev2) if z_init is None else np.asarray(z_init, np.float64)
+        rest = self._args(z, z_prev, z_prev2, young, poisson, rin)[1:]
+        e, g, h = (np.asarray(a) for a in self._EGH(jnp.asarray(z), *rest))
+        if not np.isfinite(e):
+            z = z_prev.copy()
+            e, g, h = (np.asarray(a) for a in self._EGH(jnp.asarray(z), *rest))
+        g0 = max(float(np.linalg.norm(g)), 1e-300)
+        tol = rtol * g0
+        it = 0
+        for it in range(1, max_iterations + 1):
+            if np.linalg.norm(g) <= tol:
+                it -= 1
+                break
+            dz = _newton_direction(h, g)
+            alpha, e_new = 1.0, np.inf
+            while alpha > 1e-10:
+                z_try = z + alpha * dz
+                e_new = float(self._E(jnp.asarray(z_try), *rest))
+                if np.isfinite(e_new) and e_new <= e + 1e-4 * alpha * float(g @ dz) + 1e-13 * abs(e):
+                    break
+                alpha *= 0.5
+            if alpha <= 1e-10:
+                break  # no descent left at float64 precision
+            z = z_try
+            e, g, h = (np.asarray(a) for a in self._EGH(jnp.asarray(z), *rest))
+        res = float(np.linalg.norm(g))
+        if not np.all(np.isfinite(z)) or res > max(1e3 * tol, 1e-6 * g0):
+            where = f" at frame {frame}" if frame is not None else ""
+            raise ReducedSolveError(f"Reduced Newton did not converge{where} (residual {res / g0:.1e} of the "
+                                    f"initial after {it} iterations).")
+        return z, {"iterations": it, "residual": res, "residual_rel": res / g0}
+
+    def simulate(self, inputs: Sequence, young, poisson, z_prev=None, z_prev2=None, rtol: float = 1e-8,
+                 callback: Callable[[int], None] | None = None) -> np.ndarray:
+        """Z (T, r) for per-frame inputs and θ (T, R); the previous states default to ψ(rest)."""
+        z0 = self.z_rest
+        z1 = z0 if z_prev is None else np.asarray(z_prev, np.float64)
+        z2 = z1 if z_prev2 is None else np.asarray(z_prev2, np.float64)
+        young, poisson = np.atleast_2d(young), np.atleast_2d(poisson)
+        out = []
+        for t, inp in enumerate(inputs):
+            z, _ = self.step(inp, young[min(t, len(young) - 1)], poisson[min(t, len(poisson) - 1)], z1, z2,
+                             rtol=rtol, frame=t)
+            out.append(z)
+            z2, z1 = z1, z
+            if callback is not None:
+                callback(t)
+        return np.stack(out) if out else np.zeros((0, self.r))
+
+    # ------------------------------------------------------------------ backward
+    def window_adjoint(self, inputs: Sequence, young, poisson, Z, z_before, dL_dX=None, dL_dZ=None) -> dict:
+        """dL/dθ_t (w, R) and dL/dz_before (2, r) for a window of solved states Z (w, r).
+
+        z_before = [z_{t0−2}, z_{t0−1}] (2, r); give dL_dZ (w, r) or dL_dX (w, n, 3) (projected by Jᵀ).
+        Returns {"young": (w, R), "poisson": (w, R), "z_before": (2, r), "lambda": (w, r)}.
+        """
+        Z = np.asarray(Z, np.float64)
+        w = len(Z)
+        young, poisson = np.asarray(young, np.float64), np.asarray(poisson, np.float64)
+        if young.ndim == 1:
+            young, poisson = np.tile(young, (w, 1)), np.tile(poisson, (w, 1))
+        if dL_dZ is None:
+            if dL_dX is None:
+                raise ValueError("give dL_dX or dL_dZ")
+            dL_dZ = np.stack([self.jacobian_transpose(Z[t], dL_dX[t]) for t in range(w)])
+        dL_dZ = np.asarray(dL_dZ, np.float64)
+        zb = np.asarray(z_before, np.float64)
+        states = np.concatenate([zb, Z])  # index t + 2 is frame t of the window
+        rins = [u if isinstance(u, ReducedInputs) else self.reduce_inputs(u) for u in inputs]
+        rhs = dL_dZ.copy()
+        lam = np.zeros_like(Z)
+        gy, gn = np.zeros_like(young), np.zeros_like(poisson)
+        gb = np.zeros((2, self.r))
+        for t in range(w - 1, -1, -1):
+            args = self._args(states[t + 2], states[t + 1], states[t], young[t], poisson[t], rins[t])
+            h = np.asarray(self._EGH(*args)[2])
+            lam[t] = _solve_sym(h, rhs[t])
+            d1, d2, dy, dn = (np.asarray(a) for a in self._hvjp(*args, jnp.asarray(lam[t])))
+            gy[t], gn[t] = -dy, -dn
+            for k, dk in ((t - 1, d1), (t - 2, d2)):  # h_t depends on z_{t−1}, z_{t−2}
+                if k >= 0:
+                    rhs[k] -= dk
+                else:
+                    gb[k + 2] -= dk
+        return {"young": gy, "poisson": gn, "z_before": gb, "lambda": lam}
+
+
+# =========================================================================== pure kernels
+def _energy_q(q, q1, q2, young, poisson, rin, d, reference: bool):
+    """E as a function of the PCA coefficients q, q_{t−1}, q_{t−2} (module docstring)."""
+    if reference:
+        full = d["scene"]
+
+        def phi(qq):
+            return d["rest"] + jnp.einsum("nip,p->ni", d["basis"], qq)
+
+        mu, lam = P.tet_lame(full, young, poisson)
+        return P.incremental_potential(phi(q), 2.0 * phi(q1) - phi(q2), full, rin, mu, lam, phi(q1))
+    s = d["scene_s"]
+    dq = q - (2.0 * q1 - q2)
+    e = 0.5 / s.dt ** 2 * dq @ (d["G"] @ dq) - q @ (d["grav_q"] + rin.load_q)
+    x = d["rest_s"] + jnp.einsum("nip,p->ni", d["basis_s"], q)
+    x1 = d["rest_s"] + jnp.einsum("nip,p->ni", d["basis_s"], q1)
+    mu, lam = P.tet_lame(s, young, poisson)
+    return e + P.elastic_energy(x, s, mu, lam) + P.external_energy(x, x, s, rin, x1)
+
+
+def _q(z, d, kind):
+    return _q_of_z(kind, d["net"], d["q_scale"], z)
+
+
+def _energy(z, z1, z2, young, poisson, rin, d, kind: str, reference: bool):
+    """E(z; z_{t−1}, z_{t−2}, θ, inputs)."""
+    return _energy_q(_q(z, d, kind), _q(z1, d, kind), _q(z2, d, kind), young, poisson, rin, d, reference)
+
+
+_grad = jax.grad(_energy)
+_STATIC = ("kind", "reference")
+
+
+@partial(jax.jit, static_argnames=_STATIC)
+def _E_jit(z, z1, z2, y, nu, rin, d, kind, reference):
+    return _energy(z, z1, z2, y, nu, rin, d, kind, reference)
+
+
+@partial(jax.jit, static_argnames=_STATIC)
+def _G_jit(z, z1, z2, y, nu, rin, d, kind, reference):
+    return _grad(z, z1, z2, y, nu, rin, d, kind, reference)
+
+
+@partial(jax.jit, static_argnames=_STATIC)
+def _EGH_jit(z, z1, z2, y, nu, rin, d, kind, reference):
+    """(E, ∂E/∂z, ∂²E/∂z²) — the Hessian includes the decoder curvature."""
+    e, g = jax.value_and_grad(_energy)(z, z1, z2, y, nu, rin, d, kind, reference)
+    return e, g, jax.jacfwd(_grad)(z, z1, z2, y, nu, rin, d, kind, reference)
+
+
+@partial(jax.jit, static_argnames=_STATIC)
+def _hvjp_jit(z, z1, z2, y, nu, rin, lam, d, kind, reference):
+    """λᵀ ∂h/∂(z_{t−1}, z_{t−2}, E, ν) for h = ∂E/∂z."""
+    _, vjp = jax.vjp(lambda a, b, c, e: _grad(z, a, b, c, e, rin, d, kind, reference), z1, z2, y, nu)
+    return vjp(lam)
+
+
+@partial(jax.jit, static_argnames=_STATIC)
+def _GN_jit(z, z1, z2, y, nu, rin, d, kind, reference):
+    """Jqᵀ H_q Jq (no decoder curvature), H_q = ∂²E/∂q² at q(z)."""
+    jq = jax.jacfwd(lambda zz: _q(zz, d, kind))(z)  # (p, r)
+    h_q = jax.hessian(_energy_q)(_q(z, d, kind), _q(z1, d, kind), _q(z2, d, kind), y, nu, rin, d, reference)
+    return jq.T @ h_q @ jq
+
+
+def _newton_direction(h: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """−(H + τI)⁻¹ g with the smallest τ ≥ 0 (from 0, then growing) that makes H + τI positive definite."""
+    hs = 0.5 * (h + h.T)
+    tau = 0.0
+    scale = max(float(np.max(np.abs(np.diag(hs)))), 1e-300)
+    for _ in range(60):
+        try:
+            c = np.linalg.cholesky(hs + tau * np.eye(len(g)))
+            y = np.linalg.solve(c, -g)
+            return np.linalg.solve(c.T, y)
+        except np.linalg.LinAlgError:
+            tau = max(2.0 * tau, 1e-8 * scale)
+    return -g / scale
+
+
+def _solve_sym(h: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """H⁻¹ b for the symmetric reduced Hessian (LU if it is indefinite)."""
+    return np.linalg.solve(0.5 * (h + h.T), b)

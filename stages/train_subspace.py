@@ -1,0 +1,178 @@
+"""Stage ``train-subspace``: fit x = φ(z) to the snapshots and its reduced-energy cubature.
+
+Reads WS/mesh.h5 and WS/snapshots.h5, splits the snapshots into training and validation
+sets by sequence, fits a mass-weighted PCA or the Fulton et al. 2019 autoencoder
+(stages.subspace.train), fits the optimised cubature of the reduced elastic energy
+(stages.subspace.cubature) and writes WS/subspace.h5.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from stages.artefacts import KIND_FILES, MeshArtefact, Provenance, SnapshotsArtefact, SubspaceArtefact, \
+    read_provenance
+from stages.errors import RslError
+from stages.progress import Reporter, SilentReporter
+
+
+@dataclass(frozen=True)
+class TrainSubspaceConfig:
+    workspace: Path
+    """Workspace folder holding mesh.h5 and snapshots.h5; subspace.h5 is written there."""
+    capture: Path | None = None
+    """Capture folder, read for the material model only (default: the one generate-data used)."""
+    dim: int = 30
+    """Latent dimension r of the subspace."""
+    kind: Literal["autoencoder", "pca"] = "autoencoder"
+    """autoencoder (Fulton et al. 2019: PCA outer layers, 2×200 hidden) or pca (linear baseline)."""
+    epochs: int = 300
+    """Training epochs of the autoencoder (passes over the training snapshots)."""
+    learning_rate: float = 1e-3
+    """Adam learning rate."""
+    batch_size: int = 64
+    """Snapshots per training step."""
+    pca_dim: int = 0
+    """Width p of the autoencoder's PCA layer (0: max(2r, r + 20))."""
+    validation_fraction: float = 0.15
+    """Fraction of the sequences held out for validation (at least one when there are two or more)."""
+    cubature_tets: int = 300
+    """Largest number of cubature tets for the reduced elastic energy (0: integrate over every tet)."""
+    cubature_tol: float = 0.01
+    """Stop adding cubature tets once the relative reduced-force error is below this."""
+    cubature_poses: int = 40
+    """Training snapshots the cubature is fitted on."""
+    material: str = ""
+    """Material model for the cubature (default: the capture's)."""
+    seed: int = 0
+    """Seed of the split, the initial weights, the batches and the cubature candidates."""
+
+
+def _split(snap: SnapshotsArtefact, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray, str]:
+    """Train / validation snapshot indices, by sequence (by frame when there is one sequence)."""
+    seqs = np.unique(snap.sequence)
+    rng = np.random.default_rng(seed)
+    if len(seqs) >= 2:
+        n_val = min(len(seqs) - 1, max(1, int(round(fraction * len(seqs)))))
+        val_seqs = rng.choice(seqs, size=n_val, replace=False)
+        val = np.isin(snap.sequence, val_seqs)
+        return np.nonzero(~val)[0], np.nonzero(val)[0], f"{len(seqs) - n_val} training / {n_val} validation sequences"
+    s = len(snap.positions)
+    n_val = int(round(fraction * s)) if s >= 4 else 0
+    order = np.argsort(snap.frame, kind="stable")
+    return np.sort(order[: s - n_val]), np.sort(order[s - n_val:]), "one sequence: its last frames validate"
+
+
+def _material_model(config: TrainSubspaceConfig, snap_path: Path) -> str:
+    if config.material:
+        return config.material
+    capture = config.capture
+    if capture is None:
+        try:
+            capture = read_provenance(snap_path).get("config", {}).get("capture")
+        except RslError:
+            capture = None
+    if capture:
+        try:
+            from stages.capture import load_capture
+
+            return load_capture(Path(capture)).material.model
+        except (RslError, OSError):
+            pass
+    return "stable_neohookean"
+
+
+def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> Path:
+    """Train the subspace and its cubature; write WS/subspace.h5."""
+    import jax.numpy as jnp
+
+    from stages.sim.materials import MODELS, lame
+    from stages.subspace.cubature import ReducedForceSampler, cubature_error, fit_cubature
+    from stages.subspace.train import fit_subspace, reconstruction_error
+
+    ws = Path(config.workspace)
+    mesh_path, snap_path = ws / KIND_FILES["mesh"], ws / KIND_FILES["snapshots"]
+    out = ws / KIND_FILES["subspace"]
+    if config.kind not in ("autoencoder", "pca"):
+        raise RslError(f"--kind {config.kind}: use autoencoder or pca.")
+    if config.dim < 1:
+        raise RslError(f"--dim {config.dim}: the latent dimension must be at least 1.")
+    mesh = MeshArtefact.load(mesh_path)
+    snap = SnapshotsArtefact.load(snap_path)
+    n = mesh.n_vertices
+    if snap.positions.shape[1] != n:
+        raise RslError(f"{snap_path}: snapshots have {snap.positions.shape[1]} vertices but {mesh_path} has {n}; "
+                       "rerun generate-data on this mesh.")
+    model = _material_model(config, snap_path)
+    if model not in MODELS:
+        raise RslError(f"--material {model}: unknown model; use one of {', '.join(MODELS)}.")
+    tr, va, split_note = _split(snap, config.validation_fraction, config.seed)
+    x_tr, x_va = snap.positions[tr], snap.positions[va]
+    rank = int(min(len(tr), 3 * n))
+    if config.dim > rank:
+        raise RslError(f"{snap_path}: {len(tr)} training snapshots cannot span a {config.dim}-dimensional "
+                       "subspace; generate more data or lower --dim.")
+    reporter.info(f"{len(tr)} training and {len(va)} validation snapshots ({split_note}); {n} vertices.")
+    rest, masses = mesh.vertices, mesh.vertex_masses
+
+    if config.kind == "autoencoder":
+        with reporter.task(f"Training autoencoder r={config.dim}", config.epochs) as task:
+            sub, info = fit_subspace("autoencoder", rest, masses, x_tr, config.dim, x_va, config.epochs,
+                                     config.seed, config.pca_dim or None, config.learning_rate, config.batch_size,
+                                     callback=lambda e, tl, vl: task.advance(1, loss=f"{tl:.2e}",
+                                                                             val=f"{vl:.2e}"))
+    else:
+        with reporter.task(f"PCA r={config.dim}", None):
+            sub, info = fit_subspace("pca", rest, masses, x_tr, config.dim)
+    with reporter.task("Reconstruction errors", None):
+        train_err = reconstruction_error(sub, x_tr)
+        val_err = reconstruction_error(sub, x_va) if len(va) else float("nan")
+    diag = float(np.linalg.norm(rest.max(0) - rest.min(0)))
+
+    # cubature at the snapshots' median material per region
+    n_reg = len(mesh.region_names)
+    young = np.median(snap.young, axis=0) if snap.young.shape[1] == n_reg else np.full(n_reg, np.median(snap.young))
+    poisson = np.median(snap.poisson, axis=0) if snap.poisson.shape[1] == n_reg else \
+        np.full(n_reg, np.median(snap.poisson))
+    mu_r, lam_r = lame(young, poisson)
+    mu_t, lam_t = np.asarray(mu_r)[mesh.tet_region], np.asarray(lam_r)[mesh.tet_region]
+    rng = np.random.default_rng(config.seed)
+    m = mesh.n_tets
+    extra_cub: dict = {}
+    if config.cubature_tets > 0 and config.cubature_tets < m:
+        pick = rng.choice(len(tr), size=min(config.cubature_poses, len(tr)), replace=False)
+        z_fit = np.asarray(sub.encode(jnp.asarray(x_tr[pick])))
+        with reporter.task(f"Cubature (≤ {config.cubature_tets} of {m} tets)", None):
+            sampler = ReducedForceSampler(sub, z_fit, mesh.tets, mesh.dm_inv, mesh.rest_volumes, mu_t, lam_t, model)
+            ids, w, cinfo = fit_cubature(sampler, mesh.tet_region, n_reg, config.cubature_tets,
+                                         config.cubature_tol, seed=config.seed)
+            val_cub = float("nan")
+            if len(va):
+                pv = rng.choice(len(va), size=min(config.cubature_poses, len(va)), replace=False)
+                sv = ReducedForceSampler(sub, np.asarray(sub.encode(jnp.asarray(x_va[pv]))), mesh.tets, mesh.dm_inv,
+                                         mesh.rest_volumes, mu_t, lam_t, model)
+                val_cub = cubature_error(sv, mesh.tet_region, n_reg, ids, w)
+        extra_cub = {"cubature_tets": ids.tolist(), "cubature_weights": w.tolist(),
+                     "cubature_error_rel": cinfo["error_rel"], "cubature_error_val_rel": val_cub}
+    r, p = sub.dim, sub.p
+    extra = {
+        "layers": ([3 * n, p, 200, 200, r] if config.kind == "autoencoder" else [3 * n, r]),
+        "pca_dim": p, "activation": "elu" if config.kind == "autoencoder" else "none",
+        "normalisation": "q = Uᵀ M (x − rest), U mass-orthonormal; network sees q / q_scale (weights)",
+        "material": model, "cubature_young": young.tolist(), "cubature_poisson": poisson.tolist(),
+        "bbox_diag_m": diag, "train_error_rel": train_err / diag, "val_error_rel": val_err / diag,
+        "n_train": int(len(tr)), "n_val": int(len(va)), "split": split_note,
+        "history": info["history"][-1:] if info["history"] else [],
+        **extra_cub,
+    }
+    art = SubspaceArtefact(config.kind, r, sub.to_weights(), float(train_err), float(val_err), extra)
+    art.save(out, Provenance.make(config, [mesh_path, snap_path]))
+    cub = (f"; cubature {len(extra_cub['cubature_tets'])} of {m} tets, force error "
+           f"{extra_cub['cubature_error_rel']:.1%}" if extra_cub else "; all tets integrated")
+    val = f"validation error {val_err * 1e3:.2f} mm ({val_err / diag:.2%} of the bbox diagonal)" if len(va) \
+        else f"training error {train_err * 1e3:.2f} mm ({train_err / diag:.2%} of the bbox diagonal)"
+    reporter.summary(f"{config.kind} subspace r={r}: {val}{cub} → {out}")
+    return out

@@ -1,0 +1,109 @@
+"""Pieces of `rsl adapt` that need no simulator: marker binding, parameter maps, Adam, tet refinement."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.adapt_loss import (Adam, bind_markers, chain_params, closest_points_on_triangles, marker_loss,
+                               params_from_theta, theta_from_params)
+
+
+def _brute_closest(p, tri, k=60):
+    """Closest point by dense barycentric sampling (the plain twin of the closed form)."""
+    u, v = np.meshgrid(np.linspace(0, 1, k + 1), np.linspace(0, 1, k + 1))
+    keep = u + v <= 1 + 1e-12
+    b = np.stack([1 - u[keep] - v[keep], u[keep], v[keep]], 1)
+    pts = b @ tri
+    d = np.linalg.norm(pts - p, axis=1)
+    return pts[np.argmin(d)], d.min()
+
+
+def test_closest_point_matches_sampling_in_every_voronoi_region():
+    rng = np.random.default_rng(0)
+    tri = np.array([[[0.0, 0, 0], [1, 0, 0], [0.2, 0.9, 0]]])
+    pts = rng.uniform(-1, 2, (200, 3))
+    closest, bary = closest_points_on_triangles(pts, tri)
+    assert np.allclose(bary.sum(-1), 1) and np.all(bary > -1e-12)
+    for i in range(0, 200, 7):
+        c_ref, d_ref = _brute_closest(pts[i], tri[0])
+        d = np.linalg.norm(closest[i, 0] - pts[i])
+        assert d <= d_ref + 1e-12
+        assert d >= d_ref - 2e-2  # sampling resolution
+
+
+def _cube_surface():
+    v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
+    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    return v, f
+
+
+def test_markers_on_the_surface_are_reproduced_exactly_and_follow_affine_motion():
+    v, f = _cube_surface()
+    rng = np.random.default_rng(1)
+    m0 = rng.uniform(0.05, 0.95, (30, 3))
+    m0[np.arange(30), rng.integers(0, 3, 30)] = rng.integers(0, 2, 30)  # put each on a face
+    b = bind_markers(v, f, m0)
+    assert np.allclose(b.positions(v), m0, atol=1e-12)
+    assert b.distance.max() < 1e-12
+    A = np.array([[1.1, 0.2, 0], [0, 0.9, 0.1], [0.05, 0, 1.2]])
+    assert np.allclose(b.positions(v @ A.T + 0.3), m0 @ A.T + 0.3, atol=1e-12)
+
+
+def test_marker_loss_gradient_matches_finite_differences():
+    v, f = _cube_surface()
+    rng = np.random.default_rng(2)
+    b = bind_markers(v, f, rng.uniform(-0.2, 1.2, (12, 3)))
+    X = v[None] + 0.05 * rng.standard_normal((3, 8, 3))
+    P = rng.uniform(0, 1, (3, 12, 3))
+    L, g = marker_loss(b, X, P)
+    h = 1e-6
+    for idx in [(0, 0, 0), (1, 3, 2), (2, 7, 1), (2, 5, 0)]:
+        Xp, Xm = X.copy(), X.copy()
+        Xp[idx] += h
+        Xm[idx] -= h
+        fd = (marker_loss(b, Xp, P)[0] - marker_loss(b, Xm, P)[0]) / (2 * h)
+        assert g[idx] == pytest.approx(fd, rel=1e-6, abs=1e-9)
+
+
+def test_parameter_maps_round_trip_and_chain_rule():
+    rng_ = (0.3, 0.49)
+    E, nu = np.array([1e4, 3e5]), np.array([0.31, 0.45])
+    le, s = params_from_theta(E, nu, rng_)
+    E2, nu2 = theta_from_params(le, s, rng_)
+    assert np.allclose(E2, E) and np.allclose(nu2, nu)
+    # L(E, ν) = a E + b ν² ; check dL/dp against finite differences in p
+    a, bcoef = np.array([2e-5, -1e-6]), np.array([3.0, 1.0])
+    L = lambda p: float(np.sum(a * theta_from_params(p[:2], p[2:], rng_)[0]
+                               + bcoef * theta_from_params(p[:2], p[2:], rng_)[1] ** 2))
+    p = np.concatenate([le, s])
+    g = np.concatenate(chain_params(a, 2 * bcoef * nu, E, s, rng_))
+    h = 1e-6
+    fd = [(L(p + h * e) - L(p - h * e)) / (2 * h) for e in np.eye(4)]
+    assert np.allclose(g, fd, rtol=1e-6)
+
+
+def test_adam_minimises_a_quadratic_and_ignores_round_off_components():
+    opt = Adam(np.array([0.1, 0.1]))
+    p = np.array([3.0, 1.0])
+    for _ in range(300):
+        g = np.array([2 * (p[0] - 1.0), 1e-14 * np.sign(np.sin(p[0] * 1e3))])
+        p = opt.step(p, g)
+    assert abs(p[0] - 1.0) < 0.05
+    assert abs(p[1] - 1.0) < 1e-3  # a round-off gradient does not move the second component
+
+
+def test_refine_tets_keeps_volume_orientation_and_coarse_vertices():
+    from stages.adapt import refine_tets
+    from stages.sim.mesh import signed_volumes
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], float)
+    t = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
+    t[1] = t[1][[0, 2, 1, 3]] if signed_volumes(v, t[1:])[0] < 0 else t[1]
+    v2, t2, r2 = refine_tets(v, t, np.array([0, 1]))
+    assert np.array_equal(v2[:5], v)
+    vol = signed_volumes(v2, t2)
+    assert np.all(vol > 0)
+    assert np.allclose(vol.reshape(2, 8).sum(1), signed_volumes(v, t))
+    assert np.array_equal(r2, [0] * 8 + [1] * 8)
+    assert len(v2) == 5 + 9  # 9 distinct edges

@@ -1,0 +1,198 @@
+"""Bad inputs through the real CLI: one clear sentence naming the file, exit code ≠ 0, no artefact left behind."""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Callable
+
+import h5py
+import numpy as np
+import pytest
+import trimesh
+
+from stages.artefacts import SCHEMA_VERSION, CamerasArtefact, MeshArtefact
+from stages.capture import write_image
+from test_artefacts import make_all  # tests/ is on sys.path (rootdir-relative imports)
+
+GOOD_TOML = """[capture]
+name = "bad"
+cameras = ["a", "b"]
+[object]
+mesh = "object.mesh"
+density = 1000.0
+"""
+
+
+def _capture(root: Path, sample_data: Path) -> Path:
+    root.mkdir()
+    shutil.copy(sample_data / "bar" / "object.mesh", root / "object.mesh")
+    shutil.copy(sample_data / "bar" / "controls.json", root / "controls.json")
+    (root / "capture.toml").write_text(GOOD_TOML)
+    return root
+
+
+# Each case breaks a good capture; the message must contain `expect` and name the file `names`.
+def _toml(text: str) -> Callable[[Path], None]:
+    return lambda r: (r / "capture.toml").write_text(text)
+
+
+def _controls(data: object) -> Callable[[Path], None]:
+    return lambda r: (r / "controls.json").write_text(data if isinstance(data, str) else json.dumps(data))
+
+
+def _medit(v: list, t: list) -> Callable[[Path], None]:
+    def f(r: Path) -> None:
+        import meshio
+
+        meshio.write(str(r / "object.mesh"), meshio.Mesh(np.array(v, float) * 0.1, [("tetra", np.array(t))]),
+                     file_format="medit")
+    return f
+
+
+def _open_surface(r: Path) -> None:
+    s = trimesh.creation.icosphere(subdivisions=2, radius=0.05)
+    s.update_faces(s.vertices[s.faces].mean(1)[:, 2] < 0.035)
+    s.export(r / "object.obj")
+    (r / "capture.toml").write_text(GOOD_TOML.replace("object.mesh", "object.obj"))
+
+
+def _frames(counts: dict[str, int]) -> Callable[[Path], None]:
+    def f(r: Path) -> None:
+        for cam, n in counts.items():
+            for i in range(n):
+                write_image(r / "frames" / cam / f"{i:06d}.png", np.zeros((4, 4, 3), np.uint8))
+    return f
+
+
+def _open_region(r: Path) -> None:
+    box = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
+    box.update_faces(np.arange(12) < 8)
+    (r / "regions").mkdir()
+    box.export(r / "regions" / "soft.obj")
+
+
+TET = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.2, 0.2, 1]]
+CAPTURE_CASES = {
+    "missing capture.toml": (lambda r: (r / "capture.toml").unlink(), "tetrahedralize",
+                             "file not found; every capture folder needs a capture.toml", "capture.toml"),
+    "malformed capture.toml": (_toml("[capture\nname = 1"), "tetrahedralize", "not valid TOML", "capture.toml"),
+    "unknown material model": (_toml(GOOD_TOML + "[material]\nmodel = 'mooney'\n"), "tetrahedralize",
+                               "'material.model' should be one of stable_neohookean, yeoh, linear", "capture.toml"),
+    "poisson out of range": (_toml(GOOD_TOML + "[material]\npoisson = 0.7\n"), "tetrahedralize",
+                             "'material.poisson' should lie in [0, 0.5)", "capture.toml"),
+    "missing mesh file": (lambda r: (r / "object.mesh").unlink(), "tetrahedralize",
+                          "mesh file named by capture.toml 'object.mesh' not found", "object.mesh"),
+    "unreadable mesh": (lambda r: (r / "object.mesh").write_text("MeshVersionFormatted 2\nDimension 3\nVertices\nxyz\n"),
+                        "tetrahedralize", "cannot read the tet mesh", "object.mesh"),
+    "mesh without tets": (_medit(TET, np.zeros((0, 4), int)), "tetrahedralize", "holds no tetrahedra",
+                          "object.mesh"),
+    "non-watertight surface": (_open_surface, "tetrahedralize", "the surface is not watertight", "object.obj"),
+    "inverted tet": (_medit(TET + [[0.2, 0.2, 0.5]], [[0, 1, 2, 3], [0, 2, 1, 4]]), "tetrahedralize",
+                     "overlap across a shared face: one of them is inverted", "object.mesh"),
+    "degenerate tet": (_medit(TET + [[0.3, 0.3, 0.0]], [[0, 1, 2, 3], [0, 2, 1, 4]]), "tetrahedralize",
+                       "1 degenerate tets", "object.mesh"),
+    "controls.json with a wrong type": (_controls({"handles": {"name": "left"}}), "tetrahedralize",
+                                        "'handles' should be a list, found dict", "controls.json"),
+    "controls.json not JSON": (_controls("{handles: []"), "tetrahedralize", "not valid JSON", "controls.json"),
+    "handle box that selects no vertex": (
+        _controls({"handles": [{"name": "far", "select": {"box": [[5, 5, 5], [6, 6, 6]]}}]}), "tetrahedralize",
+        "handle 'far' selects no vertex of the mesh", "controls.json"),
+    "handle pose with a wrong length": (
+        _controls({"handles": [{"name": "h", "select": {"ids": [0]}, "poses": [[0, 0, 0, 1]]}]}), "tetrahedralize",
+        "'handles[0].poses[0]' should be a list of 7 finite numbers", "controls.json"),
+    "region mesh not closed": (_open_region, "tetrahedralize", "region mesh is not closed", "soft.obj"),
+    "frames of unequal count per camera": (_frames({"a": 3, "b": 2}), "info",
+                                           "cameras hold unequal frame counts (a: 3, b: 2)", "frames"),
+    "frames with a gap": (_frames({"a": 0}) if False else
+                          (lambda r: (_frames({"a": 2, "b": 2})(r), (r / "frames" / "b" / "000000.png").unlink())),
+                          "info", "frame 0 is missing", "frames/b"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CAPTURE_CASES))
+def test_bad_capture(case: str, rsl, sample_data: Path, tmp_path: Path) -> None:
+    breaker, command, expect, names = CAPTURE_CASES[case]
+    root = _capture(tmp_path / "cap", sample_data)
+    breaker(root)
+    ws = tmp_path / "ws"
+    args = [command, root, "-w", ws] if command != "info" else [command, root]
+    proc = rsl(*args)
+    err = " ".join(proc.stderr.split())  # undo rich's line wrapping
+    assert proc.returncode != 0, proc.stderr
+    assert "error:" in err and expect in err, err
+    assert names in err, err
+    assert "Traceback" not in proc.stderr
+    assert not (ws / "mesh.h5").exists()
+    assert not ws.exists() or not [p for p in ws.iterdir() if p.name.endswith(".tmp")]
+
+
+def _artefact(tmp_path: Path, kind: str = "mesh", name: str | None = None) -> Path:
+    path = tmp_path / (name or f"{kind}.h5")
+    make_all(np.random.default_rng(0))[kind].save(path)
+    return path
+
+
+def _set_nan(path: Path) -> None:
+    with h5py.File(path, "a") as f:
+        v = f["vertices"][()]
+        v[0, 0] = np.nan
+        f["vertices"][...] = v
+
+
+def _future(path: Path) -> None:
+    with h5py.File(path, "a") as f:
+        f.attrs["schema_version"] = SCHEMA_VERSION + 3
+
+
+def _truncate(path: Path) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 3])
+
+
+ARTEFACT_CASES = {
+    "wrong artefact kind": ("cameras", "mesh.h5", None, "is a 'cameras' artefact, expected 'mesh'"),
+    "future schema version": ("mesh", None, _future, f"schema version {SCHEMA_VERSION + 3} is newer"),
+    "NaN in a dataset": ("mesh", None, _set_nan, "dataset 'vertices' holds 1 NaN or infinite values"),
+    "truncated HDF5": ("snapshots", None, _truncate, "not a readable HDF5 file"),
+    "not HDF5 at all": ("mesh", None, lambda p: p.write_text("hello"), "not a readable HDF5 file"),
+    "missing artefact": ("mesh", None, lambda p: p.unlink(), "file not found"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(ARTEFACT_CASES))
+def test_bad_artefact(case: str, rsl, tmp_path: Path) -> None:
+    kind, name, breaker, expect = ARTEFACT_CASES[case]
+    path = _artefact(tmp_path, kind, name)
+    if breaker:
+        breaker(path)
+    proc = rsl("info", path)
+    err = " ".join(proc.stderr.split())
+    assert proc.returncode != 0 and expect in err and path.name in err, err
+    assert "Traceback" not in proc.stderr
+
+
+def test_status_and_run_errors(rsl, sample_data: Path, tmp_path: Path) -> None:
+    proc = rsl("status", "-w", tmp_path / "nowhere")
+    assert proc.returncode != 0 and "nowhere: workspace folder not found" in " ".join(proc.stderr.split())
+    proc = rsl("run", sample_data / "bar", "-w", tmp_path / "ws", "--until", "mesh")
+    err = " ".join(proc.stderr.split())
+    assert proc.returncode != 0 and "unknown stage 'mesh'" in err and "tetrahedralize" in err
+    proc = rsl("run", sample_data / "bar", "-w", tmp_path / "ws", "--only", "tetrahedralize",
+               "--set", "tetrahedralize.edge=1")
+    err = " ".join(proc.stderr.split())
+    assert proc.returncode != 0 and "TetrahedralizeConfig has no option 'edge'" in err
+    proc = rsl("run", tmp_path / "nocapture", "-w", tmp_path / "ws", "--only", "tetrahedralize")
+    err = " ".join(proc.stderr.split())
+    assert proc.returncode != 0 and "stage 'tetrahedralize' failed" in err and "nocapture: capture folder not found" in err
+    assert not (tmp_path / "ws" / "mesh.h5").exists()
+
+
+def test_good_artefact_passes_info(rsl, tmp_path: Path) -> None:
+    """The same checks accept a good file (so the cases above fail for the reason they name)."""
+    path = _artefact(tmp_path, "cameras")
+    proc = rsl("info", path)
+    assert proc.returncode == 0, proc.stderr
+    assert "kind cameras" in proc.stdout and "cameras/cam0/K" in proc.stdout
+    assert isinstance(CamerasArtefact.load(path), CamerasArtefact)
+    assert MeshArtefact.kind == "mesh"

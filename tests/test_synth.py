@@ -1,0 +1,217 @@
+"""`rsl synth`: a complete synthetic capture that the rest of the pipeline accepts, and whose
+truth is what the simulator computes from the capture's own files."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+
+from stages.capture import load_capture, read_cameras_json, read_image, read_truth
+from stages.progress import SilentReporter
+from stages.sim.meshgen import box_tets
+from stages.synth import (SynthConfig, parse_region, prepare_mesh, run, scenario_controls, young_schedule)
+from stages.errors import RslError
+from conftest import run_rsl
+
+
+@pytest.fixture(scope="module")
+def box_mesh(tmp_path_factory) -> Path:
+    """A 0.2 × 0.05 × 0.05 m bar of 6×2×2 hex cells (144 tets) as a Medit file."""
+    v, t = box_tets((6, 2, 2), (0.2, 0.05, 0.05))
+    path = tmp_path_factory.mktemp("mesh") / "bar.mesh"
+    meshio.write(str(path), meshio.Mesh(v, [("tetra", t)]), file_format="medit")
+    return path
+
+
+@pytest.fixture(scope="module")
+def capture(box_mesh, tmp_path_factory) -> Path:
+    """A stretch capture made by the real CLI: 2 cameras at 48 px, 6 frames, a stiff region, a ramp."""
+    out = tmp_path_factory.mktemp("synth") / "bar_synth"
+    proc = run_rsl("synth", box_mesh, out, "--scenario", "stretch", "--cameras", "2", "--frames", "6",
+               "--resolution", "48", "--young-schedule", "5e4@0,1e5@5", "--ramp", "--region", "stiff=3e5@x>0.5",
+               "--markers", "7", "--calib-views", "2", "--seed", "3")
+    assert proc.returncode == 0, proc.stderr
+    assert "stretch, 6 frames × 2 cameras" in proc.stderr
+    return out
+
+
+def _resimulate(cap, max_iterations: int = 300) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions (T, n, 3) from truth/object.mesh + controls.json + truth material, and (faces, tets)."""
+    from stages.sim.meshgen import mesh_artefact
+    from stages.sim.scene import frame_inputs, make_scene, simulate
+
+    m = meshio.read(str(cap.truth_dir / "object.mesh"))
+    tets = np.asarray(m.cells_dict["tetra"], np.int64)
+    region = np.asarray(m.cell_data_dict["medit:ref"]["tetra"], np.int64)
+    truth = read_truth(cap)
+    art = mesh_artefact(np.asarray(m.points, np.float64), tets, cap.density, region, tuple(truth.region_names))
+    ctl = cap.controls()
+    scene = make_scene(art, ctl, cap.material.model, cap.dt, cap.gravity)
+    inputs = [frame_inputs(scene, ctl, f) for f in range(truth.young.shape[0])]
+    X = simulate(scene, inputs, truth.young, truth.poisson, max_iterations=max_iterations)
+    return X, art.surface_faces, tets
+
+
+def test_capture_is_complete_and_readable(capture):
+    cap = load_capture(capture)
+    assert cap.camera_names == ["cam0", "cam1"]
+    assert cap.frame_count() == 6
+    img = cap.frame_source("cam0").read(5)
+    assert img.shape == (48, 48, 3) and img.dtype == np.uint8
+    assert cap.background("cam1").shape == (48, 48, 3)
+    cams = read_cameras_json(cap.cameras_json)
+    assert [c.name for c in cams] == ["cam0", "cam1"] and cams[0].width == 48
+    views = cap.calib_views()
+    assert set(views) == {"cam0", "cam1"} and set(views["cam0"]) == set(views["cam1"]) == {"view00", "view01"}
+    assert cap.markers().shape == (6, 7, 3)
+    assert list(cap.region_meshes()) == ["stiff"]
+    assert cap.material.young == pytest.approx(5e4)
+    assert cap.material.region_young("stiff") == pytest.approx(3e5)
+    assert cap.material.young_range[0] <= 5e4 and cap.material.young_range[1] >= 3e5
+    assert cap.raw["calibration"]["board"].startswith("chessboard:6x4:")
+    ctl = cap.controls()
+    assert [h.name for h in ctl.handles] == ["left", "right"]
+    truth = read_truth(cap)
+    assert truth.region_names == ["body", "stiff"]
+    assert np.allclose(truth.young[:, 0], np.linspace(5e4, 1e5, 6))
+    assert np.allclose(truth.young[:, 1], 3e5) and np.allclose(truth.poisson, 0.45)
+    assert truth.vertices.shape[0] == 6 and truth.faces.max() < truth.vertices.shape[1]
+    # truth masks cover the object where the frame differs from the background plate
+    mask = read_image(capture / "truth" / "masks" / "cam0" / "000003.png")[..., 0] > 127
+    frame = cap.frame_source("cam0").read(3).astype(int)
+    diff = np.abs(frame - cap.background("cam0").astype(int)).sum(axis=2)
+    assert 0.02 < mask.mean() < 0.8
+    assert np.all(diff[~mask] <= 3 * 255 * 0.5)  # outside: at most partial coverage at the edge
+    assert np.median(diff[mask]) > 20
+
+
+def test_truth_matches_resimulation_from_capture_files(capture):
+    cap = load_capture(capture)
+    X, faces, tets = _resimulate(cap)
+    truth = read_truth(cap)
+    surf = np.unique(faces)
+    assert np.allclose(truth.vertices, X[:, surf], rtol=0, atol=1e-9)
+    # the markers are surface points bound to a triangle at frame 0 that move with it
+    markers = cap.markers()
+    assert np.linalg.norm(markers[3] - markers[0], axis=1).max() > 1e-3
+    for p0, p3 in zip(markers[0], markers[3]):
+        tri, w = _binding(p0, truth.vertices[0], truth.faces)
+        assert np.allclose(w @ truth.vertices[3][truth.faces[tri]], p3, atol=1e-8)
+    # the right handle moved by +x as controls.json says, the left stayed
+    ctl = cap.controls()
+    right = ctl.handles[1].select.select(X[0] * 0 + _rest(cap))
+    assert X[3, right, 0].mean() - _rest(cap)[right, 0].mean() > 0.01
+
+
+def _binding(p: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> tuple[int, np.ndarray]:
+    """The triangle that holds point p and p's barycentric weights (3,) in it."""
+    for k, (a, b, c) in enumerate(verts[faces]):
+        A = np.stack([b - a, c - a], axis=1)
+        w, *_ = np.linalg.lstsq(A, p - a, rcond=None)
+        if np.linalg.norm(A @ w - (p - a)) < 1e-9 and w.min() >= -1e-9 and w.sum() <= 1 + 1e-9:
+            return k, np.array([1 - w.sum(), w[0], w[1]])
+    raise AssertionError(f"marker {p} lies on no surface triangle")
+
+
+def _rest(cap) -> np.ndarray:
+    return np.asarray(meshio.read(str(cap.truth_dir / "object.mesh")).points, np.float64)
+
+
+def test_regions_file_selects_the_same_tets(capture):
+    from stages.tetrahedralize import assign_regions
+
+    cap = load_capture(capture)
+    m = meshio.read(str(cap.truth_dir / "object.mesh"))
+    tets = np.asarray(m.cells_dict["tetra"], np.int64)
+    region, names = assign_regions(np.asarray(m.points, np.float64), tets, cap.region_meshes(), SilentReporter())
+    assert names == ["body", "stiff"]
+    assert np.array_equal(region, np.asarray(m.cell_data_dict["medit:ref"]["tetra"]))
+    assert 0 < region.mean() < 1
+
+
+def test_tetrahedralize_accepts_the_capture(capture, tmp_path):
+    from stages.artefacts import MeshArtefact
+    from stages.tetrahedralize import TetrahedralizeConfig
+    from stages.tetrahedralize import run as tetrahedralize
+
+    tetrahedralize(TetrahedralizeConfig(capture=capture, workspace=tmp_path / "ws", edge_length=0.2))
+
+    mesh = MeshArtefact.load(tmp_path / "ws" / "mesh.h5")
+    assert set(mesh.handles) == {"left", "right"}
+    assert mesh.region_names == ["body", "stiff"]
+
+
+def test_existing_output_is_not_replaced_without_overwrite(capture, box_mesh, rsl):
+    proc = rsl("synth", box_mesh, capture, "--frames", "2", "--resolution", "32")
+    assert proc.returncode == 1
+    assert "already exists" in proc.stderr and "--overwrite" in proc.stderr
+    assert load_capture(capture).frame_count() == 6
+
+
+def test_bad_options_fail_with_one_clear_sentence(box_mesh, tmp_path, rsl):
+    proc = rsl("synth", box_mesh, tmp_path / "a", "--young-schedule", "1e4 at 0")
+    assert proc.returncode == 1 and "--young-schedule entry '1e4 at 0'" in proc.stderr
+    proc = rsl("synth", tmp_path / "missing.mesh", tmp_path / "b")
+    assert proc.returncode == 1 and "missing.mesh: mesh file not found" in proc.stderr
+    proc = rsl("synth", box_mesh, tmp_path / "c", "--region", "stiff")
+    assert proc.returncode == 1 and "--region 'stiff' should read" in proc.stderr
+    assert not (tmp_path / "a").exists() and not (tmp_path / "c").exists()
+
+
+def test_young_schedule_steps_and_ramps():
+    steps = young_schedule("1e4@0,2e4@20,4e4@40", 0, 50, ramp=False)
+    assert steps[0] == steps[19] == 1e4 and steps[20] == steps[39] == 2e4 and steps[49] == 4e4
+    ramp = young_schedule("1e4@0,2e4@20,4e4@40", 0, 50, ramp=True)
+    assert ramp[10] == pytest.approx(1.5e4) and ramp[30] == pytest.approx(3e4) and ramp[45] == 4e4
+    assert np.all(young_schedule("", 7e4, 5, ramp=False) == 7e4)
+    late = young_schedule("3e4@5", 0, 8, ramp=False)
+    assert np.all(late == 3e4)
+    with pytest.raises(RslError, match="increase strictly"):
+        young_schedule("1e4@5,2e4@5", 0, 8, ramp=False)
+
+
+def test_parse_region_defaults_to_the_long_axis():
+    v = np.array([[0, 0, 0], [0.05, 0.3, 0.02]], float)
+    assert parse_region("hard=2e5", v) == ("hard", 2e5, 1, 0.5)
+    assert parse_region("hard=2e5@z>0.25", v) == ("hard", 2e5, 2, 0.25)
+    with pytest.raises(RslError):
+        parse_region("body=2e5", v)
+
+
+@pytest.mark.parametrize("scenario", ["stretch", "twist", "push", "drop", "cable"])
+def test_scenarios_simulate_and_move_the_object(scenario, box_mesh, tmp_path):
+    out = run(SynthConfig(mesh=box_mesh, out=tmp_path / scenario, scenario=scenario, cameras=1, frames=8,
+                          resolution=32, markers=0, calib_views=0, young=2e5))
+    cap = load_capture(out)
+    truth = read_truth(cap)
+    ctl = cap.controls()
+    rest = truth.vertices[0]
+    motion = np.linalg.norm(truth.vertices - rest[None], axis=2).max()
+    assert motion > 2e-3, scenario
+    if scenario == "drop":
+        floor = ctl.obstacles[0]
+        heights = truth.vertices @ floor.normal - floor.offset
+        assert heights.min() > -2e-3  # does not sink through the floor
+        assert heights[-1].min() < heights[0].min()  # fell towards it
+    if scenario == "push":
+        assert ctl.obstacles[0].shape == "sphere"
+        assert np.ptp(ctl.obstacles[0].poses.values[:, 2]) > 0.01
+    if scenario == "cable":
+        assert ctl.loads[0].select.kind == "ids" and len(ctl.loads[0].select.ids) == 6
+        assert np.abs(ctl.loads[0].force.values).max() > 0
+    if scenario == "twist":
+        q = ctl.handles[1].poses.values[:, 3:]
+        assert np.abs(q[:, 1]).max() > 0.3  # rotated about the long (x) axis
+
+
+def test_scenario_controls_scale_with_the_object():
+    v, t = box_tets((4, 1, 1), (0.4, 0.05, 0.05))
+    mesh = prepare_mesh(v, t, 0.0, "")
+    ctl, notes = scenario_controls("stretch", mesh.vertices, mesh.faces, 10, 1.0, np.array([0, 0, -9.81]), 1e5)
+    assert notes["long_axis"] == "x" and notes["length_m"] == pytest.approx(0.4)
+    left = ctl.handles[0].select.select(mesh.vertices)
+    assert np.allclose(mesh.vertices[left, 0], -0.2)  # only the end face of a 0.1 m cell mesh
+    json.dumps(ctl.to_json())  # serialisable
