@@ -227,11 +227,26 @@ class _Vision:
         self.loss_fn.set_backgrounds([None if p is None else p.astype(np.float32) / 255.0
                                       for p in self.plates.values()])
         self._cache: dict[int, list[np.ndarray]] = {}
+        # The Gaussians were fitted to frame ``fit_frame`` with the mesh at rest: they are anchored to the
+        # object's configuration at that frame.  A frame t is rendered at x_t − (x_fit − rest) (first
+        # order in x_fit − rest), with x_fit the fit frame simulated with the current θ (re-anchored as
+        # θ changes, like the marker binding; the anchor is held fixed within one gradient).
+        from stages.artefacts import read_provenance
+
+        self.fit_frame = int(read_provenance(ws / KIND_FILES["gaussians"]).get("config", {}).get("frame", 0) or 0)
+        self.rest = mesh.vertices
+        self.anchor = np.zeros_like(mesh.vertices)  # (n, 3) x_fit − rest
+
+    def rebind(self, x_fit: np.ndarray) -> None:
+        """Anchor the Gaussians at the simulated fit-frame positions x_fit (n, 3)."""
+        self.anchor = x_fit[:self.n] - self.rest
 
     def available(self) -> int:
-        n = 0
+        """Frames whose images exist and decode in every chosen camera (counted on from the last call)."""
+        n = getattr(self, "_n_ready", 0)
         while _frame_ready(self.capture, self.cameras, n):
             n += 1
+        self._n_ready = n
         return n
 
     def targets(self, t: int) -> list[np.ndarray]:
@@ -252,7 +267,7 @@ class _Vision:
     def loss(self, frames: Sequence[int], X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         losses, grad = np.zeros(len(frames)), np.zeros_like(X)
         for i, t in enumerate(frames):
-            li, gi = self.loss_fn(X[i, :self.n], self.targets(t))
+            li, gi = self.loss_fn(X[i, :self.n] - self.anchor, self.targets(t))
             losses[i], grad[i, :self.n] = li, gi
         return losses, grad
 
@@ -305,6 +320,53 @@ def _frame_ready(capture: Capture, cams: Sequence[str], t: int) -> bool:
         if data.size == 0 or cv2.imdecode(data, cv2.IMREAD_COLOR) is None:
             return False
     return True
+
+
+# =========================================================================== the window objective
+class WindowObjective:
+    """L(p) over a window of frames and dL/dp, p = (log E (R,), s (R,)), θ shared by the window:
+
+        X = sim(θ; x_{t0−2}, x_{t0−1}),  L = Σ_t loss_t(X_t),
+        dL/dθ = Σ_t (adjoint over the window of dL/dX)_t,  dL/dp by the chain rule of the transforms.
+
+    The observation is first re-anchored with θ: markers are bound to the frame-0 surface simulated with
+    θ, Gaussians anchored at their fit frame simulated with θ (held fixed within the gradient).
+    """
+
+    def __init__(self, backend, obs, n_regions: int, poisson_range: tuple[float, float]):
+        self.backend, self.obs, self.R, self.prange = backend, obs, n_regions, poisson_range
+        self.rebind = True
+        self.anchor_frame = int(getattr(obs, "fit_frame", 0))
+        rest = backend.rest_state
+        self._rest2 = np.stack([rest, rest])
+
+    def anchor_positions(self, E: np.ndarray, nu: np.ndarray) -> np.ndarray:
+        """The anchor frame (0 for markers, the Gaussians' fit frame for images) simulated from rest with θ,
+        positions (n, 3)."""
+        k = self.anchor_frame + 1
+        X = self.backend.forward(list(range(k)), np.tile(E, (k, 1)), np.tile(nu, (k, 1)), self._rest2)
+        return self.backend.decode(X[-1:])[0]
+
+    def __call__(self, frames: Sequence[int], p: np.ndarray, before: np.ndarray, need_grad: bool = True):
+        """(states (w, …), per-frame losses (w,), dL/dp (2R,) or None, (forward_s, backward_s, loss_s))."""
+        R, backend = self.R, self.backend
+        E, nu = theta_from_params(p[:R], p[R:], self.prange)
+        w = len(frames)
+        Ew, nuw = np.tile(E, (w, 1)), np.tile(nu, (w, 1))
+        t0 = time.perf_counter()
+        if self.rebind:
+            self.obs.rebind(self.anchor_positions(E, nu))
+        states = backend.forward(list(frames), Ew, nuw, before)
+        X = backend.decode(states)
+        t1 = time.perf_counter()
+        losses, dX = self.obs.loss(frames, X)
+        t2 = time.perf_counter()
+        g = None
+        if need_grad:
+            dE, dnu = backend.backward(list(frames), Ew, nuw, states, before, dX)
+            g = np.concatenate(chain_params(dE.sum(0), dnu.sum(0), E, p[R:], self.prange))
+        t3 = time.perf_counter()
+        return states, losses, g, (t1 - t0, t3 - t2, t2 - t1)
 
 
 # =========================================================================== mesh refinement
@@ -418,16 +480,12 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
     young0 = np.array([config.young_init or mat.region_young(r) for r in names], float)
     poisson0 = np.array([config.poisson_init if config.poisson_init is not None else mat.region_poisson(r)
                          for r in names], float)
-    rest2 = np.stack([backend.rest_state, backend.rest_state])
-
-    def frame0(E: np.ndarray, nu: np.ndarray) -> np.ndarray:
-        """Frame 0 simulated with θ: one step from rest (n, 3)."""
-        return backend.decode(backend.forward([0], E[None], nu[None], rest2))[0]
-
     if config.loss == "markers":
         # Markers bind to the simulated frame-0 surface; the binding is refreshed as θ changes
         # (frame 0 is already one step from rest, so it depends on θ).
-        obs = _Markers(capture, frame0(young0, poisson0), mesh.surface_faces, n)
+        rest = backend.rest_state
+        x0 = backend.decode(backend.forward([0], young0[None], poisson0[None], np.stack([rest, rest])))[0]
+        obs = _Markers(capture, x0, mesh.surface_faces, n)
         inputs_used.append(capture.markers_path)
         if obs.far > 0.05:
             reporter.warn(f"{capture.markers_path}: a frame-0 marker lies {obs.far:.1%} of the object size "
@@ -437,11 +495,11 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
         inputs_used += [ws / KIND_FILES[k] for k in ("cameras", "gaussians", "masks")]
 
     prange = mat.poisson_range
-    if not config.fit_poisson:
-        prange = (float(poisson0.max()), float(poisson0.max()))
+    if not config.fit_poisson:  # ν held at its initial value, per region
+        prange = (poisson0.copy(), poisson0.copy())
     if np.any(young0 <= 0):
         raise RslError(f"{capture.toml_path}: the initial Young's modulus must be positive.")
-    if config.poisson_init is not None and not prange[0] <= config.poisson_init <= prange[1]:
+    if config.fit_poisson and config.poisson_init is not None and not prange[0] <= config.poisson_init <= prange[1]:
         raise RslError(f"{capture.toml_path}: --poisson-init {config.poisson_init} lies outside "
                        f"poisson_range {list(prange)}.")
     log_e, s_nu = params_from_theta(young0, np.clip(poisson0, *prange), prange)
@@ -454,6 +512,7 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
     stored: dict[int, np.ndarray] = {}  # frame -> latest state (positions or z)
     t_start = time.perf_counter()
     interrupted = False
+    status = "failed"
 
     def state_at(t: int) -> np.ndarray:
         return stored[t] if t >= 0 else backend.rest_state
@@ -471,29 +530,11 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
     adam = Adam(lr)
     params = np.concatenate([log_e, s_nu])
 
-    rebind = isinstance(obs, _Markers)
+    objective = WindowObjective(backend, obs, R, prange)
 
     def evaluate(frames: list[int], p: np.ndarray, need_grad: bool):
-        """Forward over ``frames``, loss, and (optionally) the adjoint; returns states, per-frame loss,
-        gradient on p and the three timings."""
-        E, nu = theta_from_params(p[:R], p[R:], prange)
-        w = len(frames)
-        Ew, nuw = np.tile(E, (w, 1)), np.tile(nu, (w, 1))
         before = np.stack([state_at(frames[0] - 2), state_at(frames[0] - 1)])
-        t0 = time.perf_counter()
-        if rebind:
-            obs.rebind(frame0(E, nu))
-        states = backend.forward(frames, Ew, nuw, before)
-        X = backend.decode(states)
-        t1 = time.perf_counter()
-        losses, dX = obs.loss(frames, X)
-        t2 = time.perf_counter()
-        g = None
-        if need_grad:
-            dE, dnu = backend.backward(frames, Ew, nuw, states, before, dX)
-            g = np.concatenate(chain_params(dE.sum(0), dnu.sum(0), E, p[R:], prange))
-        t3 = time.perf_counter()
-        return states, losses, g, (t1 - t0, t3 - t2, t2 - t1)
+        return objective(frames, p, before, need_grad)
 
     try:
         if config.mode == "online":
@@ -504,12 +545,15 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
                 raise RslError(f"{capture.toml_path}: --mode offline needs a finite frame range (not --follow "
                                f"without --frames).")
             params = _offline(config, first, last, params, adam, evaluate, stored, rec, R, prange, reporter)
+        status = "complete"
     except KeyboardInterrupt:
-        interrupted = True
+        interrupted, status = True, "interrupted"
     finally:
+        # Whatever ends the loop (the last frame, Ctrl-C, a failed solve), the frames so far are saved
+        # (atomically); extra["status"] says which.
         if rec.frames:
-            path = _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs, interrupted,
-                         time.perf_counter() - t_start, n)
+            path = _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs,
+                         status, time.perf_counter() - t_start, n)
     if not rec.frames:
         if interrupted:
             raise KeyboardInterrupt
@@ -596,7 +640,7 @@ def _offline(config, first, last, params, adam, evaluate, stored, rec, R, prange
     return params
 
 
-def _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs, interrupted, wall_s, n) -> Path:
+def _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs, status, wall_s, n) -> Path:
     frames = np.asarray(rec.frames, np.int64)
     states = np.stack([stored[t] for t in rec.frames])
     X = backend.decode(states)[:, :n]
@@ -606,7 +650,7 @@ def _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs, inter
         "iters_per_frame": config.iters_per_frame,
         "cameras": getattr(obs, "cameras", []),
         "refine": config.refine,
-        "complete": not interrupted,
+        "status": status,  # complete | interrupted | failed
         "wall_s": wall_s,
         "young_meaning": _young_meaning(config, mesh),
     }
@@ -641,6 +685,6 @@ def _report(config, reporter, rec, names, backend, scene, mesh, path, interrupte
     mats = ", ".join(f"{nm}: E={e:.4g} Pa ν={v:.3f}" for nm, e, v in zip(names, E, nu))
     stop = " (stopped early)" if interrupted else ""
     reporter.summary(f"adapted {len(rec.frames)} frames{stop} {config.mode} in {backend.space} space from "
-                     f"{rec.frames and ('markers' if config.loss == 'markers' else 'images')}: {mats} "
+                     f"{'markers' if config.loss == 'markers' else 'images'}: {mats} "
                      f"(effective E of this mesh); per frame forward {f:.3f} s, backward {b:.3f} s, "
                      f"render {r:.3f} s, total {t:.3f} s → {path}")

@@ -113,9 +113,9 @@ def marker_loss(binding: MarkerBinding, X: np.ndarray, P: np.ndarray) -> tuple[f
 
 
 # =========================================================================== parameters
-def theta_from_params(log_young: np.ndarray, s_poisson: np.ndarray, poisson_range: tuple[float, float]
+def theta_from_params(log_young: np.ndarray, s_poisson: np.ndarray, poisson_range: tuple
                       ) -> tuple[np.ndarray, np.ndarray]:
-    """E = exp(log E);  ν = ν_lo + (ν_hi − ν_lo)·sigmoid(s)  (per region)."""
+    """E = exp(log E);  ν = ν_lo + (ν_hi − ν_lo)·sigmoid(s)  (per region; ν_lo, ν_hi scalars or (R,))."""
     lo, hi = poisson_range
     return np.exp(log_young), lo + (hi - lo) / (1.0 + np.exp(-s_poisson))
 
@@ -123,11 +123,11 @@ def theta_from_params(log_young: np.ndarray, s_poisson: np.ndarray, poisson_rang
 def params_from_theta(young: np.ndarray, poisson: np.ndarray, poisson_range: tuple[float, float]
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Inverse of :func:`theta_from_params` (ν is clipped strictly inside the range)."""
-    lo, hi = poisson_range
-    if hi - lo < 1e-9:
-        return np.log(young), np.zeros_like(np.asarray(poisson, float))
-    u = np.clip((np.asarray(poisson, float) - lo) / (hi - lo), 1e-4, 1 - 1e-4)
-    return np.log(young), np.log(u / (1 - u))
+    lo, hi = np.asarray(poisson_range[0], float), np.asarray(poisson_range[1], float)
+    width = hi - lo
+    safe = np.where(width > 1e-9, width, 1.0)
+    u = np.clip((np.asarray(poisson, float) - lo) / safe, 1e-4, 1 - 1e-4)
+    return np.log(young), np.where(width > 1e-9, np.log(u / (1 - u)), 0.0)
 
 
 def chain_params(dL_dE: np.ndarray, dL_dnu: np.ndarray, young: np.ndarray, s_poisson: np.ndarray,

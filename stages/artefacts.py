@@ -636,10 +636,55 @@ class AdaptArtefact:
             )
 
 
+@dataclass
+class StressArtefact:
+    """Per-frame stress of a trajectory, written by ``rsl export`` (export/stress.h5)."""
+
+    frames: np.ndarray  # (T,) capture frame ids
+    time_s: np.ndarray  # (T,) s
+    von_mises_tet: np.ndarray  # (T, m) Pa
+    von_mises_vertex: np.ndarray  # (T, n) Pa, volume-weighted average of the tets around a vertex
+    cauchy_tet: np.ndarray  # (T, m, 3, 3) Pa
+    internal_forces: np.ndarray  # (T, n, 3) N
+    tet_region: np.ndarray  # (m,)
+    region_names: list[str]
+    material_model: str
+
+    kind = "stress"
+
+    def save(self, path: str | Path, provenance: Provenance = Provenance()) -> Path:
+        with atomic_h5(path, self.kind, provenance) as f:
+            _put(f, "frames", np.asarray(self.frames, np.int64))
+            _put(f, "time_s", np.asarray(self.time_s, np.float64))
+            for k in ("von_mises_tet", "von_mises_vertex", "cauchy_tet", "internal_forces"):
+                _put(f, k, np.asarray(getattr(self, k), np.float64), compress=True)
+            _put(f, "tet_region", np.asarray(self.tet_region, np.int32))
+            f.attrs["region_names"] = json.dumps(list(self.region_names))
+            f.attrs["material_model"] = self.material_model
+            f.attrs["units"] = json.dumps({"von_mises_tet": "Pa", "von_mises_vertex": "Pa", "cauchy_tet": "Pa",
+                                           "internal_forces": "N", "time_s": "s"})
+        return Path(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "StressArtefact":
+        with open_artefact(path, cls.kind) as r:
+            frames = r.array("frames", ndim=1, kind="i")
+            t = frames.shape[0]
+            vm = r.array("von_mises_tet", shape=(t, None))
+            m = vm.shape[1]
+            vmv = r.array("von_mises_vertex", shape=(t, None))
+            return cls(
+                frames, r.array("time_s", shape=(t,)), vm, vmv, r.array("cauchy_tet", shape=(t, m, 3, 3)),
+                r.array("internal_forces", shape=(t, vmv.shape[1], 3)),
+                r.array("tet_region", shape=(m,), kind="i"), json.loads(r.attr("region_names")),
+                str(r.attr("material_model")),
+            )
+
+
 ARTEFACT_TYPES = {
     c.kind: c
     for c in (CamerasArtefact, MasksArtefact, MeshArtefact, GaussiansArtefact,
-              SnapshotsArtefact, SubspaceArtefact, AdaptArtefact)
+              SnapshotsArtefact, SubspaceArtefact, AdaptArtefact, StressArtefact)
 }
 
 

@@ -74,6 +74,10 @@ class CalibrateConfig:
     """A view is never dropped below this RMS, pixels."""
     known_distance: str = ""
     """SfM scale: camA:camB:METRES, the distance between two camera centres."""
+    sfm_single_camera: bool = False
+    """SfM: all cameras share one set of intrinsics (identical cameras; steadier with few images)."""
+    sfm_max_image_size: int = 1600
+    """SfM: images are downscaled to at most this many pixels for feature extraction."""
     seed: int = 0
     """Seed of the random choices in SfM."""
 
@@ -319,7 +323,8 @@ def _sfm(cap: Capture, config: CalibrateConfig, reporter: Reporter) -> list[Came
             for v, p in vs.items():
                 images[f"{c}/{v}"] = read_image(p)
     with tempfile.TemporaryDirectory(prefix="rsl_sfm_") as tmp, reporter.task("structure from motion", None):
-        rec = reconstruct(images, Path(tmp), seed=config.seed)
+        rec = reconstruct(images, Path(tmp), seed=config.seed, max_image_size=config.sfm_max_image_size,
+                          single_camera=config.sfm_single_camera)
     missing = [c for c in cap.camera_names if f"{c}/frame0" not in rec.poses]
     if missing:
         raise RslError(f"{cap.root / 'frames'}: SfM could not register frame 0 of camera(s) "

@@ -163,13 +163,19 @@ def _psnr(config, ws, capture, adapt, mesh, reporter) -> tuple[list[float], list
     renderer = ImageLoss(GaussiansArtefact.load(gpath), mesh, [cams.by_name(c) for c in names])
     plates = [None if masks is not None and c in masks else capture.background(c) for c in names]
     renderer.set_backgrounds([None if p is None else p.astype(np.float32) / 255.0 for p in plates])
+    # Gaussians are anchored at their fit frame (as rsl adapt renders them): x_t − (x_fit − rest).
+    from stages.artefacts import read_provenance
+
+    fit_frame = int(read_provenance(gpath).get("config", {}).get("frame", 0) or 0)
+    at = np.flatnonzero(adapt.frames == fit_frame)
+    anchor = adapt.positions[at[0]] - mesh.vertices if len(at) else 0.0
     pick = np.unique(np.linspace(0, len(adapt.frames) - 1, min(config.psnr_frames, len(adapt.frames))).round()
                      .astype(int))
     out = []
     with reporter.task("PSNR of renders", len(pick)) as task:
         for i in pick:
             t = int(adapt.frames[i])
-            imgs = renderer.render(adapt.positions[i])
+            imgs = renderer.render(adapt.positions[i] - anchor)
             mse = []
             for c, img in zip(names, imgs):
                 ref = capture.frame_source(c).read(t).astype(np.float32) / 255.0

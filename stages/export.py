@@ -4,7 +4,7 @@ rendered stress views, plots, scan distances and a COLMAP model of the cameras.
 Reads WS/adapt.h5 (or WS/rollout.h5 with ``source="rollout"``), WS/mesh.h5, and where
 needed WS/gaussians.h5 and WS/cameras.h5, plus the capture folder recorded in the
 artefact's config (for the material model, fps, gravity and controls).  Writes
-into one output folder (default WS/export/):
+into one output folder (default WS/export/, or WS/export_rollout/ for a rollout):
 
     stress.h5, stress_summary.csv      Cauchy σ and von Mises per tet, per-vertex von Mises
     forces.csv                         per frame and handle/obstacle: Σ internal nodal force
@@ -33,7 +33,7 @@ from typing import Any, Iterator, Literal
 
 import numpy as np
 
-from stages.artefacts import (KIND_FILES, AdaptArtefact, MeshArtefact, Provenance, atomic_h5,
+from stages.artefacts import (KIND_FILES, AdaptArtefact, MeshArtefact, Provenance, StressArtefact,
                               read_provenance)
 from stages.capture import Capture, CaptureError, Controls, load_capture, load_controls
 from stages.errors import RslError
@@ -41,7 +41,6 @@ from stages.progress import Reporter, SilentReporter
 from stages.sim import stress as st
 
 ROLLOUT_FILE = "rollout.h5"
-STRESS_KIND = "stress"
 
 
 class ExportError(RslError):
@@ -53,7 +52,7 @@ class ExportConfig:
     workspace: Path
     """Workspace folder holding adapt.h5 (or rollout.h5) and mesh.h5."""
     out: Path | None = None
-    """Output folder; default WORKSPACE/export."""
+    """Output folder; default WORKSPACE/export (WORKSPACE/export_rollout with --source rollout)."""
     source: Literal["adapt", "rollout"] = "adapt"
     """Which trajectory to export: adapt.h5 (the adapted sequence) or rollout.h5 (a prediction)."""
     stress: bool = False
@@ -101,6 +100,7 @@ def _atomic_path(path: Path) -> Iterator[Path]:
     os.close(fd)
     try:
         yield Path(tmp)
+        os.chmod(tmp, 0o644)  # mkstemp makes 0600; exports are meant to be shared
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -184,10 +184,9 @@ def load_sequence(config: ExportConfig) -> Sequence:
                           f"{len(mesh.region_names)} ({', '.join(mesh.region_names)}).")
     if adapt.frames.shape[0] == 0:
         raise ExportError(f"{src}: holds no frame.")
-    recorded = read_provenance(src).get("config", {})
-    cap_path = config.capture
-    if cap_path is None:
-        cap_path = Path(recorded["capture"]) if recorded.get("capture") else None
+    prov = read_provenance(src)
+    recorded = prov.get("config", {})
+    cap_path = config.capture if config.capture is not None else _recorded_capture(prov)
     capture = None
     if cap_path is not None:
         try:
@@ -203,7 +202,7 @@ def load_sequence(config: ExportConfig) -> Sequence:
     inputs = [src, mesh_path]
     controls, controls_path = None, None
     if recorded.get("controls"):  # a rollout records the controls it simulated
-        controls_path = Path(recorded["controls"])
+        controls_path = Path(adapt.extra.get("controls") or recorded["controls"])
         if not controls_path.is_file():
             raise ExportError(f"{src}: the controls file it records, {controls_path}, no longer exists.")
         controls = load_controls(controls_path)
@@ -212,6 +211,19 @@ def load_sequence(config: ExportConfig) -> Sequence:
         controls = capture.controls()
     gravity = capture.gravity if capture else np.asarray(adapt.extra.get("gravity", [0.0, 0.0, -9.81]), float)
     return Sequence(src, adapt, mesh, capture, model, dt, times, inputs, controls, controls_path, gravity)
+
+
+def _recorded_capture(prov: dict) -> Path | None:
+    """The capture folder an artefact was made from: its config's ``capture`` when that folder exists
+    from here, else the folder of the capture.toml among its hashed (absolute) inputs."""
+    rec = prov.get("config", {}).get("capture")
+    if rec and Path(rec).is_dir():
+        return Path(rec)
+    for item in prov.get("inputs", []):
+        p = Path(item.get("path", ""))
+        if p.name == "capture.toml" and p.is_file():
+            return p.parent
+    return Path(rec) if rec else None
 
 
 def select_rows(seq: Sequence, spec: str, path_hint: str = "--frames") -> np.ndarray:
@@ -281,20 +293,10 @@ def compute_stress(seq: Sequence, reporter: Reporter) -> StressField:
 
 
 def write_stress(seq: Sequence, field: StressField, out: Path, config: ExportConfig) -> list[Path]:
-    """stress.h5 (kind "stress") and stress_summary.csv (one row per frame, plus per region if several)."""
-    h5 = out / "stress.h5"
-    with atomic_h5(h5, STRESS_KIND, Provenance.make(config, seq.provenance_inputs)) as f:
-        f.create_dataset("frames", data=seq.adapt.frames.astype(np.int64))
-        f.create_dataset("time_s", data=seq.times)
-        for name, arr in (("von_mises_tet", field.von_mises_tet), ("von_mises_vertex", field.von_mises_vertex),
-                          ("cauchy_tet", field.sigma), ("internal_forces", field.forces)):
-            f.create_dataset(name, data=arr, compression="gzip", compression_opts=4,
-                             chunks=(1,) + arr.shape[1:])
-        f.create_dataset("tet_region", data=seq.mesh.tet_region.astype(np.int32))
-        f.attrs["region_names"] = json.dumps(list(seq.mesh.region_names))
-        f.attrs["material_model"] = seq.model
-        f.attrs["units"] = json.dumps({"von_mises_tet": "Pa", "von_mises_vertex": "Pa", "cauchy_tet": "Pa",
-                                       "internal_forces": "N", "time_s": "s"})
+    """stress.h5 (a StressArtefact) and stress_summary.csv (one row per frame, plus per region if several)."""
+    h5 = StressArtefact(seq.adapt.frames, seq.times, field.von_mises_tet, field.von_mises_vertex, field.sigma,
+                        field.forces, seq.mesh.tet_region, list(seq.mesh.region_names), seq.model
+                        ).save(out / "stress.h5", Provenance.make(config, seq.provenance_inputs))
     names = list(seq.mesh.region_names)
     rows = []
     for i in range(seq.n_frames):
@@ -323,9 +325,10 @@ FORCE_HEADER = ["frame", "time_s", "name", "kind", "fx_N", "fy_N", "fz_N", "magn
 
 
 def compute_forces(seq: Sequence, field: StressField, config: ExportConfig, reporter: Reporter
-                   ) -> list[ForceRow]:
+                   ) -> tuple[list[ForceRow], np.ndarray]:
     """Per frame, per handle and per obstacle: the internal-force sums over its vertices
-    (stages.sim.stress.set_forces), with the controls the trajectory was made with."""
+    (stages.sim.stress.set_forces), with the controls the trajectory was made with; and the
+    per-vertex force (T, n, 3) N that handles and obstacles apply."""
     from stages.sim.scene import frame_inputs, make_scene
 
     controls = seq.controls
@@ -333,16 +336,17 @@ def compute_forces(seq: Sequence, field: StressField, config: ExportConfig, repo
         reporter.warn(f"{seq.controls_path}: no handle and no obstacle; forces.csv holds no row.")
     scene = make_scene(seq.mesh, controls, seq.model, seq.dt, seq.gravity)
     rows: list[ForceRow] = []
+    applied = np.zeros_like(seq.adapt.positions)
     with reporter.task("forces", seq.n_frames) as task:
         for i in range(seq.n_frames):
             frame = int(seq.adapt.frames[i])
             inputs = frame_inputs(scene, controls, frame)
-            x_prev, _ = seq.previous(i)
-            for f in st.set_forces(scene, inputs, seq.adapt.positions[i], x_prev, field.forces[i],
-                                   config.contact_distance):
+            x, (x_prev, _) = seq.adapt.positions[i], seq.previous(i)
+            for f in st.set_forces(scene, inputs, x, x_prev, field.forces[i], config.contact_distance):
                 rows.append(ForceRow(frame, float(seq.times[i]), f))
+            applied[i] = st.applied_forces(scene, inputs, x, x_prev)
             task.advance(1)
-    return rows
+    return rows, applied
 
 
 def write_forces(rows: list[ForceRow], out: Path) -> Path:
@@ -352,9 +356,12 @@ def write_forces(rows: list[ForceRow], out: Path) -> Path:
 
 
 # =========================================================================== VTU / PVD
-def write_vtk(seq: Sequence, field: StressField, force_rows: list[ForceRow] | None, out: Path,
+def write_vtk(seq: Sequence, field: StressField, applied: np.ndarray | None, out: Path,
               reporter: Reporter) -> list[Path]:
-    """vtk/frame_NNNNNN.vtu per frame and vtk/<source>.pvd listing them with their times."""
+    """vtk/frame_NNNNNN.vtu per frame and vtk/<source>.pvd listing them with their times.
+
+    Point data: displacement (m), von_mises (Pa), internal_force (N) and, when forces were
+    computed, applied_force (N, handles and contacts); cell data: von_mises, region, young_pa, poisson."""
     import meshio
 
     mesh, ad = seq.mesh, seq.adapt
@@ -366,10 +373,12 @@ def write_vtk(seq: Sequence, field: StressField, force_rows: list[ForceRow] | No
         for i in range(seq.n_frames):
             x = ad.positions[i]
             young_tet = ad.young[i][mesh.tet_region]
+            point_data = {"displacement": x - mesh.vertices, "von_mises": field.von_mises_vertex[i],
+                          "internal_force": field.forces[i]}
+            if applied is not None:
+                point_data["applied_force"] = applied[i]
             m = meshio.Mesh(
-                points=x, cells=[("tetra", mesh.tets.astype(np.int64))],
-                point_data={"displacement": x - mesh.vertices, "von_mises": field.von_mises_vertex[i],
-                            "internal_force": field.forces[i]},
+                points=x, cells=[("tetra", mesh.tets.astype(np.int64))], point_data=point_data,
                 cell_data={"von_mises": [field.von_mises_tet[i]], "region": [region],
                            "young_pa": [young_tet], "poisson": [ad.poisson[i][mesh.tet_region]]},
             )
@@ -486,20 +495,21 @@ def add_colorbar(image: np.ndarray, vmax_pa: float, label: str = "von Mises") ->
     import cv2
 
     h = image.shape[0]
-    bar_w = max(64, h // 5)
+    scale = max(0.3, h / 900)
+    line = int(22 * scale) + 6  # text line height, px
+    bar_w = max(64, h // 5, int(10 * 18 * scale))
     strip = np.full((h, bar_w, 3), 255, np.uint8)
-    top, bottom = int(0.14 * h), int(0.9 * h)
+    top, bottom = 2 * line + 6, int(0.92 * h)
     ramp = np.linspace(1.0, 0.0, max(bottom - top, 2))
     colors = (colormap(ramp) * 255).astype(np.uint8)  # (L, 3)
     x0, x1 = 6, 6 + max(8, bar_w // 5)
     strip[top:top + len(colors), x0:x1] = colors[:, None, :]
-    scale = max(0.3, h / 900)
     font = cv2.FONT_HERSHEY_SIMPLEX
     ink = (20, 20, 20)
-    cv2.putText(strip, f"{vmax_pa / 1e3:.3g}", (x1 + 3, top + 8), font, scale, ink, 1, cv2.LINE_AA)
+    cv2.putText(strip, label, (x0, line - 4), font, scale, ink, 1, cv2.LINE_AA)
+    cv2.putText(strip, "kPa", (x0, 2 * line - 4), font, scale, ink, 1, cv2.LINE_AA)
+    cv2.putText(strip, f"{vmax_pa / 1e3:.3g}", (x1 + 3, top + line // 2), font, scale, ink, 1, cv2.LINE_AA)
     cv2.putText(strip, "0", (x1 + 3, bottom), font, scale, ink, 1, cv2.LINE_AA)
-    cv2.putText(strip, "kPa", (x0, max(top - 6, 10)), font, scale, ink, 1, cv2.LINE_AA)
-    cv2.putText(strip, label, (x0, max(top - 6 - int(22 * scale + 4), 10)), font, scale, ink, 1, cv2.LINE_AA)
     return np.concatenate([image, strip], axis=1)
 
 
@@ -662,12 +672,13 @@ def write_plots(seq: Sequence, field: StressField | None, force_rows: list[Force
 
     if force_rows:
         fig, (a0, a1) = plt.subplots(2, 1, figsize=(7, 5.5), sharex=True)
-        for name in dict.fromkeys(r.force.name for r in force_rows):
+        for k, name in enumerate(dict.fromkeys(r.force.name for r in force_rows)):
             rs = [r for r in force_rows if r.force.name == name]
             tt = [r.time_s for r in rs]
-            a0.plot(tt, [np.linalg.norm(r.force.internal) for r in rs], marker=".", label=f"{name} ‖Σ f‖")
-            a0.plot(tt, [r.force.magnitude_sum for r in rs], ls="--", label=f"{name} Σ‖f‖")
-            a1.plot(tt, [np.linalg.norm(r.force.applied) for r in rs], marker=".", label=name)
+            c = f"C{k % 10}"
+            a0.plot(tt, [np.linalg.norm(r.force.internal) for r in rs], marker=".", color=c, label=f"{name} ‖Σ f‖")
+            a0.plot(tt, [r.force.magnitude_sum for r in rs], ls="--", color=c, label=f"{name} Σ‖f‖")
+            a1.plot(tt, [np.linalg.norm(r.force.applied) for r in rs], marker=".", color=c, label=name)
         a0.set_ylabel("internal force (N)")
         a0.set_title("handle / obstacle forces")
         a1.set_ylabel("applied force (N)")
@@ -780,26 +791,14 @@ def write_colmap_model(ws: Path, folder: Path) -> list[Path]:
 PRODUCTS = ("stress", "forces", "vtk", "ply", "render", "plots")
 
 
-def _module_exists(name: str) -> bool:
-    import importlib.util
-
-    try:
-        return importlib.util.find_spec(name) is not None
-    except ModuleNotFoundError:
-        return False
-
-
-def chosen_products(config: ExportConfig, ws: Path, reporter: Reporter) -> set[str]:
+def chosen_products(config: ExportConfig, ws: Path) -> set[str]:
     """The products to make: those flagged, or with no flag at all every one whose inputs exist."""
     chosen = {p for p in PRODUCTS if getattr(config, p)}
     if chosen or config.scan is not None or config.colmap is not None:
         return chosen
     chosen = {"stress", "forces", "vtk", "plots"}
-    has_gauss = (ws / KIND_FILES["gaussians"]).exists()
-    if has_gauss and _module_exists("stages.render.ply"):
-        chosen.add("ply")
-    if has_gauss and _module_exists("stages.render.gaussians"):
-        chosen.add("render")  # capture cameras when cameras.h5 exists, orbit views always
+    if (ws / KIND_FILES["gaussians"]).exists():
+        chosen |= {"ply", "render"}  # render: the capture cameras when cameras.h5 exists, orbit views always
     return chosen
 
 
@@ -807,33 +806,34 @@ def run(config: ExportConfig, reporter: Reporter = SilentReporter()) -> Path:
     """Write the chosen exports into config.out (default WS/export); returns that folder."""
     ws = Path(config.workspace)
     seq = load_sequence(config)
-    out = Path(config.out) if config.out is not None else ws / "export"
+    out = Path(config.out) if config.out is not None else \
+        ws / ("export" if config.source == "adapt" else "export_rollout")
     out.mkdir(parents=True, exist_ok=True)
-    chosen = chosen_products(config, ws, reporter)
+    chosen = chosen_products(config, ws)
     if "forces" in chosen and seq.controls is None:
         if any(getattr(config, p) for p in PRODUCTS):
             raise ExportError(f"{seq.source_path}: forces need the capture's controls.json, but no capture "
                               f"folder is known; pass --capture.")
         reporter.warn("no capture folder known: skipping forces (pass --capture).")
         chosen.discard("forces")
+    rows = select_rows(seq, config.frames) if chosen & {"ply", "render"} else None  # fail early on bad --frames
     done: list[str] = []
     field = None
-    if chosen & {"stress", "forces", "vtk", "ply", "render", "plots"}:
+    if chosen:
         field = compute_stress(seq, reporter)
     if "stress" in chosen:
         write_stress(seq, field, out, config)
         done.append(f"stress (max σ_vM {field.von_mises_tet.max() / 1e3:.3g} kPa)")
-    force_rows = None
+    force_rows, applied = None, None
     if "forces" in chosen:
-        force_rows = compute_forces(seq, field, config, reporter)
+        force_rows, applied = compute_forces(seq, field, config, reporter)
         write_forces(force_rows, out)
         names = sorted({r.force.name for r in force_rows})
         done.append(f"forces ({len(names)} handles/obstacles)")
     if "vtk" in chosen:
-        paths = write_vtk(seq, field, force_rows, out, reporter)
+        paths = write_vtk(seq, field, applied, out, reporter)
         done.append(f"{len(paths) - 1} VTU + PVD")
-    if "ply" in chosen or "render" in chosen:
-        rows = select_rows(seq, config.frames)
+    if rows is not None:
         if "ply" in chosen:
             paths = write_ply_frames(seq, field, rows, config, out, reporter)
             done.append(f"{len(paths)} PLY")

@@ -42,13 +42,17 @@ class GenerateDataConfig:
     workers: int = 2
     """Local worker processes (1 = run in this process)."""
     ray: str = ""
-    """Address of an existing Ray cluster to run the sequences on ('auto', 'ray://host:10001', or 'local' to start one here); empty = local process pool."""
+    """Address of an existing Ray cluster to run the sequences on ('auto', 'ray://host:10001', or 'local' to start
+    one here); empty = local process pool."""
     material_sampling: Literal["ramp", "constant"] = "ramp"
-    """Per-frame material: 'ramp' interpolates between two random end points of each sequence (log E, ν); 'constant' holds one random value."""
+    """Per-frame material: 'ramp' interpolates between two random end points of each sequence (log E, ν);
+    'constant' holds one random value."""
     keyframe_gap: int = 0
-    """Frames between random keyframes (drawn in [gap, 2·gap]); 0 = a quarter of the capture's control length, at least 5."""
+    """Frames between random keyframes (drawn in [gap, 2·gap]); 0 = a quarter of the capture's control length, at
+    least 5."""
     jitter: float = 0.1
-    """Random offset of each keyframe as a fraction of its control's range over the capture (translation, rotation angle, force)."""
+    """Random offset of each keyframe as a fraction of its control's range over the capture (translation, rotation
+    angle, force)."""
     newton_iterations: int = 300
     """Most Newton iterations per time step before a sequence is given up."""
     seed: int = 0
@@ -116,7 +120,7 @@ def random_controls(controls: Controls, frames: int, gap: int, jitter: float, rn
     n_ref = controls.n_frames or 1
     keys = [0]
     while keys[-1] < frames - 1:
-        keys.append(min(frames - 1, keys[-1] + int(rng.integers(gap, 2 * gap + 1))))
+        keys.append(keys[-1] + int(rng.integers(gap, 2 * gap + 1)))  # the last may lie past the end
     keys = np.array(keys)
     tracks = [h.poses for h in controls.handles] + [ld.force for ld in controls.loads] + \
              [o.poses for o in controls.obstacles]

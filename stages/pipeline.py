@@ -20,7 +20,7 @@ from typing import Any
 
 from stages.errors import RslError
 from stages.progress import Reporter, SilentReporter
-from stages.workspace import INVALID, OK, STALE, artefact_state, config_differences
+from stages.workspace import INVALID, MISSING, OK, STALE, artefact_state, config_differences
 
 
 @dataclass(frozen=True)
@@ -32,6 +32,8 @@ class Stage:
     config_class: str  # e.g. "FitGaussiansConfig"
     produces: str  # artefact kind (stages.artefacts.KIND_FILES)
     reads: tuple[str, ...] = ()  # artefact kinds it reads when present
+    needs_cameras: bool = False  # not applicable to a capture that lists no camera
+    volatile: tuple[str, ...] = ()  # options that do not change the artefact (threads, workers)
 
     def available(self) -> bool:
         """Whether the stage's module can be found (without importing it)."""
@@ -86,11 +88,13 @@ class Stage:
 
 
 STAGES: tuple[Stage, ...] = (
-    Stage("calibrate", "stages.calibrate", "CalibrateConfig", "cameras"),
-    Stage("segment", "stages.segment", "SegmentConfig", "masks", ("cameras",)),
-    Stage("tetrahedralize", "stages.tetrahedralize", "TetrahedralizeConfig", "mesh"),
-    Stage("fit-gaussians", "stages.fit_gaussians", "FitGaussiansConfig", "gaussians", ("mesh", "cameras", "masks")),
-    Stage("generate-data", "stages.generate_data", "GenerateDataConfig", "snapshots", ("mesh",)),
+    Stage("calibrate", "stages.calibrate", "CalibrateConfig", "cameras", needs_cameras=True),
+    Stage("segment", "stages.segment", "SegmentConfig", "masks", ("cameras",), needs_cameras=True),
+    Stage("tetrahedralize", "stages.tetrahedralize", "TetrahedralizeConfig", "mesh", volatile=("threads",)),
+    Stage("fit-gaussians", "stages.fit_gaussians", "FitGaussiansConfig", "gaussians", ("mesh", "cameras", "masks"),
+          needs_cameras=True),
+    Stage("generate-data", "stages.generate_data", "GenerateDataConfig", "snapshots", ("mesh",),
+          volatile=("workers", "ray")),
     Stage("train-subspace", "stages.train_subspace", "TrainSubspaceConfig", "subspace", ("snapshots", "mesh")),
     Stage("adapt", "stages.adapt", "AdaptConfig", "adapt", ("mesh", "cameras", "masks", "gaussians", "subspace")),
 )
@@ -175,6 +179,18 @@ class Step:
     reason: str
 
 
+def _has_cameras(capture: Path | None) -> bool:
+    """Whether capture.toml lists cameras (an unreadable capture counts as yes: the stage will say what is wrong)."""
+    if capture is None:
+        return False
+    from stages.capture import load_capture
+
+    try:
+        return bool(load_capture(capture).camera_names)
+    except RslError:
+        return True
+
+
 def selected(until: str | None = None, only: list[str] | None = None) -> list[Stage]:
     """The stages to consider: all in order, up to ``until``, or just ``only``."""
     if only:
@@ -189,16 +205,17 @@ def selected(until: str | None = None, only: list[str] | None = None) -> list[St
 def decide(s: Stage, config: Any, workspace: Path, remade: set[str], hashes: dict[str, str]) -> tuple[str, str]:
     """("run"|"skip", why) for one stage, given the kinds remade earlier in this run."""
     st = artefact_state(workspace, s.produces, hashes)
-    if st.state != OK:
-        why = st.state if not st.reasons else f"{st.state}: {st.reasons[0]}"
-        return "run", f"{st.path.name} {why}"
+    if st.state in (MISSING, INVALID):
+        return "run", f"{st.path.name} {st.state}" + (f": {st.reasons[0]}" if st.reasons else "")
     for k in s.reads:
         if k in remade:
             return "run", f"{k} was remade"
         up = artefact_state(workspace, k, hashes)
         if up.state in (STALE, INVALID):
             return "run", f"{up.path.name} it reads is {up.state}"
-    diffs = config_differences(st.config, config)
+    if st.state != OK:
+        return "run", f"{st.path.name} {st.state}: {st.reasons[0]}"
+    diffs = config_differences(st.config, config, ignore=s.volatile)
     if diffs:
         return "run", f"config changed ({diffs[0]})"
     return "skip", f"{st.path.name} is up to date"
@@ -210,7 +227,11 @@ def plan(capture: Path | None, workspace: Path, *, until: str | None = None, onl
     steps: list[Step] = []
     remade: set[str] = set()
     hashes: dict[str, str] = {}
+    cams = _has_cameras(capture)
     for s in selected(until, only):
+        if s.needs_cameras and not cams:
+            steps.append(Step(s, "skip", "not applicable: the capture lists no camera"))
+            continue
         if not s.available():
             steps.append(Step(s, "run", f"not available ({s.module.replace('.', '/')}.py is missing)"))
             remade.add(s.produces)
@@ -228,7 +249,12 @@ def run_pipeline(capture: Path | None, workspace: Path, reporter: Reporter = Sil
                  overrides: dict[str, dict[str, Any]] | None = None) -> list[Step]:
     """Run the selected stages in order; stop at the first failure (an RslError naming the stage)."""
     workspace = Path(workspace)
-    stages = selected(until, only)
+    cams = _has_cameras(capture)
+    stages = [s for s in selected(until, only) if cams or not s.needs_cameras]
+    if not stages:
+        raise RslError(f"{capture}: nothing to run; the selected stages need cameras and capture.toml lists none.")
+    if len(stages) < len(selected(until, only)):
+        reporter.info("the capture lists no camera: calibrate, segment and fit-gaussians do not apply")
     overrides = overrides or {}
     missing = [s for s in stages if not s.available()]
     if missing:

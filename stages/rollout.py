@@ -12,8 +12,9 @@ frames index the new controls (0 = the first predicted step), so that
 von Mises max / mean / 99th percentile and, per handle and obstacle, the internal
 force sum, the sum of magnitudes and the applied (spring / contact) force.
 
-The simulation is the full-space implicit Euler of stages/sim/scene.py (a reduced
-rollout through stages/subspace is not offered).
+The simulation is the full-space implicit Euler of stages/sim/scene.py, or the reduced
+dynamics of stages/subspace (x = φ(z)) when the adaptation ran in the reduced space and
+WS/subspace.h5 is there (``space="auto"``), or when asked for (``space="reduced"``).
 """
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ from stages.sim import stress as st
 
 ROLLOUT_FILE = "rollout.h5"
 MATERIALS = ("last", "replay")
+SPACES = ("auto", "full", "reduced")
 
 
 class RolloutError(RslError):
@@ -51,8 +53,11 @@ class RolloutConfig:
     """Material θ: 'last' (the last adapted θ) or 'replay' (θ(t) of the adapted frames, then the last)."""
     from_rest: bool = False
     """Start from the rest shape instead of the last two adapted positions."""
+    space: str = "auto"
+    """Simulate in 'full' space, in the 'reduced' subspace (needs subspace.h5), or 'auto': reduced when
+    adapt.h5 was adapted in the reduced space and subspace.h5 exists."""
     solver: str = "auto"
-    """Linear solver of the Newton steps (see stages/sim/linsolve.py)."""
+    """Linear solver of the full-space Newton steps (see stages/sim/linsolve.py)."""
     contact_distance: float = 1.0e-3
     """A vertex touches an obstacle when closer than the contact margin plus this distance, m."""
 
@@ -72,6 +77,8 @@ def run(config: RolloutConfig, reporter: Reporter = SilentReporter()) -> Path:
     ws = Path(config.workspace)
     if config.material not in MATERIALS:
         raise RolloutError(f"--material '{config.material}' is neither 'last' nor 'replay'.")
+    if config.space not in SPACES:
+        raise RolloutError(f"--space '{config.space}' is not one of {', '.join(SPACES)}.")
     if config.frames < 0:
         raise RolloutError(f"--frames {config.frames} is negative.")
     capture = load_capture(config.capture)
@@ -96,17 +103,46 @@ def run(config: RolloutConfig, reporter: Reporter = SilentReporter()) -> Path:
     inputs = [frame_inputs(scene, controls, t) for t in range(T)]
     young, poisson = material_schedule(adapt, config.material, T)
 
-    if config.from_rest or len(adapt.frames) < 1:
-        x_prev, x_prev2, start = scene.rest, scene.rest, "rest"
-    else:
-        x_prev = adapt.positions[-1]
-        x_prev2 = adapt.positions[-2] if len(adapt.frames) >= 2 else x_prev
-        start = f"adapted frame {int(adapt.frames[-1])}"
+    sub_path = ws / KIND_FILES["subspace"]
+    space = config.space
+    if space == "auto":
+        space = "reduced" if adapt.space == "reduced" and sub_path.exists() else "full"
+    inputs_used = [adapt_path, mesh_path, controls_path, capture.toml_path]
 
     t0 = time.perf_counter()
-    with reporter.task("rollout", T) as task:
-        X = simulate(scene, inputs, young, poisson, x_prev=x_prev, x_prev2=x_prev2, solver=config.solver,
-                     callback=lambda t: task.advance(1))
+    with reporter.task(f"rollout ({space} space)", T) as task:
+        if space == "full":
+            if config.from_rest:
+                x_prev, x_prev2, start = scene.rest, scene.rest, "rest"
+            else:
+                x_prev = adapt.positions[-1]
+                x_prev2 = adapt.positions[-2] if len(adapt.frames) >= 2 else x_prev
+                start = f"adapted frame {int(adapt.frames[-1])}"
+            X = simulate(scene, inputs, young, poisson, x_prev=x_prev, x_prev2=x_prev2, solver=config.solver,
+                         callback=lambda t: task.advance(1))
+            Z = np.zeros((T, 0))
+        else:
+            from stages.artefacts import SubspaceArtefact
+            from stages.subspace import ReducedModel
+
+            if not sub_path.exists():
+                raise RolloutError(f"{sub_path}: file not found; --space reduced needs `rsl train-subspace`.")
+            model = ReducedModel.from_artefacts(SubspaceArtefact.load(sub_path), scene)
+            inputs_used.append(sub_path)
+            if config.from_rest:
+                z1 = z2 = np.asarray(model.z_rest)
+                start = "rest"
+            else:
+                if adapt.z.shape[1] == model.dim:  # adapted in this subspace: its states
+                    zs = adapt.z[-2:]
+                else:  # adapted in full space: project the last positions
+                    zs = np.stack([model.encode(x) for x in adapt.positions[-2:]])
+                z1, z2 = zs[-1], zs[0]
+                start = f"adapted frame {int(adapt.frames[-1])}"
+            Z = np.asarray(model.simulate([model.reduce_inputs(i) for i in inputs], young, poisson, z_prev=z1,
+                                          z_prev2=z2, callback=lambda t: task.advance(1)))
+            X = np.asarray(model.decode(Z))
+            x_prev = np.asarray(model.decode(z1))
     t_sim = time.perf_counter() - t0
 
     summary, worst = _summaries(scene, inputs, X, young, poisson, x_prev, mesh, capture.material.model,
@@ -116,17 +152,18 @@ def run(config: RolloutConfig, reporter: Reporter = SilentReporter()) -> Path:
         "controls": str(controls_path.resolve()), "material": config.material, "start": start,
         "dt": capture.dt, "gravity": np.asarray(capture.gravity).tolist(),
         "material_model": capture.material.model, "source_mode": adapt.mode, "source_space": adapt.space,
+        "space": space,
         **summary,
     }
     out = ws / ROLLOUT_FILE
     AdaptArtefact(
-        frames=np.arange(T), young=young, poisson=poisson, z=np.zeros((T, 0)), positions=X, loss=np.zeros(T),
+        frames=np.arange(T), young=young, poisson=poisson, z=Z, positions=X, loss=np.zeros(T),
         time_forward_s=per_frame, time_backward_s=np.zeros(T), time_render_s=np.zeros(T),
-        time_total_s=per_frame, region_names=list(mesh.region_names), mode="rollout", space="full",
+        time_total_s=per_frame, region_names=list(mesh.region_names), mode="rollout", space=space,
         loss_kind="none", window=0, extra=extra,
-    ).save(out, Provenance.make(config, [adapt_path, mesh_path, controls_path, capture.toml_path]))
+    ).save(out, Provenance.make(config, inputs_used))
     reporter.summary(
-        f"rollout: {T} frames from {start} with θ {config.material} "
+        f"rollout: {T} frames ({space} space) from {start} with θ {config.material} "
         f"(E = {', '.join(f'{e:.3g}' for e in young[-1])} Pa) in {t_sim:.1f} s; "
         f"max von Mises {worst / 1e3:.3g} kPa → {out}")
     return out

@@ -85,12 +85,12 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
     if n_frames == 0:
         raise RslError(f"{cap.root / 'frames'}: holds no frame.")
     method = _resolve(config.method, cap, ws)
+    predictor = _sam2_predictor(config) if method == "sam2" else None
     inputs: list[Path] = []
     priors = None
     if method in ("grabcut", "sam2"):
         priors, inputs = _mesh_priors(cap, ws)
     key = _parse_color(config.key_color) if config.key_color else None
-    predictor = _sam2_predictor(config) if method == "sam2" else None
     cv2.setRNGSeed(int(config.seed))
     masks: dict[str, np.ndarray] = {}
     ious: dict[str, float] = {}

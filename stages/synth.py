@@ -28,12 +28,10 @@ import numpy as np
 from stages.artefacts import Camera, MeshArtefact
 from stages.capture import (IDENTITY_POSE, SURFACE_SUFFIXES, TET_SUFFIXES, Controls, Handle, Load, Obstacle,
                             Selection, Track, matrix_to_quat, parse_controls, select_handles,
-                            write_cameras_json, write_image, write_markers, write_truth)
+                            write_cameras_json, write_markers, write_truth)
 from stages.errors import RslError
 from stages.progress import Reporter, SilentReporter
-from stages.render.mesh_raster import procedural_texture, render_mesh
 from stages.sim.mesh import rest_quantities
-from stages.synth_views import (background_plate, board_poses, camera_ring, render_board)
 
 Scenario = Literal["stretch", "twist", "push", "drop", "cable"]
 SCENARIOS = ("stretch", "twist", "push", "drop", "cable")
@@ -46,7 +44,8 @@ class SynthConfig:
     out: Path
     """Capture folder to create."""
     scenario: Scenario = "stretch"
-    """What drives the object: stretch or twist (two end handles), push (a moving sphere, both ends held), drop (onto a floor), cable (one end held, a load pulls the tip)."""
+    """What drives the object: stretch or twist (two end handles), push (a moving sphere, both ends held), drop
+    (onto a floor), cable (one end held, a load pulls the tip)."""
     cameras: int = 4
     """Number of cameras on a ring around the object."""
     frames: int = 60
@@ -64,7 +63,9 @@ class SynthConfig:
     poisson: float = 0.45
     """Poisson's ratio of every region."""
     region: str = ""
-    """A second material region 'NAME=E' or 'NAME=E@AXIS>F', e.g. 'stiff=3e5@x>0.5': tets whose centroid lies beyond fraction F of the bounding box along AXIS (x, y or z; default the long axis and 0.5) get the constant Young's modulus E."""
+    """A second material region 'NAME=E' or 'NAME=E@AXIS>F', e.g. 'stiff=3e5@x>0.5': tets whose centroid lies
+    beyond fraction F of the bounding box along AXIS (x, y or z; default the long axis and 0.5) get the constant
+    Young's modulus E."""
     markers: int = 40
     """Number of surface markers followed through the simulation (markers.csv); 0 = none."""
     seed: int = 0
@@ -84,7 +85,8 @@ class SynthConfig:
     calib_views: int = 6
     """Number of chessboard calibration views (calib/CAM/viewNN.png); 0 = none."""
     board: str = "auto"
-    """Calibration board 'chessboard:COLSxROWS:SQUARE_M' (inner corners; square 0 = scaled to the scene), or 'auto' (9x6 from 200 px, else 6x4, scaled)."""
+    """Calibration board 'chessboard:COLSxROWS:SQUARE_M' (inner corners; square 0 = scaled to the scene), or 'auto'
+    (9x6 from 200 px, else 6x4, scaled)."""
     noise: float = 0.0
     """Standard deviation of Gaussian pixel noise added to the frames (0–1 intensity units)."""
     supersample: int = 2
@@ -127,8 +129,18 @@ def load_tets(path: Path, edge_length: float, max_tets: int, reporter: Reporter)
                            f"or its surface.")
         return v, t
     if suf in SURFACE_SUFFIXES:
+        import dataclasses
+        import inspect
+
+        from stages.tetrahedralize import TetrahedralizeConfig
+
         sv, sf = read_surface(path, reporter)
-        v, t, _ = tetwild(sv, sf, edge_length, max_tets, True, 1, reporter)
+        # the tetrahedralize stage's own settings, by name (its defaults for anything else)
+        defaults = {f.name: f.default for f in dataclasses.fields(TetrahedralizeConfig)}
+        given = dict(defaults, vertices=sv, faces=sf, edge_length=edge_length, max_tets=max_tets, threads=1,
+                     reporter=reporter)
+        params = inspect.signature(tetwild).parameters
+        v, t, _ = tetwild(**{k: given[k] for k in params if k in given})
         return v, t
     raise RslError(f"{path}: unsupported mesh type '{path.suffix}'; use obj, ply, stl, off, mesh or msh.")
 
@@ -311,7 +323,7 @@ def scenario_controls(scenario: str, vertices: np.ndarray, faces: np.ndarray, fr
         ctl.handles = [handle("left", 0, still), handle("right", 1, still)]
         ctl.obstacles = [Obstacle("pusher", "sphere", radius=float(r), poses=Track(np.arange(frames), track, True))]
         notes["pusher_radius_m"] = r
-        notes["push_depth_m"] = 0.15 * L
+        notes["push_depth_below_top_m"] = thick + 0.15 * L  # lowest point of the sphere under the rest top
     elif scenario == "drop":
         height = float(np.min(vertices @ up))
         ctl.obstacles = [Obstacle("floor", "plane", normal=up.copy(), offset=height - 0.1 * L)]
@@ -350,6 +362,16 @@ def parse_board(spec: str, resolution: int) -> tuple[int, int, float]:
 
 def _to_u8(img: np.ndarray) -> np.ndarray:
     return np.clip(np.round(np.asarray(img) * 255.0), 0, 255).astype(np.uint8)
+
+
+def _write_png(path: Path, img: np.ndarray) -> None:
+    """RGB (H, W, 3) or gray (H, W) uint8 as a maximally compressed PNG (captures are shipped)."""
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arr = cv2.cvtColor(img, cv2.COLOR_RGB2BGR) if img.ndim == 3 else img
+    if not cv2.imwrite(str(path), arr, [cv2.IMWRITE_PNG_COMPRESSION, 9]):
+        raise RslError(f"{path}: cannot write image.")
 
 
 def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
@@ -443,6 +465,7 @@ def _prepare_out(out: Path, overwrite: bool) -> Path:
 def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
     """Simulate and film a scenario; write the capture folder ``config.out`` and return its path."""
     from stages.sim.scene import frame_inputs, make_scene, simulate
+    from stages.synth_views import background_plate, board_poses, camera_ring
 
     c = config
     _check_config(c)
@@ -483,7 +506,9 @@ def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
     hi = np.maximum(X.max(axis=(0, 1)), mesh.vertices.max(0))
     target = 0.5 * (lo + hi)
     radius = 0.5 * float(np.linalg.norm(hi - lo)) * 1.05
-    cams = camera_ring(c.cameras, target, radius, c.resolution, -gravity, elevation_deg=c.elevation)
+    step = max(1, X.shape[0] * X.shape[1] // 20000)
+    cams = camera_ring(c.cameras, target, radius, c.resolution, -gravity, elevation_deg=c.elevation,
+                       points=X.reshape(-1, 3)[::step])
     backgrounds = {cam.name: background_plate(c.resolution, c.resolution, c.seed * 1000 + i)
                    for i, cam in enumerate(cams)}
     poses: list = []
@@ -532,6 +557,9 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, art: MeshArtefac
                    notes: dict, rng: np.random.Generator, reporter: Reporter) -> None:
     import meshio
 
+    from stages.render.mesh_raster import procedural_texture, render_mesh
+    from stages.synth_views import first_corner_pose, render_board
+
     cols, rows, square = board
     T = X.shape[0]
     surf = mesh.surface_ids
@@ -576,11 +604,17 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, art: MeshArtefac
     # ---------------------------------------------------------------- images
     texture = procedural_texture(cell_m=float(np.ptp(mesh.vertices, axis=0).max()) / 8, seed=c.seed)
     for cam in cams:
-        write_image(root / "background" / f"{cam.name}.png", _to_u8(backgrounds[cam.name]))
+        _write_png(root / "background" / f"{cam.name}.png", _to_u8(backgrounds[cam.name]))
+    board_json = {}
     for k, pose in enumerate(poses):
         for cam in cams:
             img = render_board(cam, pose, cols, rows, square, backgrounds[cam.name])
-            write_image(root / "calib" / cam.name / f"view{k:02d}.png", _to_u8(img))
+            _write_png(root / "calib" / cam.name / f"view{k:02d}.png", _to_u8(img))
+        board_json[f"view{k:02d}"] = [float(v) for v in first_corner_pose(pose, cols, rows, square)]
+    if poses:
+        (root / "calib" / "board_poses.json").write_text(json.dumps(
+            {"board": f"chessboard:{cols}x{rows}:{square:g}", "origin": "first_corner", "poses": board_json},
+            indent=1))
     noise_rng = np.random.default_rng([c.seed, 7])
     min_cov = {cam.name: 1.0 for cam in cams}
     with reporter.task("rendering frames", T) as task:
@@ -592,8 +626,8 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, art: MeshArtefac
                     rgb = rgb + noise_rng.normal(0.0, c.noise, rgb.shape)
                 mask = cov >= 0.5
                 min_cov[cam.name] = min(min_cov[cam.name], float(mask.mean()))
-                write_image(root / "frames" / cam.name / f"{f:06d}.png", _to_u8(rgb))
-                write_image(root / "truth" / "masks" / cam.name / f"{f:06d}.png", mask.astype(np.uint8) * 255)
+                _write_png(root / "frames" / cam.name / f"{f:06d}.png", _to_u8(rgb))
+                _write_png(root / "truth" / "masks" / cam.name / f"{f:06d}.png", mask.astype(np.uint8) * 255)
             task.advance(1)
     empty = [n for n, v in min_cov.items() if v == 0.0]
     if empty:

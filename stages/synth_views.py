@@ -16,12 +16,15 @@ from stages.render.mesh_raster import look_at, project_points, render_mesh
 # --------------------------------------------------------------------------- cameras
 def camera_ring(n: int, target: np.ndarray, radius_m: float, resolution: int, up: np.ndarray,
                 elevation_deg: float = 35.0, fov_deg: float = 50.0, azimuth0_deg: float = 20.0,
-                names: list[str] | None = None) -> list[Camera]:
+                names: list[str] | None = None, points: np.ndarray | None = None,
+                fill: float = 0.9) -> list[Camera]:
     """``n`` cameras evenly spaced on a ring around ``target``, all looking at it.
 
     The ring lies ``elevation_deg`` above the plane ⟂ ``up``; each camera sits at a distance such
-    that a sphere of ``radius_m`` around the target fills the narrower field of view
-    (d = r / sin(fov/2)); f = (W/2) / tan(fov/2), principal point at the image centre.
+    that a sphere of ``radius_m`` around the target fits the field of view (d = r / sin(fov/2)),
+    or, given ``points`` (P, 3), at the nearest distance (bisection, never beyond the sphere's)
+    where every point projects within ``fill`` of the half-image; f = (W/2) / tan(fov/2),
+    principal point at the image centre.
     """
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
     a = np.array([1.0, 0, 0]) if abs(up[0]) < 0.9 else np.array([0, 1.0, 0])
@@ -37,10 +40,30 @@ def camera_ring(n: int, target: np.ndarray, radius_m: float, resolution: int, up
     for i in range(n):
         az = np.radians(azimuth0_deg) + 2 * np.pi * i / n
         direction = np.cos(el) * (np.cos(az) * e1 + np.sin(az) * e2) + np.sin(el) * up
-        R, t = look_at(np.asarray(target) + dist * direction, target, up)
+        d = dist if points is None else _fit_distance(points, target, direction, up, dist, np.tan(half) * fill)
+        R, t = look_at(np.asarray(target) + d * direction, target, up)
         cams.append(Camera(names[i] if names else f"cam{i}", K.copy(), np.zeros(5), R, t,
                            resolution, resolution, 0.0))
     return cams
+
+
+def _fit_distance(points: np.ndarray, target: np.ndarray, direction: np.ndarray, up: np.ndarray,
+                  d_max: float, limit: float) -> float:
+    """Smallest distance along ``direction`` (≤ d_max) at which every point has |x/z|, |y/z| ≤ limit."""
+    def fits(d: float) -> bool:
+        R, t = look_at(np.asarray(target) + d * direction, target, up)
+        pc = points @ R.T + t
+        if np.any(pc[:, 2] <= 1e-6):
+            return False
+        return bool(np.all(np.abs(pc[:, :2]) <= limit * pc[:, 2:3]))
+
+    lo, hi = 0.0, float(d_max)
+    if not fits(hi):
+        return hi
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if fits(mid) else (mid, hi)
+    return hi
 
 
 # --------------------------------------------------------------------------- backgrounds
@@ -168,3 +191,12 @@ def board_corners_world(pose: np.ndarray, cols: int, rows: int, square_m: float)
     """Inner corners (rows·cols, 3) of the board at ``pose`` in world coordinates."""
     _, _, corners = board_mesh(cols, rows, square_m)
     return corners @ quat_to_matrix(pose[3:]).T + pose[:3]
+
+
+def first_corner_pose(pose: np.ndarray, cols: int, rows: int, square_m: float) -> np.ndarray:
+    """The same board pose for a board frame whose origin is the first inner corner (the frame of
+    stages/vision/boards.py, corner (i, j) at (i·s, j·s, 0)): p_world = R p_centred + t =
+    R p_first + (t − R c), c the centre of the corner grid."""
+    pose = np.asarray(pose, np.float64)
+    c = np.array([(cols - 1) / 2 * square_m, (rows - 1) / 2 * square_m, 0.0])
+    return np.concatenate([pose[:3] - quat_to_matrix(pose[3:]) @ c, pose[3:]])

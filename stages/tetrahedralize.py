@@ -52,6 +52,8 @@ class TetrahedralizeConfig:
     """Largest distance of the tet mesh's surface from the input surface, as a fraction of the bounding-box diagonal."""
     degenerate_tol: float = 1e-6
     """A tet with |volume| below this fraction of the mean tet volume is degenerate (an error)."""
+    preview: bool = True
+    """Also draw WS/mesh.png: three views with regions and handles, and the dihedral-angle histogram."""
 
 
 # Faces of a positively oriented tet (a, b, c, d), each listed with its outward normal.
@@ -373,6 +375,44 @@ def build_mesh(config: TetrahedralizeConfig, reporter: Reporter = SilentReporter
     return mesh, inputs
 
 
+def draw_preview(mesh: MeshArtefact, path: Path) -> None:
+    """PNG: the surface seen along x, y and z (tet centroids coloured by region, handles in red) and a
+    histogram of the dihedral angles."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.collections import PolyCollection
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(16, 4), dpi=90)
+    FigureCanvasAgg(fig)
+    v, f = mesh.vertices, mesh.surface_faces
+    cent = v[mesh.tets].mean(axis=1)
+    for k, (i, j) in enumerate([(0, 1), (0, 2), (1, 2)]):
+        ax = fig.add_subplot(1, 4, k + 1)
+        ax.add_collection(PolyCollection(v[f][:, :, [i, j]], facecolors="none", edgecolors=(0, 0, 0, 0.15),
+                                         linewidths=0.4))
+        for r, name in enumerate(mesh.region_names):
+            sel = mesh.tet_region == r
+            ax.scatter(cent[sel, i], cent[sel, j], s=3, label=f"{name} ({int(sel.sum())} tets)")
+        for name, ids in mesh.handles.items():
+            ax.scatter(v[ids, i], v[ids, j], s=8, c="red", marker="x")
+        ax.set_aspect("equal")
+        ax.autoscale_view()
+        ax.set_xlabel("xyz"[i] + " (m)")
+        ax.set_ylabel("xyz"[j] + " (m)")
+        if k == 0:
+            ax.legend(fontsize=7, loc="best")
+    ax = fig.add_subplot(1, 4, 4)
+    ax.hist(dihedral_angles(v, mesh.tets).ravel(), bins=60, color="gray")
+    ax.set_xlabel("dihedral angle (deg)")
+    ax.set_ylabel("count")
+    ax.set_title(f"{mesh.n_tets} tets, {mesh.n_vertices} vertices, handles in red", fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    fig.savefig(tmp, format="png")
+    tmp.replace(path)
+
+
 def run(config: TetrahedralizeConfig, reporter: Reporter = SilentReporter()) -> Path:
     """Write WS/mesh.h5 from the capture's object mesh; returns its path."""
     if config.edge_length <= 0:
@@ -380,11 +420,14 @@ def run(config: TetrahedralizeConfig, reporter: Reporter = SilentReporter()) -> 
     mesh, inputs = build_mesh(config, reporter)
     out = Path(config.workspace) / KIND_FILES["mesh"]
     mesh.save(out, Provenance.make(config, inputs))
+    if config.preview:
+        draw_preview(mesh, out.with_suffix(".png"))
     q = mesh.quality
     regions = ", ".join(f"{n} {int(np.sum(mesh.tet_region == i))}" for i, n in enumerate(mesh.region_names))
     reporter.summary(
         f"{out}: {mesh.n_vertices} vertices, {mesh.n_tets} tets ({regions}), {len(mesh.surface_faces)} surface "
         f"triangles, {len(mesh.handles)} handles; volume {q['total_volume']:.4g} m³, mass "
         f"{mesh.vertex_masses.sum():.4g} kg; tet volume {q['min_volume']:.3g}–{q['max_volume']:.3g} m³, "
-        f"dihedral angles {q['min_dihedral_deg']:.1f}°–{q['max_dihedral_deg']:.1f}°")
+        f"dihedral angles {q['min_dihedral_deg']:.1f}°–{q['max_dihedral_deg']:.1f}°"
+        + (f"; picture {out.with_suffix('.png').name}" if config.preview else ""))
     return out

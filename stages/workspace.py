@@ -84,17 +84,17 @@ def _norm(key: str, value: Any) -> Any:
     return value
 
 
-def config_differences(stored: dict | None, config: Any) -> list[str]:
+def config_differences(stored: dict | None, config: Any, ignore: tuple[str, ...] = ()) -> list[str]:
     """Fields whose value in ``config`` (a dataclass) differs from the stored JSON config.
 
-    The workspace field is ignored (the artefact lies in it by definition); the
-    capture folder is compared as a resolved path.
+    The workspace field (the artefact lies in it by definition) and the fields in
+    ``ignore`` are skipped; the capture folder is compared as a resolved path.
     """
     current = _jsonable(dataclasses.asdict(config)) if dataclasses.is_dataclass(config) else _jsonable(config)
     stored = stored or {}
     diffs = []
     for key in sorted(set(current) | set(stored)):
-        if key == "workspace":
+        if key == "workspace" or key in ignore:
             continue
         if key not in stored:
             diffs.append(f"option {key} is new")

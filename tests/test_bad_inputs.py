@@ -1,8 +1,17 @@
-"""Bad inputs through the real CLI: one clear sentence naming the file, exit code ≠ 0, no artefact left behind."""
+"""Bad inputs through the real CLI: one clear sentence naming the file, exit code ≠ 0, no artefact left behind.
+
+Every case runs `rsl_cli.app.main()` (the `rsl` entry point) in a child process.  To pay the
+CLI's start-up (which imports every stage) once rather than per case, the cases run one
+after another in a single child process (`run_batch`); `test_one_case_in_its_own_process`
+runs one case through the fixture `rsl` exactly as a shell would.
+"""
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 from typing import Callable
 
@@ -72,6 +81,36 @@ def _open_region(r: Path) -> None:
     box.export(r / "regions" / "soft.obj")
 
 
+_DRIVER = r"""
+import contextlib, io, json, sys
+from rsl_cli import app
+argv_file, results_file = sys.argv[1], sys.argv[2]
+results = []
+for argv in json.load(open(argv_file)):
+    err, out = io.StringIO(), io.StringIO()
+    sys.argv = ["rsl", *argv]
+    code = 0
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
+        try:
+            app.main()
+        except SystemExit as e:
+            code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    results.append({"returncode": code, "stderr": err.getvalue(), "stdout": out.getvalue()})
+json.dump(results, open(results_file, "w"))
+"""
+
+
+def run_batch(commands: list[list], folder: Path) -> list[subprocess.CompletedProcess]:
+    """Run several `rsl ...` command lines in one child process; a CompletedProcess for each."""
+    (folder / "argv.json").write_text(json.dumps([[str(a) for a in c] for c in commands]))
+    env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu", COLUMNS="200")
+    proc = subprocess.run([sys.executable, "-c", _DRIVER, folder / "argv.json", folder / "results.json"],
+                          capture_output=True, text=True, env=env, cwd=Path(__file__).resolve().parents[1])
+    assert proc.returncode == 0, proc.stderr
+    return [subprocess.CompletedProcess(c, r["returncode"], r["stdout"], r["stderr"])
+            for c, r in zip(commands, json.loads((folder / "results.json").read_text()))]
+
+
 TET = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.2, 0.2, 1]]
 CAPTURE_CASES = {
     "missing capture.toml": (lambda r: (r / "capture.toml").unlink(), "tetrahedralize",
@@ -104,20 +143,34 @@ CAPTURE_CASES = {
     "region mesh not closed": (_open_region, "tetrahedralize", "region mesh is not closed", "soft.obj"),
     "frames of unequal count per camera": (_frames({"a": 3, "b": 2}), "info",
                                            "cameras hold unequal frame counts (a: 3, b: 2)", "frames"),
-    "frames with a gap": (_frames({"a": 0}) if False else
-                          (lambda r: (_frames({"a": 2, "b": 2})(r), (r / "frames" / "b" / "000000.png").unlink())),
+    "frames with a gap": ((lambda r: (_frames({"a": 2, "b": 2})(r), (r / "frames" / "b" / "000000.png").unlink())),
                           "info", "frame 0 is missing", "frames/b"),
 }
 
 
-@pytest.mark.parametrize("case", sorted(CAPTURE_CASES))
-def test_bad_capture(case: str, rsl, sample_data: Path, tmp_path: Path) -> None:
-    breaker, command, expect, names = CAPTURE_CASES[case]
-    root = _capture(tmp_path / "cap", sample_data)
+def _capture_case(case: str, folder: Path, sample_data: Path) -> list:
+    breaker, command, _, _ = CAPTURE_CASES[case]
+    root = _capture(folder / "cap", sample_data)
     breaker(root)
-    ws = tmp_path / "ws"
-    args = [command, root, "-w", ws] if command != "info" else [command, root]
-    proc = rsl(*args)
+    return [command, root, "-w", folder / "ws"] if command != "info" else [command, root]
+
+
+@pytest.fixture(scope="module")
+def capture_results(tmp_path_factory, sample_data: Path) -> dict:
+    base = tmp_path_factory.mktemp("bad_captures")
+    cases = sorted(CAPTURE_CASES)
+    commands = []
+    for i, case in enumerate(cases):
+        (base / str(i)).mkdir()
+        commands.append(_capture_case(case, base / str(i), sample_data))
+    procs = run_batch(commands, base)
+    return {case: (proc, base / str(i) / "ws") for i, (case, proc) in enumerate(zip(cases, procs))}
+
+
+@pytest.mark.parametrize("case", sorted(CAPTURE_CASES))
+def test_bad_capture(case: str, capture_results: dict) -> None:
+    _, _, expect, names = CAPTURE_CASES[case]
+    proc, ws = capture_results[case]
     err = " ".join(proc.stderr.split())  # undo rich's line wrapping
     assert proc.returncode != 0, proc.stderr
     assert "error:" in err and expect in err, err
@@ -160,38 +213,70 @@ ARTEFACT_CASES = {
 }
 
 
+@pytest.fixture(scope="module")
+def artefact_results(tmp_path_factory, sample_data: Path) -> dict:
+    base = tmp_path_factory.mktemp("bad_artefacts")
+    cases = sorted(ARTEFACT_CASES)
+    paths = []
+    for i, case in enumerate(cases):
+        kind, name, breaker, _ = ARTEFACT_CASES[case]
+        (base / str(i)).mkdir()
+        path = _artefact(base / str(i), kind, name)
+        if breaker:
+            breaker(path)
+        paths.append(path)
+    good = _artefact(base, "cameras")
+    extra = _status_and_run_commands(base, sample_data)
+    procs = run_batch([["info", p] for p in paths] + [["info", good]] + extra, base)
+    out = {case: (proc, path) for case, proc, path in zip(cases, procs, paths)}
+    out["good"] = (procs[len(paths)], good)
+    out["status/run"] = (procs[len(paths) + 1:], base / "ws_run")
+    return out
+
+
 @pytest.mark.parametrize("case", sorted(ARTEFACT_CASES))
-def test_bad_artefact(case: str, rsl, tmp_path: Path) -> None:
-    kind, name, breaker, expect = ARTEFACT_CASES[case]
-    path = _artefact(tmp_path, kind, name)
-    if breaker:
-        breaker(path)
-    proc = rsl("info", path)
+def test_bad_artefact(case: str, artefact_results: dict) -> None:
+    _, _, _, expect = ARTEFACT_CASES[case]
+    proc, path = artefact_results[case]
     err = " ".join(proc.stderr.split())
     assert proc.returncode != 0 and expect in err and path.name in err, err
     assert "Traceback" not in proc.stderr
 
 
-def test_status_and_run_errors(rsl, sample_data: Path, tmp_path: Path) -> None:
-    proc = rsl("status", "-w", tmp_path / "nowhere")
-    assert proc.returncode != 0 and "nowhere: workspace folder not found" in " ".join(proc.stderr.split())
-    proc = rsl("run", sample_data / "bar", "-w", tmp_path / "ws", "--until", "mesh")
-    err = " ".join(proc.stderr.split())
-    assert proc.returncode != 0 and "unknown stage 'mesh'" in err and "tetrahedralize" in err
-    proc = rsl("run", sample_data / "bar", "-w", tmp_path / "ws", "--only", "tetrahedralize",
-               "--set", "tetrahedralize.edge=1")
-    err = " ".join(proc.stderr.split())
-    assert proc.returncode != 0 and "TetrahedralizeConfig has no option 'edge'" in err
-    proc = rsl("run", tmp_path / "nocapture", "-w", tmp_path / "ws", "--only", "tetrahedralize")
-    err = " ".join(proc.stderr.split())
-    assert proc.returncode != 0 and "stage 'tetrahedralize' failed" in err and "nocapture: capture folder not found" in err
-    assert not (tmp_path / "ws" / "mesh.h5").exists()
+def _status_and_run_commands(base: Path, sample_data: Path) -> list[list]:
+    ws = base / "ws_run"
+    return [
+        ["status", "-w", base / "nowhere"],
+        ["run", sample_data / "bar", "-w", ws, "--until", "mesh"],
+        ["run", sample_data / "bar", "-w", ws, "--only", "tetrahedralize", "--set", "tetrahedralize.edge=1"],
+        ["run", sample_data / "bar", "-w", ws, "--only", "tetrahedralize", "--set", "tetrahedralize.max_tets=many"],
+        ["run", base / "nocapture", "-w", ws, "--only", "tetrahedralize"],
+    ]
 
 
-def test_good_artefact_passes_info(rsl, tmp_path: Path) -> None:
+def test_status_and_run_errors(artefact_results: dict) -> None:
+    procs, ws = artefact_results["status/run"]
+    errs = [" ".join(p.stderr.split()) for p in procs]
+    assert all(p.returncode != 0 for p in procs), errs
+    assert "nowhere: workspace folder not found" in errs[0]
+    assert "unknown stage 'mesh'" in errs[1] and "tetrahedralize" in errs[1]
+    assert "TetrahedralizeConfig has no option 'edge'" in errs[2]
+    assert "--set tetrahedralize.max_tets=many: cannot read the value as int" in errs[3]
+    assert "stage 'tetrahedralize' failed" in errs[4] and "nocapture: capture folder not found" in errs[4]
+    assert not (ws / "mesh.h5").exists()
+
+
+def test_one_case_in_its_own_process(rsl, sample_data: Path, tmp_path: Path) -> None:
+    root = _capture(tmp_path / "cap", sample_data)
+    CAPTURE_CASES["handle box that selects no vertex"][0](root)
+    proc = rsl("tetrahedralize", root, "-w", tmp_path / "ws")
+    err = " ".join(proc.stderr.split())
+    assert proc.returncode == 1 and f"{root / 'controls.json'}: handle 'far' selects no vertex" in err
+
+
+def test_good_artefact_passes_info(artefact_results: dict) -> None:
     """The same checks accept a good file (so the cases above fail for the reason they name)."""
-    path = _artefact(tmp_path, "cameras")
-    proc = rsl("info", path)
+    proc, path = artefact_results["good"]
     assert proc.returncode == 0, proc.stderr
     assert "kind cameras" in proc.stdout and "cameras/cam0/K" in proc.stdout
     assert isinstance(CamerasArtefact.load(path), CamerasArtefact)

@@ -5,7 +5,6 @@ import csv
 import json
 from pathlib import Path
 
-import h5py
 import numpy as np
 import pytest
 from scipy.optimize import brentq
@@ -91,12 +90,13 @@ def test_stress_h5_and_summary_match_closed_form(stretch_ws):
     out = run(ExportConfig(workspace=stretch_ws["ws"], stress=True))
     assert out == stretch_ws["ws"] / "export"
     mu, lam = lame(E, NU)
-    with h5py.File(out / "stress.h5", "r") as f:
-        assert f.attrs["rsl_kind"] == "stress"
-        vm = f["von_mises_tet"][()]
-        vmv = f["von_mises_vertex"][()]
-        sig = f["cauchy_tet"][()]
-        assert json.loads(f.attrs["config"])["stress"] is True
+    from stages.artefacts import StressArtefact, read_provenance
+
+    art = StressArtefact.load(out / "stress.h5")
+    vm, vmv, sig = art.von_mises_tet, art.von_mises_vertex, art.cauchy_tet
+    assert art.material_model == "stable_neohookean" and art.region_names == ["body"]
+    np.testing.assert_allclose(art.time_s, np.arange(len(stretch_ws["stretches"])) / FPS)
+    assert read_provenance(out / "stress.h5")["config"]["stress"] is True
     rows = read_csv(out / "stress_summary.csv")
     assert len(rows) == len(stretch_ws["stretches"])
     for i, l1 in enumerate(stretch_ws["stretches"]):
@@ -321,3 +321,13 @@ def test_colmap_model_round_trip(gauss_ws, tmp_path):
     np.testing.assert_allclose(cams[0].R, ref[0].R, atol=1e-9)
     np.testing.assert_allclose(cams[0].K, ref[0].K, atol=1e-9)
     assert not (tmp_path / "o" / "stress.h5").exists()
+
+
+def test_no_flag_exports_everything_available(gauss_ws):
+    out = run(ExportConfig(workspace=gauss_ws["ws"], frames="last", orbit_views=2, render_size=32,
+                           out=gauss_ws["root"] / "all_out"))
+    for rel in ("stress.h5", "stress_summary.csv", "forces.csv", "vtk/adapt.pvd", "vtk/frame_000004.vtu",
+                "ply/frame_000004.ply", "render/cam0/stress_000004.png", "render/orbit/stress_000004_001.png",
+                "render/orbit_stress.mp4", "plots/young.png", "plots/forces.png"):
+        assert (out / rel).is_file(), rel
+    assert not (out / "ply" / "frame_000000.ply").exists()  # --frames last

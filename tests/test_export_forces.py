@@ -47,9 +47,16 @@ def test_hanging_body_handle_force_equals_weight(tmp_path):
     mesh.save(ws / "mesh.h5")
     scene, X = _adapt_from_simulation(ws, cap, mesh, 1e5, 0.4, 25)
     assert np.abs(X[-1] - X[-2]).max() < 1e-9  # at rest
-    out = run(ExportConfig(workspace=ws, forces=True))
+    out = run(ExportConfig(workspace=ws, forces=True, vtk=True))
     rows = read_csv(out / "forces.csv")
     assert len(rows) == 25 and {r["name"] for r in rows} == {"top"}
+    # the per-vertex applied force of the VTU sums to the handle's row
+    import meshio
+
+    vtu = meshio.read(out / "vtk" / "frame_000024.vtu")
+    np.testing.assert_allclose(vtu.point_data["applied_force"].sum(0),
+                               [float(rows[-1][k]) for k in ("applied_fx_N", "applied_fy_N", "applied_fz_N")],
+                               rtol=1e-6, atol=1e-9)
     last = rows[-1]
     weight = mesh.vertex_masses.sum() * G
     handle_ids = scene.handles[0].ids
@@ -72,10 +79,57 @@ def test_resting_on_floor_contact_force_equals_weight(tmp_path):
     ws.mkdir()
     mesh.save(ws / "mesh.h5")
     _adapt_from_simulation(ws, cap, mesh, 1e5, 0.3, 20)
-    out = run(ExportConfig(workspace=ws, forces=True, contact_distance=1e-3))
+    out = run(ExportConfig(workspace=ws, forces=True, vtk=True, contact_distance=1e-3))
     rows = read_csv(out / "forces.csv")
     last = rows[-1]
+    import meshio
+
+    vtu = meshio.read(out / "vtk" / "frame_000019.vtu")
+    assert vtu.point_data["applied_force"].sum(0)[2] == pytest.approx(float(last["applied_fz_N"]), rel=1e-6)
     assert last["name"] == "floor" and last["kind"] == "obstacle"
     weight = mesh.vertex_masses.sum() * G
     assert float(last["applied_fz_N"]) == pytest.approx(weight, rel=1e-2)
     assert int(last["n_vertices"]) == 9  # the bottom face's 3×3 vertices
+
+
+def test_applied_forces_balance_momentum_with_friction_and_moving_sphere(tmp_path):
+    """Implicit Euler: Σ_i m_i (x_t − 2x_{t−1} + x_{t−2})/Δt² = Σ_i (applied_i + m_i g), because internal
+    forces sum to zero; so the handle + contact (+ friction) forces export reports must balance it."""
+    from stages.sim import stress as st
+
+    size = (0.06, 0.02, 0.02)
+    mesh = block_artefact(size, (3, 1, 1), density=1000.0, origin=(0.0, 0.0, 0.0005))
+    eps = 1e-6
+    poses = [[0.045, 0.01, 0.0205 + 0.012 - 0.0015 * t, 1, 0, 0, 0] for t in range(8)]
+    controls = {"handles": [{"name": "left", "select": {"box": [[-eps, -1, -1], [eps, 1, 1]]}, "stiffness": 5e3,
+                             "poses": [[0, 0, 0, 1, 0, 0, 0]]}],
+                "obstacles": [{"name": "floor", "shape": "plane", "normal": [0, 0, 1], "offset": 0.0},
+                              {"name": "pusher", "shape": "sphere", "radius": 0.012, "poses": poses}],
+                "friction": 0.3}
+    cap = write_capture(tmp_path / "cap", mesh, controls, young=5e4, poisson=0.35, fps=30.0, gravity=(0, 0, -G))
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    mesh.save(ws / "mesh.h5")
+    scene, X = _adapt_from_simulation(ws, cap, mesh, 5e4, 0.35, 8)
+    controls_obj = load_capture(cap).controls()
+    m = mesh.vertex_masses[:, None]
+    rest = mesh.vertices
+    touched = 0
+    for t in range(8):
+        xp = X[t - 1] if t >= 1 else rest
+        xpp = X[t - 2] if t >= 2 else rest
+        inputs = frame_inputs(scene, controls_obj, t)
+        applied = st.applied_forces(scene, inputs, X[t], xp)
+        inertia = (m * (X[t] - 2 * xp + xpp) / scene.dt ** 2).sum(0)
+        np.testing.assert_allclose(applied.sum(0) + (m * scene.gravity).sum(0), inertia,
+                                   atol=1e-6 * np.abs(applied).sum())
+        f_int = np.zeros_like(X[t])
+        rows = st.set_forces(scene, inputs, X[t], xp, f_int)
+        pusher = next(r for r in rows if r.name == "pusher")
+        touched += pusher.n_vertices > 0
+    assert touched >= 3  # the sphere reached the block
+    out = run(ExportConfig(workspace=ws, forces=True))
+    csv_rows = read_csv(out / "forces.csv")
+    assert len(csv_rows) == 8 * 3 and {r["kind"] for r in csv_rows} == {"handle", "obstacle"}
+    last = {r["name"]: r for r in csv_rows if r["frame"] == "7"}
+    assert float(last["pusher"]["applied_fz_N"]) < 0 < float(last["floor"]["applied_fz_N"])

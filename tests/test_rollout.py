@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from stages.artefacts import AdaptArtefact, Provenance
-from stages.capture import load_capture, load_controls
+from stages.capture import load_capture
 from stages.export import ExportConfig
 from stages.export import run as export_run
 from stages.rollout import RolloutConfig, run
@@ -142,3 +142,33 @@ def test_cli_rollout_runs(rsl, adapted):
     assert p.returncode == 0, p.stderr
     assert "rollout: 3 frames" in p.stderr
     assert AdaptArtefact.load(adapted["ws"] / "rollout.h5").positions.shape[0] == 3
+
+
+def test_reduced_rollout_with_a_complete_basis_equals_full(adapted, tmp_path):
+    """With U = M^(-1/2) (every vertex coordinate a mode, Uᵀ M U = I) the reduced dynamics is the full
+    dynamics: the reduced rollout must give the full rollout's positions, from the adapted state too."""
+    import shutil
+
+    from stages.artefacts import SubspaceArtefact
+    from stages.subspace.networks import SubspaceMap
+
+    ws = tmp_path / "ws"
+    shutil.copytree(adapted["ws"], ws)
+    mesh = adapted["mesh"]
+    n = mesh.n_vertices
+    basis = np.zeros((n, 3, 3 * n))
+    for i in range(n):
+        for d in range(3):
+            basis[i, d, 3 * i + d] = 1.0 / np.sqrt(mesh.vertex_masses[i])
+    sub = SubspaceMap("pca", mesh.vertices, basis, mesh.vertex_masses, np.ones(3 * n), {})
+    SubspaceArtefact("pca", 3 * n, sub.to_weights(), 0.0, 0.0).save(ws / "subspace.h5")
+    run(RolloutConfig(capture=adapted["cap"], workspace=ws, controls=adapted["tail"], space="full"))
+    full = AdaptArtefact.load(ws / "rollout.h5")
+    run(RolloutConfig(capture=adapted["cap"], workspace=ws, controls=adapted["tail"], space="reduced"))
+    red = AdaptArtefact.load(ws / "rollout.h5")
+    assert red.space == "reduced" and red.z.shape == (T2, 3 * n) and full.space == "full"
+    np.testing.assert_allclose(red.positions, full.positions, atol=1e-7)
+    np.testing.assert_allclose(red.positions, adapted["full"][T1:], atol=1e-7)
+    # auto picks full space for a full-space adapt.h5
+    run(RolloutConfig(capture=adapted["cap"], workspace=ws, controls=adapted["tail"]))
+    assert AdaptArtefact.load(ws / "rollout.h5").space == "full"

@@ -116,6 +116,7 @@ def test_gradient_matches_finite_differences(data, ae):
     assert np.linalg.norm(fd - g) <= 1e-6 * np.linalg.norm(g)
 
 
+@pytest.mark.slow
 def test_reduced_hessian_against_dense_JtHJ(data, ae):
     """∂²E/∂z² = Jᵀ H J + Σ_i r_i ∂²φ_i/∂z² with H, r the dense full-space Hessian and residual."""
     scene, seqs, _ = data
@@ -141,6 +142,7 @@ def test_reduced_hessian_against_dense_JtHJ(data, ae):
     assert np.abs(curv).max() > 1e-8 * np.abs(gn).max()  # the decoder-curvature term is really there
 
 
+@pytest.mark.slow
 def test_handles_and_contact_act_in_the_reduced_solve(data, pca):
     """With a floor in the scene, the fast path (surface vertices decoded) matches the reference."""
     _, seqs, _ = data
@@ -158,6 +160,7 @@ def test_handles_and_contact_act_in_the_reduced_solve(data, pca):
 
 
 # --------------------------------------------------------------------------- cubature
+@pytest.mark.slow
 def test_cubature_forces_against_all_tet_reference(data, ae):
     scene, seqs, train = data
     mu, lam = P.tet_lame(scene, YOUNG, POISSON)
@@ -256,6 +259,7 @@ def test_window_adjoint_against_finite_differences(data, ae):
             assert abs(fd - g["z_before"][i, k]) <= 1e-3 * max(abs(fd), 1e-3 * np.abs(g["z_before"]).max())
 
 
+@pytest.mark.slow
 def test_window_adjoint_against_autodiff_through_unrolled_newton(data, ae):
     """Tiny case: jax.grad through 12 unrolled full Newton steps per frame equals the adjoint."""
     scene, seqs, _ = data

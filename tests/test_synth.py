@@ -144,11 +144,16 @@ def test_tetrahedralize_accepts_the_capture(capture, tmp_path):
     assert mesh.region_names == ["body", "stiff"]
 
 
-def test_existing_output_is_not_replaced_without_overwrite(capture, box_mesh, rsl):
-    proc = rsl("synth", box_mesh, capture, "--frames", "2", "--resolution", "32")
-    assert proc.returncode == 1
-    assert "already exists" in proc.stderr and "--overwrite" in proc.stderr
+def test_existing_output_is_not_replaced_without_overwrite(capture, box_mesh, tmp_path):
+    with pytest.raises(RslError, match="already exists and is not empty.*--overwrite"):
+        run(SynthConfig(mesh=box_mesh, out=capture, frames=2, resolution=32))
     assert load_capture(capture).frame_count() == 6
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(RslError, match="only replaces a capture made by rsl synth"):
+        run(SynthConfig(mesh=box_mesh, out=other, frames=2, resolution=32, overwrite=True))
+    assert (other / "notes.txt").read_text() == "mine"
 
 
 def test_bad_options_fail_with_one_clear_sentence(box_mesh, tmp_path, rsl):
@@ -156,9 +161,7 @@ def test_bad_options_fail_with_one_clear_sentence(box_mesh, tmp_path, rsl):
     assert proc.returncode == 1 and "--young-schedule entry '1e4 at 0'" in proc.stderr
     proc = rsl("synth", tmp_path / "missing.mesh", tmp_path / "b")
     assert proc.returncode == 1 and "missing.mesh: mesh file not found" in proc.stderr
-    proc = rsl("synth", box_mesh, tmp_path / "c", "--region", "stiff")
-    assert proc.returncode == 1 and "--region 'stiff' should read" in proc.stderr
-    assert not (tmp_path / "a").exists() and not (tmp_path / "c").exists()
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
 def test_young_schedule_steps_and_ramps():
@@ -177,8 +180,10 @@ def test_parse_region_defaults_to_the_long_axis():
     v = np.array([[0, 0, 0], [0.05, 0.3, 0.02]], float)
     assert parse_region("hard=2e5", v) == ("hard", 2e5, 1, 0.5)
     assert parse_region("hard=2e5@z>0.25", v) == ("hard", 2e5, 2, 0.25)
-    with pytest.raises(RslError):
+    with pytest.raises(RslError, match="'body' is the name of the main region"):
         parse_region("body=2e5", v)
+    with pytest.raises(RslError, match="--region 'stiff' should read"):
+        parse_region("stiff", v)
 
 
 @pytest.mark.parametrize("scenario", ["stretch", "twist", "push", "drop", "cable"])
@@ -215,3 +220,18 @@ def test_scenario_controls_scale_with_the_object():
     left = ctl.handles[0].select.select(mesh.vertices)
     assert np.allclose(mesh.vertices[left, 0], -0.2)  # only the end face of a 0.1 m cell mesh
     json.dumps(ctl.to_json())  # serialisable
+
+
+def test_surface_mesh_input_is_tetrahedralized(tmp_path):
+    import trimesh
+
+    box = trimesh.creation.box(extents=(0.3, 0.06, 0.06))
+    box.export(tmp_path / "box.obj")
+    out = run(SynthConfig(mesh=tmp_path / "box.obj", out=tmp_path / "cap", scenario="cable", cameras=1, frames=3,
+                          resolution=32, markers=3, calib_views=0, edge_length=0.15, size=0.0))
+    cap = load_capture(out)
+    m = meshio.read(str(cap.truth_dir / "object.mesh"))
+    v = np.asarray(m.points)
+    assert len(m.cells_dict["tetra"]) > 10
+    assert np.allclose(np.ptp(v, axis=0), (0.3, 0.06, 0.06), atol=1e-3)  # size 0 keeps the units
+    assert read_truth(cap).vertices.shape[0] == 3 and cap.markers().shape == (3, 3, 3)

@@ -8,7 +8,7 @@ import pytest
 from stages.render.mesh_raster import (interpolate, look_at, project_points, rasterize, rasterize_reference,
                                        render_mesh, supersampled_K, vertex_normals)
 from stages.synth_views import (background_plate, board_corners_world, board_poses, camera_ring,
-                                render_board)
+                                first_corner_pose, render_board)
 
 K64 = np.array([[60.0, 0, 31.5], [0, 60.0, 31.5], [0, 0, 1]])
 
@@ -173,4 +173,11 @@ def test_chessboard_views_are_detected_at_their_true_corners():
             uv, _ = project_points(truth, c.K, c.R, c.t)
             d = np.linalg.norm(corners.reshape(-1, 1, 2) - uv[None], axis=2).min(axis=1)
             errors.append(d.max())
+        # the pose written to calib/board_poses.json puts the calibrate stage's board frame on the same corners
+        from stages.capture import apply_pose
+        from stages.vision.boards import parse_board
+
+        obj = parse_board(f"chessboard:9x6:{square}").object_points
+        moved = apply_pose(first_corner_pose(pose, 9, 6, square), obj)
+        assert np.allclose(moved, truth, atol=1e-12)
     assert max(errors) < 0.5, errors

@@ -72,7 +72,7 @@ def test_dihedral_angles_of_regular_and_corner_tet() -> None:
 
 
 def test_orientation_and_boundary_of_a_cube() -> None:
-    box = trimesh.creation.box()  # 2×2×2? no: unit-extent box centred at 0
+    box = trimesh.creation.box()  # the unit cube centred on the origin
     v = np.array(box.vertices)
     # The 6-tet Kuhn subdivision of the cube, half of them written inverted.
     lo = np.argmin(v.sum(1))
@@ -135,6 +135,10 @@ def test_sample_bar(sample_data: Path, tmp_path: Path) -> None:
     prov = read_provenance(out)
     assert {Path(i["path"]).name for i in prov["inputs"]} == {"capture.toml", "object.mesh", "controls.json"}
     assert "979 tets" in r.messages[-1] and "dihedral" in r.messages[-1]
+    from stages.capture import read_image
+
+    assert read_image(tmp_path / "mesh.png").shape[2] == 3  # the preview picture
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mesh.h5", "mesh.png"]  # no temp file left
 
 
 def test_sample_dino_standing_on_floor(sample_data: Path, tmp_path: Path) -> None:

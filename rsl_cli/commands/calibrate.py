@@ -31,8 +31,11 @@ def register(app: typer.Typer) -> None:
         outlier_factor: float = opt(CalibrateConfig, "outlier_factor"),
         outlier_min_px: float = opt(CalibrateConfig, "outlier_min_px"),
         known_distance: str = opt(CalibrateConfig, "known_distance"),
+        sfm_single_camera: bool = opt(CalibrateConfig, "sfm_single_camera"),
+        sfm_max_image_size: int = opt(CalibrateConfig, "sfm_max_image_size"),
         seed: int = opt(CalibrateConfig, "seed"),
     ) -> None:
         run(CalibrateConfig(capture, workspace, board, sfm, from_json, from_colmap, from_transforms, world,
                             world_view, board_pose, fix_aspect_ratio, zero_tangent, fix_k3, outlier_factor,
-                            outlier_min_px, known_distance, seed), RichReporter())
+                            outlier_min_px, known_distance, sfm_single_camera, sfm_max_image_size, seed),
+            RichReporter())

@@ -27,6 +27,8 @@ def register(app: typer.Typer) -> None:
         else:
             _artefact_info(path, as_json, check)
 
+    register_docs(app)
+
 
 def _artefact_info(path: Path, as_json: bool, check: bool) -> None:
     from stages.artefacts import ARTEFACT_TYPES, KIND_FILES, describe, load_any
@@ -95,3 +97,48 @@ def _capture_info(root: Path, as_json: bool) -> None:
     for key, value in info.items():
         if key not in ("capture", "name", "fps"):
             out(f"  {key:<18} {json.dumps(value, default=str)}")
+
+
+def register_docs(app: typer.Typer) -> None:
+    """A hidden command that writes the CLI reference (docs/cli.md) from the --help texts."""
+
+    @app.command("help-markdown", hidden=True, help="Print the reference of every command as Markdown.")
+    def _docs() -> None:
+        import click
+
+        root = typer.main.get_command(app)
+        ctx = click.Context(root, info_name="rsl")
+        lines = ["# Command-line reference", "",
+                 "Generated from the `--help` texts (`rsl help-markdown > docs/cli.md`); the option help of "
+                 "each stage is the docstring of its Config field, and the defaults are the Config's.", "",
+                 "Global options, given before the command: `--quiet/-q` (no progress bars or info lines), "
+                 "`--verbose/-v` (tracebacks on errors).  A stage reads its inputs from the workspace `-w WS`, "
+                 "writes one artefact there (docs/artefacts.md) and ends with one summary line; bad input ends "
+                 "with one red sentence naming the file and exit code 1.", "",
+                 "```", "rsl run CAPTURE -w WS                      # every stage, skipping what is up to date",
+                 "rsl run CAPTURE -w WS --until tetrahedralize --set tetrahedralize.max_tets=2000",
+                 "rsl status -w WS                           # what exists, what is stale and why",
+                 "rsl info WS/mesh.h5                        # kind, provenance, datasets",
+                 "rsl info CAPTURE                           # check a capture folder", "```", ""]
+        for name in root.list_commands(ctx):
+            cmd = root.get_command(ctx, name)
+            if cmd is None or cmd.hidden:
+                continue
+            sub = click.Context(cmd, info_name=name, parent=ctx)
+            usage = " ".join(["[OPTIONS]"] + [p.name.upper() for p in cmd.params if p.param_type_name == "argument"])
+            lines += [f"## rsl {name}", "", f"`rsl {name} {usage}`", "", " ".join((cmd.help or "").split()), ""]
+            rows = []
+            for p in cmd.params:
+                if p.param_type_name == "argument":
+                    rows.append((p.name.upper(), getattr(p, "help", "") or "", ""))
+                elif not p.hidden and p.name != "help":
+                    flags = ", ".join(f"`{o}`" for o in p.opts + p.secondary_opts)
+                    default = "" if p.required or p.default in (None, ()) else f"`{p.default}`"
+                    rows.append((flags, p.help or "", default))
+            if rows:
+                lines += ["| argument / option | meaning | default |", "| --- | --- | --- |"]
+                lines += [f"| {a} | {' '.join(h.split()).replace('|', chr(92) + '|')} | {d} |" for a, h, d in rows]
+                lines.append("")
+        import sys
+
+        sys.stdout.write("\n".join(lines) + "\n")  # plain text: no rich markup in a Markdown file

@@ -25,11 +25,12 @@ def register(app: typer.Typer) -> None:
         frames: int = opt(RolloutConfig, "frames", "--frames"),
         material: str = opt(RolloutConfig, "material", "--material"),
         from_rest: bool = opt(RolloutConfig, "from_rest", "--from-rest"),
+        space: str = opt(RolloutConfig, "space", "--space"),
         solver: str = opt(RolloutConfig, "solver", "--solver"),
         contact_distance: float = opt(RolloutConfig, "contact_distance", "--contact-distance"),
     ) -> None:
         from stages.rollout import run
 
         run(RolloutConfig(capture=capture, workspace=workspace, controls=controls, frames=frames,
-                          material=material, from_rest=from_rest, solver=solver,
+                          material=material, from_rest=from_rest, space=space, solver=solver,
                           contact_distance=contact_distance), RichReporter())

@@ -6,7 +6,6 @@ from pathlib import Path
 import typer
 from rich.table import Table
 
-from rsl_cli.console import console, out
 from rsl_cli.options import workspace_option
 from stages.errors import RslError
 
@@ -37,10 +36,12 @@ def register(app: typer.Typer) -> None:
                 if bad:
                     state, why = STALE, f"reads {states[bad[0]].path.name}, which is stale"
             table.add_row(s.name, st.path.name, f"[{_STYLE[state]}]{state}[/]", (st.created or "")[:19], why)
-        console.print(table) if console.is_terminal else out_table(table)
+        _print(table)
 
 
-def out_table(table: Table) -> None:
+def _print(table: Table) -> None:
+    """To stdout: the terminal's width, or 160 columns in a pipe or a log."""
     from rich.console import Console
 
-    Console(highlight=False, width=160).print(table)
+    c = Console(highlight=False)
+    (c if c.is_terminal else Console(highlight=False, width=160)).print(table)

@@ -25,7 +25,8 @@ def register(app: typer.Typer) -> None:
         threads: int = opt(TetrahedralizeConfig, "threads"),
         envelope: float = opt(TetrahedralizeConfig, "envelope"),
         degenerate_tol: float = opt(TetrahedralizeConfig, "degenerate_tol"),
+        preview: bool = opt(TetrahedralizeConfig, "preview", "--preview/--no-preview"),
     ) -> None:
         run(TetrahedralizeConfig(capture=capture, workspace=workspace, edge_length=edge_length,
                                  max_tets=max_tets, optimize=optimize, threads=threads,
-                                 envelope=envelope, degenerate_tol=degenerate_tol), RichReporter())
+                                 envelope=envelope, degenerate_tol=degenerate_tol, preview=preview), RichReporter())

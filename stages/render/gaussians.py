@@ -23,7 +23,12 @@ API for the stages (adapt, fit-gaussians, export)::
 ``background`` is None (the artefact's colour), a (3,) colour or an (H, W, 3)
 image.  ``rasterizer="fast"`` (numba, default), ``"tiled"`` or ``"dense"``
 (the pure-PyTorch twins) pick the implementation.  Rendering runs in float32;
-gradients flow back to ``positions`` in its own dtype.
+gradients flow back to ``positions`` in its own dtype.  ``g.double()`` renders in float64
+(for gradient checks).
+
+Threads: the rasterizer's numba kernels use every core; the many small torch ops around it
+are fastest with ``torch.set_num_threads(1)`` (on a shared 2-core machine a second torch
+thread made a 20K-Gaussian 256² view 4x slower; ``rsl fit-gaussians`` sets it for its run).
 """
 from __future__ import annotations
 
@@ -149,8 +154,13 @@ class BoundGaussians(torch.nn.Module):
         """Barycentric weights (G, 4) = softmax(bary_logits): always inside the host tet."""
         return torch.softmax(self.bary_logits, dim=1)
 
+    @property
+    def dtype(self) -> torch.dtype:
+        """Rendering dtype: float32, or float64 after ``.double()`` (gradient checks)."""
+        return self.dm_inv.dtype
+
     def _corners(self, positions: torch.Tensor) -> torch.Tensor:
-        x = positions.to(torch.float32)
+        x = torch.as_tensor(positions).to(self.dtype)
         return x[self.host_vertices]  # (G, 4, 3)
 
     def centres(self, positions: torch.Tensor) -> torch.Tensor:
@@ -169,10 +179,16 @@ class BoundGaussians(torch.nn.Module):
         s2 = torch.exp(2 * self.log_scales)
         return (R * s2[:, None, :]) @ R.transpose(1, 2)
 
+    def covariance_factors(self, positions: torch.Tensor) -> torch.Tensor:
+        """M = F R S with Σ = M Mᵀ, (G, 3, 3) m."""
+        F = self.deformation(positions)
+        RS = quat_to_rotmat(self.rotations) * torch.exp(self.log_scales)[:, None, :]
+        return F @ RS
+
     def covariances(self, positions: torch.Tensor) -> torch.Tensor:
         """F R S² Rᵀ Fᵀ, (G, 3, 3) m²."""
-        F = self.deformation(positions)
-        return F @ self.rest_covariances() @ F.transpose(1, 2)
+        M = self.covariance_factors(positions)
+        return M @ M.transpose(1, 2)
 
     def opacities(self) -> torch.Tensor:
         return torch.sigmoid(self.opacity_logit)
@@ -181,15 +197,14 @@ class BoundGaussians(torch.nn.Module):
     def camera(self, camera) -> CameraTensors:
         if isinstance(camera, CameraTensors):
             return camera
-        return CameraTensors.from_camera(camera, torch.float32)
+        return CameraTensors.from_camera(camera, self.dtype)
 
     def render(self, positions: torch.Tensor, camera, background: torch.Tensor | np.ndarray | None = None,
                rasterizer: str = "fast") -> RenderOutput:
         """Render the Gaussians at mesh positions (n, 3) into ``camera``; see the module docstring."""
         cam = self.camera(camera)
         means = self.centres(positions)
-        covs = self.covariances(positions)
-        proj = project_gaussians(means, covs, cam)
+        proj = project_gaussians(means, None, cam, factors=self.covariance_factors(positions))
         dirs = None
         if self.sh.shape[1] >= 4:
             d = means - cam.centre
@@ -197,6 +212,6 @@ class BoundGaussians(torch.nn.Module):
         colors = sh_to_color(self.sh, dirs)
         premult, alpha = RASTERIZERS[rasterizer](proj.means2d, proj.conics, colors, self.opacities(),
                                                  proj.depths, proj.visible, cam.width, cam.height)
-        bg = self.background if background is None else torch.as_tensor(background, dtype=torch.float32)
+        bg = self.background if background is None else torch.as_tensor(background, dtype=self.dtype)
         image = premult + (1 - alpha)[..., None] * bg
         return RenderOutput(image, alpha, premult)

@@ -119,13 +119,15 @@ class Projected:
     visible: torch.Tensor
 
 
-def project_gaussians(means: torch.Tensor, covs: torch.Tensor, cam: CameraTensors,
-                      near: float = NEAR_M) -> Projected:
+def project_gaussians(means: torch.Tensor, covs: torch.Tensor | None, cam: CameraTensors,
+                      near: float = NEAR_M, factors: torch.Tensor | None = None) -> Projected:
     """EWA: means (N,3) m, covariances (N,3,3) m² (world) → image-space Gaussians.
 
-    Σ₂ = J R Σ Rᵀ Jᵀ + 0.3 I with J = K₂ ∂dist/∂xₙ ∂xₙ/∂x_cam; conic = Σ₂⁻¹.
-    A Gaussian is visible when z > near and its normalised position lies within
-    1.5× the image extent (so that the distortion polynomial is not folded back).
+    Σ₂ = J R Σ Rᵀ Jᵀ + 0.3 I with J = K₂ ∂dist/∂xₙ ∂xₙ/∂x_cam; conic = Σ₂⁻¹.  Instead of ``covs``
+    a factor M with Σ = M Mᵀ (N,3,3) may be given (``factors``): then Σ₂ = T Tᵀ + 0.3 I with
+    T = J R M, which is cheaper.  A Gaussian is visible when z > near and its normalised
+    position lies within 1.5× the image extent (so that the distortion polynomial is not
+    folded back).
     """
     pc = world_to_camera(means, cam)
     x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
@@ -137,24 +139,37 @@ def project_gaussians(means: torch.Tensor, covs: torch.Tensor, cam: CameraTensor
     # Jacobian evaluated at clamped coordinates, as 3DGS does (limits far-off-screen blow-up).
     lx, ly = FOV_MARGIN * ex, FOV_MARGIN * ey
     xc, yc = xn.clamp(-lx, lx), yn.clamp(-ly, ly)
-    zero = torch.zeros_like(zs)
-    jn = torch.stack([torch.stack([1 / zs, zero, -xc / zs], -1),
-                      torch.stack([zero, 1 / zs, -yc / zs], -1)], -2)  # (N, 2, 3)
-    K2 = cam.K[:2, :2]
+    # ∂xₙ/∂x_world = [(R₀ − xₙ R₂)/z ; (R₁ − yₙ R₂)/z]  (N, 2, 3)
+    R = cam.R
+    inv_z = (1 / zs)[:, None]
+    n0 = (R[0] - xc[:, None] * R[2]) * inv_z
+    n1 = (R[1] - yc[:, None] * R[2]) * inv_z
+    K = cam.K
     if cam.has_distortion:
         xd, yd = distort(xn, yn, cam.dist)
-        jd = distort_jacobian(xc, yc, cam.dist)
-        J = K2 @ jd @ jn
+        jd = distort_jacobian(xc, yc, cam.dist)  # (N, 2, 2)
+        d0 = jd[:, 0, 0:1] * n0 + jd[:, 0, 1:2] * n1
+        d1 = jd[:, 1, 0:1] * n0 + jd[:, 1, 1:2] * n1
     else:
         xd, yd = xn, yn
-        J = K2 @ jn
-    u = cam.K[0, 0] * xd + cam.K[0, 1] * yd + cam.K[0, 2]
-    v = cam.K[1, 1] * yd + cam.K[1, 2]
-    JW = J @ cam.R  # (N, 2, 3)
-    cov2d = JW @ covs @ JW.transpose(1, 2)
-    eye = torch.eye(2, dtype=cov2d.dtype, device=cov2d.device)
-    cov2d = cov2d + LOW_PASS_PX2 * eye
-    a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
+        d0, d1 = n0, n1
+    jw0 = K[0, 0] * d0 + K[0, 1] * d1  # rows of J R, (N, 3) each
+    jw1 = K[1, 1] * d1
+    u = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
+    v = K[1, 1] * yd + K[1, 2]
+    if factors is not None:
+        T = torch.stack([jw0, jw1], 1) @ factors  # J R M, (N, 2, 3)
+        S = T @ T.transpose(1, 2)
+        a = S[:, 0, 0] + LOW_PASS_PX2
+        b = S[:, 0, 1]
+        c = S[:, 1, 1] + LOW_PASS_PX2
+    else:
+        s0 = (covs * jw0[:, None, :]).sum(2)  # Σ (J R)₀ᵀ, (N, 3)
+        s1 = (covs * jw1[:, None, :]).sum(2)
+        a = (jw0 * s0).sum(1) + LOW_PASS_PX2
+        b = (jw0 * s1).sum(1)
+        c = (jw1 * s1).sum(1) + LOW_PASS_PX2
+    cov2d = torch.stack([torch.stack([a, b], -1), torch.stack([b, c], -1)], -2)
     det = a * c - b * b
     visible = visible & (det > 0)
     det = torch.where(visible, det, torch.ones_like(det))

@@ -24,10 +24,17 @@ this module to it, forward and backward.
 from __future__ import annotations
 
 import math
+import os
 
 import numba as nb
 import numpy as np
 import torch
+
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    # numba's OpenMP layer (the system libgomp) and torch's own libgomp each busy-wait after a
+    # parallel region; interleaved, every small torch op then waits for spinning threads
+    # (measured 4-5x slower fits).  The workqueue layer sleeps between kernels.
+    nb.config.THREADING_LAYER = "workqueue"
 
 TILE = 16
 """Tile edge in pixels."""

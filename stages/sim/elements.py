@@ -10,7 +10,9 @@ The 9×9 Hessian ∂²Ψ/∂F² = Σ_k λ_k vec(Q_k) vec(Q_k)ᵀ with, for F = U
   - flip   Q = U (e_i e_jᵀ + e_j e_iᵀ)/√2 Vᵀ,  λ = 2Ψ_I₂ − Ψ_J σ_k,
   - scaling Q = U diag(q) Vᵀ with (λ, q) the eigenpairs of ∂²Ψ/∂σ² (3×3).
 Projection to positive semi-definite clamps λ_k at 0; that equals clamping the eigenvalues of the
-9×9 matrix, which is what the JAX twin does with ``eigh``.
+9×9 matrix, which is what the JAX twin does with ``eigh``. The exact (unprojected) Hessian skips the
+eigensystem: ∂²Ψ/∂F_ij∂F_kl = 2Ψ_I₂ δ_ik δ_jl + 4Ψ_I₂I₂ F_ij F_kl + Ψ_JJ C_ij C_kl + Ψ_J ε_ikp ε_jlq F_pq,
+C = cof F = ∂J/∂F.
 """
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 
 Step (paper Eq. 1):  x_t = argmin_x Φ_t(x),  Φ_t = ½/Δt² ‖x − y_t‖²_M + Σ_e V_e Ψ(F_e; θ_t)
                      − (M g + f_t)·x + Σ_h ½ k_h ‖x_h − x̄_h,t‖² + contact,   y_t = 2x_{t−1} − x_{t−2}.
-Newton: H Δx = −∇Φ with the exact Hessian while CHOLMOD accepts it, else with element Hessians
+Newton: H Δx = −∇Φ with the exact Hessian while it is positive definite, else with element Hessians
 projected to PSD (analytic eigensystem, elements.py) — SNH is indefinite near rest —,
 sparse assembly on a fixed pattern and a sparse direct solve (linsolve.py); backtracking line
 search on Φ; converged when ‖∇Φ‖ ≤ rtol · (‖∇Φ(x_init)‖ + ‖M g‖ + ‖f‖).
@@ -195,6 +195,11 @@ def _contact_terms_jit(x, x_prev, s, poses):
     return e, g, h
 
 
+@jax.jit
+def _contact_energy_jit(x, x_prev, s, poses):
+    return jnp.sum(jax.vmap(lambda p, q: pot.vertex_contact_energy(p, q, s, poses))(x, x_prev))
+
+
 def _vertex_terms(scene: Scene, inputs: FrameInputs, x, y, x_prev, want: int, project: bool):
     """Inertia, gravity, loads, handles and contact: energy (scalar), gradient (n, 3), blocks (n, 3, 3)."""
     m = scene.masses[:, None]
@@ -219,6 +224,8 @@ def _vertex_terms(scene: Scene, inputs: FrameInputs, x, y, x_prev, want: int, pr
         if x_prev is None or scene.friction <= 0.0:
             # no friction: zero the friction coefficient contribution by passing x_prev = x and μ_f = 0
             s = _frictionless(s)
+        if want < GRADIENT:
+            return energy + float(_contact_energy_jit(x, xp, s, inputs.obstacle_poses)), None, None
         e, g, hc = _contact_terms_jit(jnp.asarray(x), jnp.asarray(xp), s, jnp.asarray(inputs.obstacle_poses))
         energy += float(jnp.sum(e))
         if grad is not None:
@@ -232,10 +239,8 @@ def _vertex_terms(scene: Scene, inputs: FrameInputs, x, y, x_prev, want: int, pr
     return energy, grad, blocks
 
 
-_FRICTIONLESS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
-
-
 def _frictionless(s: pot.SceneData) -> pot.SceneData:
+    """The same scene data with the friction coefficient set to 0."""
     leaves, aux = s.tree_flatten()
     d = dict(zip(pot.SceneData.LEAVES, leaves))
     d["friction"] = jnp.zeros((), jnp.float64)
@@ -292,7 +297,8 @@ def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_i
     young, poisson (R,) per region; x_prev = x_{t−1}, x_prev2 = x_{t−2} (n, 3); x_init the Newton start
     (default y). Raises SimulationError when Newton does not converge in ``max_iterations``.
     hessian_mode: "projected" (element Hessians clamped to PSD), "exact", or "auto" (exact while the
-    Cholesky factorisation succeeds, projected from the first failure on; projected with splu).
+    Cholesky factorisation succeeds — with splu: while the step is a descent direction —, else
+    projected until a projected Newton step is accepted in full, then exact again).
     ``timings`` (optional dict) accumulates seconds spent in "elements", "assembly", "solve", "vertex".
     """
     import time
@@ -323,9 +329,9 @@ def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_i
     e_x = None
     if hessian_mode not in ("auto", "projected", "exact"):
         raise ValueError(f"hessian_mode must be auto, projected or exact, not {hessian_mode!r}")
-    # "auto": the exact Hessian while a Cholesky factorisation accepts it (quadratic convergence),
-    # the PSD-projected one from the first iteration where it does not (or always, without CHOLMOD)
-    exact = hessian_mode == "exact" or (hessian_mode == "auto" and lin.kind == "cholmod")
+    # "auto": the exact Hessian while it gives a descent direction (CHOLMOD: while the Cholesky
+    # factorisation accepts it), else the PSD-projected one until a projected step is taken in full
+    exact = hessian_mode in ("exact", "auto")
     for it in range(max_iterations + 1):
         t0 = time.perf_counter()
         ee, ge, he = _elastic(scene, x, mu, lam, HESSIAN, not exact, kernels)
@@ -364,6 +370,13 @@ def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_i
                 t3 += time.perf_counter() - t5
                 lin.factor(data)
         dx = -lin.solve(grad)
+        if exact and hessian_mode == "auto" and lin.kind != "cholmod" and not float(grad @ dx) < 0.0:
+            # LU does not tell an indefinite matrix; a non-descent direction does: project from here on
+            exact = False
+            _, _, he = _elastic(scene, x, mu, lam, HESSIAN, True, kernels)
+            _, _, hv = _vertex_terms(scene, inputs, x, y, x_prev, HESSIAN, True)
+            lin.factor(cache.pattern.assemble(he, hv))
+            dx = -lin.solve(grad)
         t4 = time.perf_counter()
         tm["assembly"] += t3 - t2
         tm["solve"] += t4 - t3
@@ -382,9 +395,12 @@ def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_i
             if alpha < 1e-10:
                 break
         if alpha < 1e-10:  # no decrease measurable: near round-off, take the Newton step
+            alpha = 1.0
             x_new = x + dx
         x = x_new
         history.append(residual)
+        if hessian_mode == "auto" and not exact and alpha == 1.0:
+            exact = True  # a full projected step was taken: try the exact Hessian again (quadratic basin)
         if alpha == 1.0 and float(np.abs(dx).max()) <= xtol * size:
             # the full Newton step moved no vertex by more than xtol × the object size: x is resolved
             # to round-off (stiff handles can keep ‖∇Φ‖ above rtol by cancellation alone)

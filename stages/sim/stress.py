@@ -207,24 +207,59 @@ def set_forces(scene, inputs, x: np.ndarray, x_prev: np.ndarray, f_int: np.ndarr
     return out
 
 
+@functools.partial(jax.jit, static_argnums=(1,))
+def _obstacle_distances(x, shape, normal, offset, radius, half, pose):
+    """Signed distances (n,) m of points x (n, 3) to one obstacle (stages.sim.potential.obstacle_distance)."""
+    from stages.sim.potential import obstacle_distance
+
+    return jax.vmap(lambda p: obstacle_distance(p, shape, normal, offset, radius, half, pose))(x)
+
+
+@jax.jit
+def _contact_forces(x, x_prev, s, inputs):
+    """−∂E_c/∂x (n, 3) N of stages.sim.potential.contact_energy (friction lagged at x_prev, or None)."""
+    from stages.sim.potential import contact_energy
+
+    return -jax.grad(contact_energy)(x, s, inputs, x_prev)
+
+
+def _contact_inputs(scene, inputs, obstacles: tuple | None = None):
+    """(SceneData, FrameInputs) restricted to some obstacles (all by default), friction off when μ_f = 0."""
+    import dataclasses
+
+    from stages.sim.potential import scene_data
+
+    poses = np.asarray(inputs.obstacle_poses, np.float64).reshape(-1, 7)
+    if obstacles is not None:
+        scene = dataclasses.replace(scene, obstacles=tuple(scene.obstacles[o] for o in obstacles))
+        poses = poses[list(obstacles)]
+    return scene_data(scene), dataclasses.replace(inputs, obstacle_poses=poses)
+
+
 def contact_force(scene, inputs, o: int, x: np.ndarray, x_prev: np.ndarray, contact_distance: float
                   ) -> tuple[np.ndarray, np.ndarray]:
     """(ids of the vertices touching obstacle o, (3,) total force it applies to the body, N)."""
-    import dataclasses
-
-    from stages.sim.potential import contact_energy, obstacle_distance
-
     ob = scene.obstacles[o]
     poses = np.asarray(inputs.obstacle_poses, np.float64).reshape(-1, 7)
-    pose = jnp.asarray(poses[o])
-    normal = jnp.asarray(ob.normal if ob.normal is not None else np.zeros(3), jnp.float64)
-    half = jnp.asarray(ob.half_extents if ob.half_extents is not None else np.zeros(3), jnp.float64)
-    dist = jax.vmap(lambda p: obstacle_distance(p, ob.shape, normal, float(ob.offset), float(ob.radius),
-                                                half, pose))(jnp.asarray(x, jnp.float64))
+    f64 = lambda a: jnp.asarray(a, jnp.float64)  # noqa: E731
+    dist = _obstacle_distances(f64(x), ob.shape, f64(ob.normal if ob.normal is not None else np.zeros(3)),
+                               f64(ob.offset), f64(ob.radius),
+                               f64(ob.half_extents if ob.half_extents is not None else np.zeros(3)), f64(poses[o]))
     margin = float(getattr(scene, "contact_margin", 0.0))
     ids = np.flatnonzero(np.asarray(dist) < margin + contact_distance)
-    one = dataclasses.replace(scene, obstacles=(ob,))
-    one_inputs = dataclasses.replace(inputs, obstacle_poses=poses[o:o + 1])
-    xp = jnp.asarray(x_prev, jnp.float64) if scene.friction > 0.0 else None
-    g = jax.grad(lambda y: contact_energy(y, one, one_inputs, xp))(jnp.asarray(x, jnp.float64))
-    return ids, -np.asarray(g).sum(axis=0)
+    s, one_inputs = _contact_inputs(scene, inputs, (o,))
+    xp = f64(x_prev) if scene.friction > 0.0 else None
+    f = np.asarray(_contact_forces(f64(x), xp, s, one_inputs))
+    return ids, f.sum(axis=0)
+
+
+def applied_forces(scene, inputs, x: np.ndarray, x_prev: np.ndarray) -> np.ndarray:
+    """Per-vertex force (n, 3) N that the handles (k (x̄ − x)) and obstacles (−∂E_c/∂x) exert on the body."""
+    f = np.zeros_like(np.asarray(x, np.float64))
+    for h, target in zip(scene.handles, inputs.handle_targets):
+        np.add.at(f, h.ids, h.stiffness * (np.asarray(target) - x[h.ids]))
+    if scene.obstacles:
+        s, all_inputs = _contact_inputs(scene, inputs)
+        xp = jnp.asarray(x_prev, jnp.float64) if scene.friction > 0.0 else None
+        f += np.asarray(_contact_forces(jnp.asarray(x, jnp.float64), xp, s, all_inputs))
+    return f

@@ -187,8 +187,9 @@ class ReducedModel:
 
     def jacobian_transpose(self, z, v) -> np.ndarray:
         """Jᵀ v for v (n, 3) → (r,) (one VJP, no J formed)."""
-        _, vjp = jax.vjp(self.sub.decode, jnp.asarray(z))
-        return np.asarray(vjp(jnp.asarray(v))[0])
+        d = self.data
+        return np.asarray(_jt_jit(jnp.asarray(z, jnp.float64), jnp.asarray(v, jnp.float64), d["net"], d["q_scale"],
+                                  self._basis_full, self.kind))
 
     # ------------------------------------------------------------------ energy, gradient, Hessian
     def _args(self, z, z_prev, z_prev2, young, poisson, rin):
@@ -311,6 +312,14 @@ class ReducedModel:
 
 
 # =========================================================================== pure kernels
+@partial(jax.jit, static_argnames=("kind",))
+def _jt_jit(z, v, net, q_scale, basis, kind):
+    """Jᵀ v = (∂q/∂z)ᵀ Uᵀ v, v (n, 3) → (r,)."""
+    uv = jnp.einsum("nip,ni->p", basis, v)
+    _, vjp = jax.vjp(lambda zz: _q_of_z(kind, net, q_scale, zz), z)
+    return vjp(uv)[0]
+
+
 def _energy_q(q, q1, q2, young, poisson, rin, d, reference: bool):
     """E as a function of the PCA coefficients q, q_{t−1}, q_{t−2} (module docstring)."""
     if reference:

@@ -7,6 +7,7 @@ outside span U, and a training step costs nothing that grows with the mesh.
 """
 from __future__ import annotations
 
+from functools import partial
 from typing import Callable
 
 import jax
@@ -54,6 +55,35 @@ def reconstruction_error(sub: SubspaceMap, x: np.ndarray, batch: int = 64) -> fl
     return float(np.mean(np.concatenate(errs)))
 
 
+def _loss(net, q, scale, total_mass):
+    """mean_s ‖q̃_s − q_s‖² / M_total, q̃ = s ⊙ D̂(Ê(q/s))."""
+    rec = scale * net_decode(net, net_encode(net, q / scale))
+    return jnp.mean(jnp.sum((rec - q) ** 2, axis=-1)) / total_mass
+
+
+_loss_jit = jax.jit(_loss)
+
+
+@partial(jax.jit, static_argnames=("learning_rate", "batch_size"))
+def _epoch(net, state, key, q_train, scale, total_mass, learning_rate, batch_size):
+    """One pass of Adam over shuffled mini-batches (compiled once per shape, shared across calls)."""
+    opt = optax.adam(learning_rate)
+    s, p = q_train.shape
+    nb = max(1, s // batch_size)
+    size = batch_size if s >= batch_size else s
+    perm = jax.random.permutation(key, s)[: nb * size]
+    batches = q_train[perm].reshape(nb, size, p)
+
+    def body(carry, qb):
+        net, state = carry
+        loss, g = jax.value_and_grad(_loss)(net, qb, scale, total_mass)
+        upd, state = opt.update(g, state, net)
+        return (optax.apply_updates(net, upd), state), loss
+
+    (net, state), losses = jax.lax.scan(body, (net, state), batches)
+    return net, state, jnp.mean(losses)
+
+
 def train_autoencoder(q_train: np.ndarray, q_val: np.ndarray, r: int, epochs: int, seed: int = 0,
                       learning_rate: float = 1e-3, batch_size: int = 64, total_mass: float = 1.0,
                       callback: Callable[[int, float, float], None] | None = None
@@ -66,40 +96,22 @@ def train_autoencoder(q_train: np.ndarray, q_val: np.ndarray, r: int, epochs: in
     q_train = jnp.asarray(q_train)
     q_val = jnp.asarray(q_val) if len(q_val) else q_train
     p = q_train.shape[1]
-    scale = jnp.maximum(jnp.sqrt(jnp.mean(q_train ** 2, axis=0)), 1e-12)
+    rms = jnp.sqrt(jnp.mean(q_train ** 2, axis=0))
+    scale = jnp.maximum(rms, 1e-3 * jnp.max(rms) + 1e-300)  # modes the data barely spans are not blown up
     key = jax.random.PRNGKey(seed)
     key, k0 = jax.random.split(key)
     net = init_net(k0, r, p)
     opt = optax.adam(learning_rate)
     state = opt.init(net)
 
-    def loss_fn(net, q):
-        rec = scale * net_decode(net, net_encode(net, q / scale))
-        return jnp.mean(jnp.sum((rec - q) ** 2, axis=-1)) / total_mass
-
-    @jax.jit
-    def epoch(net, state, key):
-        s = q_train.shape[0]
-        nb = max(1, s // batch_size)
-        perm = jax.random.permutation(key, s)[: nb * batch_size if s >= batch_size else s]
-        batches = q_train[perm].reshape(nb, -1, p)
-
-        def body(carry, qb):
-            net, state = carry
-            loss, g = jax.value_and_grad(loss_fn)(net, qb)
-            upd, state = opt.update(g, state, net)
-            return (optax.apply_updates(net, upd), state), loss
-
-        (net, state), losses = jax.lax.scan(body, (net, state), batches)
-        return net, state, jnp.mean(losses)
-
-    val_loss = jax.jit(loss_fn)
+    opt_args = (learning_rate, int(batch_size))
+    mass = jnp.asarray(total_mass, jnp.float64)
     history = []
-    best = (float(val_loss(net, q_val)), net)
+    best = (float(_loss_jit(net, q_val, scale, mass)), net)
     for e in range(epochs):
         key, ke = jax.random.split(key)
-        net, state, tl = epoch(net, state, ke)
-        vl = float(val_loss(net, q_val))
+        net, state, tl = _epoch(net, state, ke, q_train, scale, mass, *opt_args)
+        vl = float(_loss_jit(net, q_val, scale, mass))
         history.append((float(tl), vl))
         if vl < best[0]:
             best = (vl, net)

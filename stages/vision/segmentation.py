@@ -205,22 +205,32 @@ def grabcut(frame: np.ndarray, prior: np.ndarray, band_px: int = 0, iterations: 
 # =========================================================================== mesh silhouettes
 def mesh_silhouette(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, dist: np.ndarray, R: np.ndarray,
                     t: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Pixels (H, W) bool covered by the projected triangles (vertices (n, 3) m, faces (k, 3));
-    triangles with a vertex behind the camera are skipped.  Filled with 1/16-pixel precision."""
-    import cv2
-
+    """Pixels (H, W) bool whose centre (integer coordinates, OpenCV) lies in a projected triangle
+    (vertices (n, 3) m, faces (k, 3)); triangles with a vertex behind the camera are skipped.
+    A centre is inside when all three edge functions e_i(p) = (b − a) × (p − a) share the sign
+    of the triangle's area (≥ 0 after orientation, so shared edges leave no gap)."""
     from stages.vision.geometry import project
 
     uv, z = project(vertices, np.asarray(K), np.asarray(dist), np.asarray(R), np.asarray(t))
     faces = np.asarray(faces, np.int64)
     ok = np.all(z[faces] > 1e-6, axis=1)
-    tri = np.round(uv[faces[ok]] * 16).astype(np.int64)
-    lim = 16 * 4 * max(width, height)
-    tri = np.clip(tri, -lim, lim).astype(np.int32)
-    m = np.zeros((height, width), np.uint8)
-    if len(tri):
-        cv2.fillPoly(m, list(tri), 1, lineType=cv2.LINE_8, shift=4)
-    return m.astype(bool)
+    m = np.zeros((height, width), bool)
+    for tri in uv[faces[ok]]:
+        x0, y0 = np.maximum(np.ceil(tri.min(0)).astype(int), 0)
+        x1, y1 = np.minimum(np.floor(tri.max(0)).astype(int), [width - 1, height - 1])
+        if x1 < x0 or y1 < y0:
+            continue
+        a, b, c = tri
+        area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+        if abs(area) < 1e-12:
+            continue
+        ys, xs = np.mgrid[y0:y1 + 1, x0:x1 + 1]
+        sgn = np.sign(area)
+        inside = np.ones(xs.shape, bool)
+        for p, q in ((a, b), (b, c), (c, a)):
+            inside &= sgn * ((q[0] - p[0]) * (ys - p[1]) - (q[1] - p[1]) * (xs - p[0])) >= 0
+        m[y0:y1 + 1, x0:x1 + 1] |= inside
+    return m
 
 
 def overlay(frame: np.ndarray, mask: np.ndarray, color=(255, 64, 64), alpha: float = 0.45,

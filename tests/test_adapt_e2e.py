@@ -1,0 +1,348 @@
+"""`rsl adapt` and `rsl evaluate` end to end on a tiny `rsl synth` capture, and dL/dθ of the whole
+window objective (simulation + adjoint + loss, image or markers) against finite differences."""
+from __future__ import annotations
+
+import json
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stages.adapt_loss import params_from_theta, theta_from_params
+from stages.artefacts import AdaptArtefact, CamerasArtefact, GaussiansArtefact, MeshArtefact, read_provenance
+from stages.capture import load_capture, read_markers, write_markers
+
+BEAM = Path(__file__).resolve().parents[2] / "shared" / "data" / "autodef_fulton" / "Coarse_beam.mesh"
+E_TRUE = 1.0e5
+
+
+def _make_capture(root: Path, frames: int = 36, young_schedule: str = "", cameras: int = 1, resolution: int = 32
+                  ) -> tuple[Path, Path]:
+    """A cable-pulled beam (97 vertices, 204 tets) filmed by `rsl synth`, and a workspace whose mesh.h5
+    is the simulated tet mesh itself (so the identified E is comparable with the truth)."""
+    from stages import calibrate, synth, tetrahedralize
+
+    if not BEAM.is_file():
+        pytest.skip(f"{BEAM} not present")
+    cap = root / "cap"
+    synth.run(synth.SynthConfig(mesh=BEAM, out=cap, scenario="cable", cameras=cameras, frames=frames,
+                                resolution=resolution, young=E_TRUE, young_schedule=young_schedule, markers=30,
+                                calib_views=0, seed=0))
+    toml = cap / "capture.toml"
+    toml.write_text(toml.read_text().replace('mesh = "object.obj"', 'mesh = "truth/object.mesh"'))
+    ws = root / "ws"
+    tetrahedralize.run(tetrahedralize.TetrahedralizeConfig(capture=cap, workspace=ws))
+    calibrate.run(calibrate.CalibrateConfig(capture=cap, workspace=ws, from_json=str(cap / "cameras.json")))
+    return cap, ws
+
+
+@pytest.fixture(scope="module")
+def beam(tmp_path_factory) -> tuple[Path, Path]:
+    return _make_capture(tmp_path_factory.mktemp("adapt"))
+
+
+def _random_gaussians(mesh: MeshArtefact, n: int, seed: int = 0) -> GaussiansArtefact:
+    """Gaussians scattered in the tets (no fitting needed for a gradient check)."""
+    rng = np.random.default_rng(seed)
+    host = rng.integers(0, mesh.n_tets, n)
+    size = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    return GaussiansArtefact(
+        host_tet=host, bary=rng.dirichlet(np.ones(4), n), log_scales=np.full((n, 3), np.log(0.04 * size)),
+        rotations=np.tile([1.0, 0, 0, 0], (n, 1)), opacity_logit=np.full(n, 1.0),
+        sh=rng.normal(0, 1.0, (n, 1, 3)), background=np.zeros(3))
+
+
+# =========================================================================== end to end
+def test_online_markers_full_space_recovers_young_from_4x_off(beam, rsl):
+    cap, ws = beam
+    proc = rsl("adapt", cap, "-w", ws, "--space", "full", "--loss", "markers", "--window", "5",
+               "--young-init", str(E_TRUE / 4))
+    assert proc.returncode == 0, proc.stderr
+    assert "adapted 36 frames online in full space" in proc.stderr
+    assert "effective" in proc.stderr  # the summary says what the reported E means
+    art = AdaptArtefact.load(ws / "adapt.h5")
+    assert (art.mode, art.space, art.loss_kind, art.window) == ("online", "full", "markers", 5)
+    assert art.young.shape == (36, 1) and art.positions.shape == (36, 97, 3) and art.z.shape == (36, 0)
+    assert art.young[0, 0] < 0.5 * E_TRUE  # it started 4x off ...
+    late = np.median(art.young[-8:, 0])
+    assert abs(late - E_TRUE) / E_TRUE < 0.10, art.young[:, 0]  # ... and ends within 10 %
+    assert np.all(art.time_total_s > 0) and np.all(art.time_forward_s > 0) and np.all(art.time_backward_s > 0)
+    assert np.all(art.time_total_s >= art.time_forward_s + art.time_backward_s)
+    prov = read_provenance(ws / "adapt.h5")
+    assert Path(prov["config"]["capture"]).resolve() == cap.resolve()
+    assert any(i["path"].endswith("markers.csv") for i in prov["inputs"])
+
+    proc = rsl("evaluate", cap, "-w", ws)
+    assert proc.returncode == 0, proc.stderr
+    ev = json.loads((ws / "evaluation.json").read_text())
+    for key in ("young_rel_error_median", "young_rel_error_per_frame", "vertex_error_mean_m",
+                "vertex_error_rel_mean", "psnr_mean"):
+        assert key in ev
+    assert len(ev["young_rel_error_per_frame"]) == 36
+    assert ev["young_rel_error_per_frame"][0] > 0.5
+    assert ev["young_rel_error_per_frame"][-1] < 0.10
+    assert 0 < ev["vertex_error_rel_mean"] < 0.05
+    assert ev["psnr_mean"] is None  # no gaussians.h5
+    assert (ws / "evaluation_young.png").stat().st_size > 1000
+
+
+def test_offline_markers_fits_one_theta_and_writes_a_valid_artefact(beam, tmp_path):
+    from stages.adapt import AdaptConfig, run
+    from stages.progress import SilentReporter
+
+    cap, ws = beam
+    ws2 = tmp_path / "ws"
+    ws2.mkdir()
+    shutil.copy(ws / "mesh.h5", ws2 / "mesh.h5")
+    rep = SilentReporter()
+    path = run(AdaptConfig(capture=cap, workspace=ws2, space="full", mode="offline", loss="markers",
+                           frames="0:12", offline_iters=4, young_init=E_TRUE / 4, lr=0.3), rep)
+    art = AdaptArtefact.load(path)
+    assert art.mode == "offline" and art.window == 12 and list(art.frames) == list(range(12))
+    assert np.all(art.young == art.young[0])  # one θ for the whole sequence
+    assert E_TRUE / 4 < art.young[0, 0] < E_TRUE  # moved towards the truth
+    assert art.loss.shape == (12,) and np.all(np.isfinite(art.loss))
+    assert any("offline" in m for m in rep.messages)
+
+
+def test_follow_processes_marker_frames_as_they_arrive(beam, tmp_path):
+    from stages.adapt import AdaptConfig, run
+
+    cap, ws = beam
+    cap2 = tmp_path / "cap"
+    shutil.copytree(cap, cap2)
+    P = read_markers(cap / "markers.csv")
+    write_markers(cap2 / "markers.csv", P[:3])
+    stop = threading.Event()
+
+    def writer():  # a mocap system appending frames: 3 → 8
+        for k in range(4, 9):
+            time.sleep(0.3)
+            tmp = cap2 / "markers.tmp"
+            write_markers(tmp, P[:k])
+            tmp.replace(cap2 / "markers.csv")
+        stop.set()
+
+    th = threading.Thread(target=writer)
+    th.start()
+    ws2 = tmp_path / "ws"
+    ws2.mkdir()
+    shutil.copy(ws / "mesh.h5", ws2 / "mesh.h5")
+    path = run(AdaptConfig(capture=cap2, workspace=ws2, space="full", loss="markers", window=2, iters_per_frame=1,
+                           follow=True, follow_timeout=2.0))
+    th.join()
+    art = AdaptArtefact.load(path)
+    assert list(art.frames) == list(range(8))
+
+
+def test_frame_ready_waits_for_complete_pngs(beam, tmp_path):
+    from stages.adapt import _frame_ready
+
+    cap, _ = beam
+    cap2 = tmp_path / "cap"
+    shutil.copytree(cap, cap2)
+    capture = load_capture(cap2)
+    cam = capture.camera_names[0]
+    assert _frame_ready(capture, [cam], 0)
+    png = cap2 / "frames" / cam / "000000.png"
+    data = png.read_bytes()
+    png.write_bytes(data[: len(data) // 2])  # a writer still busy
+    assert not _frame_ready(capture, [cam], 0)
+    assert not _frame_ready(capture, [cam], 10_000)
+
+
+# =========================================================================== bad input
+def test_adapt_cli_reports_bad_input_in_one_sentence(beam, rsl, tmp_path):
+    cap, ws = beam
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    proc = rsl("adapt", cap, "-w", empty, "--space", "full", "--loss", "markers")
+    assert proc.returncode != 0 and "mesh.h5" in proc.stderr and "not found" in proc.stderr
+    proc = rsl("adapt", cap, "-w", ws, "--space", "full", "--loss", "markers", "--frames", "5:3")
+    assert proc.returncode != 0 and "--frames 5:3" in proc.stderr
+    proc = rsl("adapt", cap, "-w", ws, "--space", "reduced", "--loss", "markers", "--refine", "1")
+    assert proc.returncode != 0 and "--refine needs --space full" in proc.stderr
+    proc = rsl("adapt", cap, "-w", ws, "--space", "sideways")
+    assert proc.returncode != 0 and "--space" in proc.stderr
+    cap2 = tmp_path / "cap"
+    shutil.copytree(cap, cap2)
+    (cap2 / "markers.csv").unlink()
+    proc = rsl("adapt", cap2, "-w", ws, "--space", "full", "--loss", "markers")
+    assert proc.returncode != 0 and "markers.csv" in proc.stderr
+    proc = rsl("evaluate", cap, "-w", empty)
+    assert proc.returncode != 0 and "adapt.h5" in proc.stderr
+
+
+# =========================================================================== gradients
+def _objective(cap: Path, ws: Path, loss: str, space: str = "full"):
+    from stages.adapt import WindowObjective, _FullSpace, _Markers, _ReducedSpace, _Vision
+    from stages.sim.scene import frame_inputs, make_scene
+
+    capture = load_capture(cap)
+    mesh = MeshArtefact.load(ws / "mesh.h5")
+    controls = capture.controls()
+    scene = make_scene(mesh, controls, capture.material.model, capture.dt, capture.gravity)
+    inputs = lambda t: frame_inputs(scene, controls, t)  # noqa: E731
+    if space == "full":
+        backend = _FullSpace(scene, inputs, "auto")
+    else:
+        from stages.artefacts import SubspaceArtefact
+        from stages.subspace import ReducedModel
+
+        backend = _ReducedSpace(ReducedModel.from_artefacts(SubspaceArtefact.load(ws / "subspace.h5"), scene),
+                                inputs)
+    if loss == "vision":
+        obs = _Vision(capture, ws, "", mesh, False)
+    else:
+        obs = _Markers(capture, mesh.vertices, mesh.surface_faces, mesh.n_vertices)
+    return WindowObjective(backend, obs, scene.n_regions, (0.3, 0.49)), backend
+
+
+def _check_fd(obj, backend, t0, w, h, rtol):
+    frames, before, p = _window(backend, t0, w)
+    _, losses, g, _ = obj(frames, p, before)
+    assert losses.sum() > 0 and abs(g[0]) > 0
+    for i in range(2):
+        e = np.zeros(2)
+        e[i] = h
+        fd = (obj(frames, p + e, before, False)[1].sum() - obj(frames, p - e, before, False)[1].sum()) / (2 * h)
+        assert g[i] == pytest.approx(fd, rel=rtol, abs=1e-6 * abs(g).max()), (i, g, fd)
+
+
+def test_image_loss_gradient_through_render_and_adjoint_matches_finite_differences(beam, tmp_path):
+    """dL/dθ of Σ_t Σ_c |render(x_t(θ)) − I_t^c|.  Tight: the adjoint against Σ_t dL/dX_t · dX_t/dθ with
+    dX/dθ by central differences of the simulation.  Loose: against differences of the whole loss (a
+    quadratic fit over ±0.5–2 %), loose because 3DGS rasterization is only piecewise smooth (the
+    α < 1/255 cut-off and the depth order switch Gaussians on and off)."""
+    cap, ws = beam
+    ws2 = tmp_path / "ws"
+    ws2.mkdir()
+    for f in ("mesh.h5", "cameras.h5"):
+        shutil.copy(ws / f, ws2 / f)
+    mesh = MeshArtefact.load(ws2 / "mesh.h5")
+    gauss = _random_gaussians(mesh, 30)
+    gauss.log_scales[:] = np.log(0.015 * np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    gauss.save(ws2 / "gaussians.h5")
+    obj, backend = _objective(cap, ws2, "vision")
+    obj.rebind = False  # the Gaussians' anchor is held fixed in the gradient (it is refreshed between steps)
+    frames, before, p = _window(backend, 20)
+    _, losses, g, _ = obj(frames, p, before)
+    X0 = backend.forward(frames, *_theta_w(p, 3), before)
+    _, dX = obj.obs.loss(frames, X0)
+    h = 1e-5
+    for i in range(2):
+        e = np.zeros(2)
+        e[i] = h
+        dXdp = (backend.forward(frames, *_theta_w(p + e, 3), before)
+                - backend.forward(frames, *_theta_w(p - e, 3), before)) / (2 * h)
+        assert g[i] == pytest.approx(float(np.sum(dX * dXdp)), rel=1e-4), i
+    hs = np.array([-2e-2, -1e-2, -5e-3, 5e-3, 1e-2, 2e-2])
+    for i in range(2):
+        ls = [obj(frames, p + np.eye(2)[i] * hh, before, False)[1].sum() for hh in hs]
+        slope = np.polyfit(hs, ls, 2)[1]
+        assert g[i] == pytest.approx(slope, rel=0.25), (i, g, slope)
+
+
+def test_appearance_refinement_lowers_the_image_loss_at_fixed_positions(beam):
+    from stages.adapt_loss import ImageLoss
+
+    cap, ws = beam
+    mesh = MeshArtefact.load(ws / "mesh.h5")
+    cams = CamerasArtefact.load(ws / "cameras.h5").cameras
+    capture = load_capture(cap)
+    target = [capture.frame_source(c.name).read(0).astype(np.float32) / 255.0 for c in cams]
+    loss = ImageLoss(_random_gaussians(mesh, 60), mesh, cams, appearance=True, lr_appearance=0.05)
+    sh0 = loss.g.sh.detach().clone().numpy()
+    values = [loss(mesh.vertices, target)[0] for _ in range(15)]
+    assert values[-1] < 0.98 * values[0]
+    assert not np.allclose(loss.g.sh.detach().numpy(), sh0)
+    frozen = ImageLoss(_random_gaussians(mesh, 60), mesh, cams)
+    assert frozen(mesh.vertices, target)[0] == pytest.approx(frozen(mesh.vertices, target)[0])
+
+
+def _theta_w(p, w):
+    E, nu = theta_from_params(p[:1], p[1:], (0.3, 0.49))
+    return np.tile(E, (w, 1)), np.tile(nu, (w, 1))
+
+
+def _window(backend, t0, w=3):
+    """Frames t0..t0+w−1, the two states before them simulated with θ0, and p of θ0 = (0.6 E_true, 0.42)."""
+    E0, nu0 = np.array([0.6 * E_TRUE]), np.array([0.42])
+    rest = backend.rest_state
+    pre = backend.forward(list(range(t0)), np.tile(E0, (t0, 1)), np.tile(nu0, (t0, 1)), np.stack([rest, rest]))
+    return list(range(t0, t0 + w)), np.stack([pre[-2], pre[-1]]), \
+        np.concatenate(params_from_theta(E0, nu0, (0.3, 0.49)))
+
+
+def test_marker_loss_gradient_through_adjoint_matches_finite_differences(beam):
+    cap, ws = beam
+    obj, backend = _objective(cap, ws, "markers")
+    obj.rebind = False  # the binding is held fixed in the gradient (it is refreshed between steps)
+    _check_fd(obj, backend, 6, 4, h=1e-5, rtol=1e-4)
+
+
+# =========================================================================== reduced space
+@pytest.fixture(scope="module")
+def beam_reduced(beam, tmp_path_factory) -> tuple[Path, Path]:
+    """The beam workspace plus a PCA subspace (r = 8) trained on generate-data snapshots."""
+    from stages import generate_data, train_subspace
+
+    cap, ws = beam
+    ws2 = tmp_path_factory.mktemp("reduced") / "ws"
+    ws2.mkdir()
+    shutil.copy(ws / "mesh.h5", ws2 / "mesh.h5")
+    generate_data.run(generate_data.GenerateDataConfig(capture=cap, workspace=ws2, sequences=4, frames=36,
+                                                       workers=1))
+    train_subspace.run(train_subspace.TrainSubspaceConfig(workspace=ws2, capture=cap, dim=8, kind="pca"))
+    return cap, ws2
+
+
+def test_marker_loss_gradient_through_reduced_adjoint_matches_finite_differences(beam_reduced):
+    cap, ws = beam_reduced
+    obj, backend = _objective(cap, ws, "markers", space="reduced")
+    obj.rebind = False
+    _check_fd(obj, backend, 6, 4, h=1e-5, rtol=1e-4)
+
+
+def test_online_reduced_space_writes_z_and_decoded_positions(beam_reduced):
+    from stages.adapt import AdaptConfig, run
+
+    cap, ws = beam_reduced
+    path = run(AdaptConfig(capture=cap, workspace=ws, space="reduced", loss="markers", window=3, frames="0:10",
+                           iters_per_frame=1, young_init=E_TRUE / 4))
+    art = AdaptArtefact.load(path)
+    assert art.space == "reduced" and art.z.shape == (10, 8) and art.positions.shape == (10, 97, 3)
+    from stages.artefacts import SubspaceArtefact
+    from stages.subspace import SubspaceMap
+
+    sub = SubspaceArtefact.load(ws / "subspace.h5")
+    phi = SubspaceMap.from_weights(sub.subspace_kind, sub.weights)
+    assert np.allclose(np.asarray(phi.decode(art.z)), art.positions, atol=1e-12)
+    assert art.young[-1, 0] > art.young[0, 0]  # moving up from 4x too soft
+
+
+# =========================================================================== vision + reduced (slow)
+@pytest.mark.slow
+def test_online_vision_reduced_space_recovers_young_from_4x_off(tmp_path, rsl):
+    """The paper's configuration: images of 2 cameras, Gaussians fitted by fit-gaussians, a subspace from
+    generate-data + train-subspace, online in the reduced space, starting 4x too soft."""
+    from stages import fit_gaussians, generate_data, train_subspace
+
+    cap, ws = _make_capture(tmp_path, cameras=2, resolution=48)
+    fit_gaussians.run(fit_gaussians.FitGaussiansConfig(capture=cap, workspace=ws, iterations=80, gaussians=1500))
+    generate_data.run(generate_data.GenerateDataConfig(capture=cap, workspace=ws, sequences=4, frames=36, workers=1))
+    train_subspace.run(train_subspace.TrainSubspaceConfig(workspace=ws, capture=cap, dim=8, kind="pca"))
+    proc = rsl("adapt", cap, "-w", ws, "--space", "reduced", "--loss", "vision", "--window", "3",
+               "--young-init", str(E_TRUE / 4))
+    assert proc.returncode == 0, proc.stderr
+    art = AdaptArtefact.load(ws / "adapt.h5")
+    assert art.loss_kind == "vision" and art.space == "reduced" and np.all(art.time_render_s > 0)
+    late = np.median(art.young[-8:, 0])
+    assert abs(late - E_TRUE) / E_TRUE < 0.10, art.young[:, 0]
+    proc = rsl("evaluate", cap, "-w", ws)
+    assert proc.returncode == 0, proc.stderr
+    ev = json.loads((ws / "evaluation.json").read_text())
+    assert ev["psnr_mean"] > 20

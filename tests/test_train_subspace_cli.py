@@ -1,0 +1,85 @@
+"""`rsl train-subspace`: the stage end to end (artefact contents) and its error messages via the real CLI."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.artefacts import Provenance, SnapshotsArtefact, SubspaceArtefact
+from stages.progress import SilentReporter
+from stages.sim.meshgen import box_tets, mesh_artefact
+from stages.sim.scene import FrameInputs, HandleSpec, Scene
+from stages.subspace import ReducedModel
+from stages.train_subspace import TrainSubspaceConfig, run
+from test_subspace_networks import bend_twist
+
+
+def _workspace(tmp_path, n_seq=4, per_seq=12, cells=(8, 2, 2)):
+    v, t = box_tets(cells, (0.2, 0.05, 0.05))
+    mesh = mesh_artefact(v, t, 1000.0)
+    ws = tmp_path / "ws"
+    mesh.save(ws / "mesh.h5")
+    rng = np.random.default_rng(0)
+    X, seq, fr = [], [], []
+    for s in range(n_seq):
+        k, tau = rng.uniform(1, 6), rng.uniform(-6, 6)
+        for f in range(per_seq):
+            a = (f + 1) / per_seq
+            X.append(bend_twist(v, k * a, tau * a, 0.02 * a))
+            seq.append(s)
+            fr.append(f)
+    S = len(X)
+    SnapshotsArtefact(np.stack(X), np.full((S, 1), 1e5), np.full((S, 1), 0.45), np.array(seq), np.array(fr),
+                      ["body"]).save(ws / "snapshots.h5", Provenance.make({"capture": None}))
+    return ws, mesh
+
+
+def test_stage_writes_a_usable_subspace(tmp_path):
+    ws, mesh = _workspace(tmp_path)
+    rep = SilentReporter()
+    out = run(TrainSubspaceConfig(workspace=ws, dim=3, epochs=20, cubature_tets=40, cubature_poses=10), rep)
+    art = SubspaceArtefact.load(out)
+    assert art.subspace_kind == "autoencoder" and art.dim == 3
+    assert 0 < art.val_error_m < 0.05 and art.extra["n_val"] == 12  # one held-out sequence of 12 frames
+    assert 0 < len(art.extra["cubature_tets"]) <= 40 and np.all(np.array(art.extra["cubature_weights"]) > 0)
+    assert art.extra["cubature_error_rel"] < 0.2
+    assert "validation error" in rep.messages[-1] and "bbox diagonal" in rep.messages[-1]
+    scene = Scene(rest=mesh.vertices, tets=mesh.tets, dm_inv=mesh.dm_inv, volumes=mesh.rest_volumes,
+                  masses=mesh.vertex_masses, tet_region=mesh.tet_region, n_regions=1, region_names=("body",),
+                  material="stable_neohookean", dt=1 / 30, gravity=np.array([0, 0, -9.81]),
+                  handles=(HandleSpec("clamp", np.nonzero(mesh.vertices[:, 0] < 1e-9)[0], 1e3),), loads=(),
+                  obstacles=(), friction=0.0, contact_stiffness=1e3)
+    model = ReducedModel.from_artefacts(art, scene)
+    assert len(model.cubature_tets) == len(art.extra["cubature_tets"])
+    hid = scene.handles[0].ids
+    inp = FrameInputs((scene.rest[hid],), np.zeros_like(scene.rest), np.zeros((0, 7)))
+    Z = model.simulate([inp] * 3, np.array([1e5]), np.array([0.45]))
+    assert Z.shape == (3, 3) and np.all(np.isfinite(Z))
+
+
+def test_cli_pca(tmp_path, rsl):
+    ws, _ = _workspace(tmp_path)
+    proc = rsl("train-subspace", "-w", ws, "--dim", "4", "--kind", "pca", "--cubature-tets", "0")
+    assert proc.returncode == 0, proc.stderr
+    art = SubspaceArtefact.load(ws / "subspace.h5")
+    assert art.subspace_kind == "pca" and art.dim == 4 and "cubature_tets" not in art.extra
+    assert "pca subspace r=4" in proc.stdout + proc.stderr
+
+
+@pytest.mark.parametrize("case", ["missing", "mismatch", "too_big"])
+def test_cli_bad_input(tmp_path, rsl, case):
+    ws, _ = _workspace(tmp_path, n_seq=2, per_seq=4)
+    args = ["train-subspace", "-w", ws, "--dim", "3", "--epochs", "2"]
+    if case == "missing":
+        (ws / "snapshots.h5").unlink()
+        want = "snapshots.h5: file not found"
+    elif case == "mismatch":
+        v, t = box_tets((4, 2, 2), (0.2, 0.05, 0.05))
+        mesh_artefact(v, t, 1000.0).save(ws / "mesh.h5")
+        want = "rerun generate-data on this mesh"
+    else:
+        args[4] = "50"
+        want = "cannot span a 50-dimensional subspace"
+    proc = rsl(*args)
+    assert proc.returncode != 0
+    assert want in " ".join((proc.stdout + proc.stderr).split())
+    assert not (ws / "subspace.h5").exists()
