@@ -11,16 +11,16 @@ export JAX_ENABLE_X64 := 1
 setup: $(VENV)/.installed
 
 $(VENV)/.installed: pyproject.toml
-	@if ! ldconfig -p | grep -q libusb-1.0; then \
-	  echo "installing Debian's libusb-1.0-0 (open3d needs it)"; \
+	@# Debian packages: libusb for open3d, SuiteSparse headers for CHOLMOD (scikit-sparse)
+	@if ! ldconfig -p | grep -q libusb-1.0 || [ ! -f /usr/include/suitesparse/cholmod.h ]; then \
+	  echo "installing Debian's libusb-1.0-0 and libsuitesparse-dev"; \
 	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
-	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0; \
+	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0 libsuitesparse-dev; \
 	fi
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
 	# the pinned CPU wheel first: a plain `torch` would pull a CUDA build of several GB
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m pip install -q -e '.[test,cholmod]'
 	touch $@
 
 demo: setup

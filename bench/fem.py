@@ -64,18 +64,20 @@ def bar_scene(cells):
     return make_scene(mesh, ctl, "stable_neohookean", 1 / 30, [0.0, 0.0, -9.81]), ctl
 
 
-def run_case(name, cells, solver, frames, repeats, jax_twin):
+def run_case(name, cells, solver, frames, repeats, jax_twin, hessian_mode="auto"):
     scene, ctl = bar_scene(cells)
     inputs = [frame_inputs(scene, ctl, i) for i in range(frames)]
     E, nu = np.array([YOUNG]), np.array([POISSON])
-    simulate(scene, inputs[:1], E, nu, solver=solver)  # warm-up: compilation, symbolic analysis
+    # warm-up: compilation, symbolic analysis
+    simulate(scene, inputs[:1], E, nu, solver=solver, hessian_mode=hessian_mode)
     tm: dict = {}
     iters = []
     X = np.empty((frames,) + scene.rest.shape)
     xp = xpp = scene.rest
     t0, c0 = time.perf_counter(), time.process_time()
     for t in range(frames):
-        x, info = step(scene, inputs[t], E, nu, xp, xpp, solver=solver, frame=t, timings=tm)
+        x, info = step(scene, inputs[t], E, nu, xp, xpp, solver=solver, frame=t, timings=tm,
+                       hessian_mode=hessian_mode)
         iters.append(info["iterations"])
         X[t] = x
         xpp, xp = xp, x
@@ -116,26 +118,29 @@ def run_case(name, cells, solver, frames, repeats, jax_twin):
     adj_s, adj_cpu = median_times(lambda: window_adjoint(*args, solver=solver), max(1, repeats - 1))
     return {
         "name": name, "vertices": scene.n_vertices, "tets": int(len(scene.tets)), "solver": solver,
-        "hessian": "auto (exact while positive definite, else projected)",
+        "hessian": hessian_mode,
         "newton_iteration_s": wall / n_it, "newton_iteration_cpu_s": cpu / n_it,
         "iterations_per_frame": n_it / frames,
         "energy_gradient_s": eg_s, "projection_s": proj_s, "exact_hessian_s": exact_s,
         "assembly_s": asm_s, "solve_s": solve_s, "adjoint_frame_s": adj_s / w,
-        "projection_cpu_s": proj_cpu, "exact_hessian_cpu_s": exact_cpu, "solve_cpu_s": solve_cpu, "adjoint_frame_cpu_s": adj_cpu / w,
+        "projection_cpu_s": proj_cpu, "exact_hessian_cpu_s": exact_cpu, "solve_cpu_s": solve_cpu,
+        "adjoint_frame_cpu_s": adj_cpu / w,
         "jax_twin_hessian_s": jax_s,
         "newton_parts_s": {k: v / n_it for k, v in tm.items()},
     }
 
 
 def table(cases) -> str:
-    head = ("| case | vertices | tets | solver | Newton iteration (s) | Newton iteration CPU (s) | iterations / frame "
-            "| energy+gradient (s) | Hessians + projection (s) | projection CPU (s) | exact Hessians (s) | assembly (s) "
+    head = ("| case | vertices | tets | solver | Hessian | Newton iteration (s) | Newton iteration CPU (s) "
+            "| iterations / frame | energy+gradient (s) | Hessians + projection (s) | projection CPU (s) "
+            "| exact Hessians (s) | assembly (s) "
             "| factor + solve (s) | factor + solve CPU (s) | adjoint / frame (s) | adjoint / frame CPU (s) "
             "| JAX twin Hessians (s) |")
     rows = [head, "|" + "---|" * (head.count("|") - 1)]
     for c in cases:
         jt = f"{c['jax_twin_hessian_s']:.3f}" if c["jax_twin_hessian_s"] is not None else "–"
-        rows.append(f"| {c['name']} | {c['vertices']} | {c['tets']} | {c['solver']} | {c['newton_iteration_s']:.3f} "
+        rows.append(f"| {c['name']} | {c['vertices']} | {c['tets']} | {c['solver']} | {c['hessian']} "
+                    f"| {c['newton_iteration_s']:.3f} "
                     f"| {c['newton_iteration_cpu_s']:.3f} | {c['iterations_per_frame']:.1f} "
                     f"| {c['energy_gradient_s']:.4f} | {c['projection_s']:.4f} | {c['projection_cpu_s']:.4f} "
                     f"| {c['exact_hessian_s']:.4f} "
@@ -158,10 +163,12 @@ def main(argv=None):
         return d["cases"]
     cases = []
     for name, cells in (QUICK if args.quick else CASES).items():
-        for i, solver in enumerate(available_solvers()):
-            c = run_case(name, cells, solver, args.frames, args.repeats, jax_twin=(i == 0))
+        variants = [(s, "auto") for s in available_solvers()] + [(available_solvers()[0], "projected")]
+        for i, (solver, mode) in enumerate(variants):
+            c = run_case(name, cells, solver, args.frames, args.repeats, jax_twin=(i == 0), hessian_mode=mode)
             cases.append(c)
-            print(f"{name} {solver}: {c['newton_iteration_s']:.3f} s / Newton iteration", file=sys.stderr, flush=True)
+            print(f"{name} {solver} {mode}: {c['newton_iteration_s']:.3f} s / Newton iteration", file=sys.stderr,
+                  flush=True)
     md = table(cases)
     print(md)
     try:
@@ -180,8 +187,9 @@ def main(argv=None):
 def summary(cases) -> str:
     """One paragraph with the headline numbers (the case nearest 3.4K vertices)."""
     ref = min(cases, key=lambda c: abs(c["vertices"] - 3400))
-    by = {c["solver"]: c for c in cases if c["name"] == ref["name"]}
+    by = {c["solver"]: c for c in cases if c["name"] == ref["name"] and c["hessian"] == "auto"}
     best = min(by.values(), key=lambda c: c["newton_iteration_cpu_s"])
+    proj = next((c for c in cases if c["name"] == ref["name"] and c["hessian"] == "projected"), None)
     out = (f"**Results.** On the {ref['vertices']}-vertex bar ({ref['tets']} tets) one full-space Newton iteration "
            f"took {best['newton_iteration_cpu_s'] * 1e3:.0f} ms of CPU ({best['newton_iteration_s'] * 1e3:.0f} ms "
            f"wall on the loaded machine) with {best['solver']} (target ≤ 150 ms); the numba element Hessians "
@@ -194,8 +202,11 @@ def summary(cases) -> str:
     if "cholmod" in by and "splu" in by:
         out += (f"CHOLMOD factor+solve took {by['cholmod']['solve_cpu_s'] * 1e3:.0f} ms vs SuperLU "
                 f"{by['splu']['solve_cpu_s'] * 1e3:.0f} ms of CPU. ")
-    out += (f"Frames took {best['iterations_per_frame']:.1f} Newton iterations on average; the window adjoint "
-            f"cost {best['adjoint_frame_cpu_s'] * 1e3:.0f} ms of CPU per frame.")
+    out += f"Frames took {best['iterations_per_frame']:.1f} Newton iterations on average"
+    if proj is not None:
+        out += (f" (always projecting: {proj['iterations_per_frame']:.1f} iterations of "
+                f"{proj['newton_iteration_cpu_s'] * 1e3:.0f} ms of CPU each)")
+    out += f"; the window adjoint cost {best['adjoint_frame_cpu_s'] * 1e3:.0f} ms of CPU per frame."
     return out
 
 
@@ -218,17 +229,18 @@ def write_markdown(path: Path, machine: str, date: str, cases, frames: int, repe
 
 RESULTS_NOTE = """\
 Newton (hessian_mode "auto") uses the exact Hessian as long as it is positive definite (CHOLMOD: the
-Cholesky factorisation accepts it; SuperLU: the step is a descent direction) and otherwise uses the
-PSD-projected one until a projected step is accepted in full. Near rest the exact Hessian of the incremental potential is
-positive definite thanks to the mass term M/Δt², and the exact Newton converges quadratically where
-the projected one (stable Neo-Hookean's twist modes are indefinite under slight compression and get
-clamped) needs about three times the iterations (measured in tests and a smoke run: 16 vs 5 per frame
-on a 340-vertex bar); the exact element Hessians also skip the eigensystem. The sparse factorisation
-dominates the iteration. This machine's 2 cores were shared with other jobs while these numbers were
-taken (see the load on the machine line), so wall times are pessimistic; the CPU columns (process CPU
-time, BLAS limited to one thread) are what one idle core would take, and ratios within a row are fair.
-CHOLMOD here is scikit-sparse 0.4.16 on Debian's libsuitesparse-dev 5.12 with OpenBLAS (serial);
-with Debian's default reference BLAS its supernodal factorisation is several times slower.
+Cholesky factorisation accepts it; SuperLU: the step is a descent direction) and otherwise uses the PSD-
+projected one until a projected step is accepted in full. Near rest the exact Hessian of the incremental
+potential is positive definite thanks to the mass term M/Δt², and the exact Newton converges
+quadratically where the projected one (stable Neo-Hookean's twist modes are indefinite under slight
+compression and get clamped) needs several times the iterations (rows "projected"); the exact element
+Hessians also skip the eigensystem. The sparse factorisation dominates the iteration. This machine's 2
+cores were shared with other jobs while these numbers were taken (see the load on the machine line), so
+wall times are pessimistic; the CPU columns (process CPU time, BLAS limited to one thread) are what one
+idle core would take, and ratios within a row are fair. CHOLMOD here is scikit-sparse 0.4.16 on Debian's
+libsuitesparse-dev 5.12 with OpenBLAS (serial); with Debian's default reference BLAS (no libopenblas0
+package installed) the same factorisation plus solve took 218 ms of CPU instead of 90 ms on the
+3.3K-vertex bar.
 """
 
 if __name__ == "__main__":

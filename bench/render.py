@@ -10,8 +10,8 @@ colours, rasterization, background; the backward pass goes to the vertex positio
 (float64, as adapt hands them) and every appearance parameter.  The reference swaps only
 the rasterizer for the tiled pure-PyTorch one (stages/render/_torch_ref.rasterize_tiled:
 the same tile lists, dense maths per tile, autograd backward); the dense reference
-(pixels × Gaussians) would need 20K × 65K × 8 B ≈ 10 GB per intermediate at 256², so
-it is not a baseline here.
+(pixels × Gaussians) would hold 20K × 65K float32 ≈ 5 GB in each of its several
+intermediates at 256², so it is not a baseline here.
 
 Prints a Markdown table and writes docs/results/render.md and docs/results/render.json.
 """
@@ -69,7 +69,7 @@ def camera(size: int) -> Camera:
     right = np.cross(fwd, [0, 0, 1.0])
     right /= np.linalg.norm(right)
     R = np.stack([right, np.cross(fwd, right), fwd])
-    f = 1.4 * size * np.linalg.norm(eye) / 0.42
+    f = 2.4 * size
     K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1]])
     return Camera("bench", K, np.zeros(5), R, -R @ eye, size, size)
 
@@ -175,8 +175,8 @@ adapt stage runs — centres and F Σ Fᵀ from the vertex positions, EWA projec
 background — and "fwd+bwd" adds an L1 loss and the backward pass to the float64 vertex positions and all
 appearance parameters.  "fast" is the numba tile rasterizer (stages/render/rasterize.py, 2 threads);
 the reference swaps in the tiled pure-PyTorch rasterizer (stages/render/_torch_ref.py, same tile lists,
-dense maths per 16×16 tile, autograd backward; the dense pixels × Gaussians twin would need ≈10 GB per
-intermediate at 20K/256² and is kept for the tests).  Times are medians of several warm runs; the ratio
+dense maths per 16×16 tile, autograd backward; the dense pixels × Gaussians twin would hold ≈5 GB in each
+of several intermediates at 20K/256² and is kept for the tests).  Times are medians of several warm runs; the ratio
 is reference over fast, measured in the same run.  CPU columns are process CPU time (all threads): this
 machine's 2 cores are shared with other jobs (see the load above), so wall times are pessimistic and
 "1 thread CPU" — the fast path pinned to one numba thread — is the contention-free cost on one core.

@@ -10,7 +10,7 @@ mkdir -p "$OUT"
 step() { printf '\n\033[1m== %s\033[0m\n' "$*"; }
 
 # 1. The foundation: tet meshes of the two sample objects, as a lab would bring them.
-for s in bar dinosaur; do
+for s in bar dino; do
   step "tetrahedralize sample_data/$s"
   $RSL tetrahedralize "sample_data/$s" -w "$OUT/$s"
 done
@@ -21,7 +21,7 @@ $RSL info "$OUT/bar/mesh.h5"
 #    its Young's modulus stepping 10 -> 20 -> 40 kPa (like the paper's gingerbread case).
 CAP="$OUT/bar_capture"; WS="$OUT/bar_ws"
 step "synth $CAP"
-$RSL synth sample_data/bar/bar.mesh "$CAP" --scenario stretch --cameras 3 --frames 30 \
+$RSL synth sample_data/bar/object.mesh "$CAP" --scenario stretch --cameras 3 --frames 30 \
     --resolution 96 --young-schedule "1e4@0,2e4@10,4e4@20" --poisson 0.45 --markers 40 --seed 0
 
 # 3. Cameras from the chessboard views, masks from the background plates.
@@ -39,7 +39,7 @@ step "export";           $RSL export -w "$WS" --stress --forces --vtk --plots --
 cat <<MSG
 
 Done. Results:
-  meshes                 $OUT/bar/mesh.h5, $OUT/dinosaur/mesh.h5
+  meshes                 $OUT/bar/mesh.h5, $OUT/dino/mesh.h5
   synthetic capture      $CAP   (frames, calib views, markers, truth/)
   artefacts              $WS/*.h5   (rsl info FILE, rsl status -w $WS)
   E(t) estimate vs truth $WS/evaluation.json, $WS/evaluation_young.png

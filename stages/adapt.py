@@ -61,6 +61,8 @@ class AdaptConfig:
     """Adam learning rate on log E."""
     lr_poisson: float = 0.05
     """Adam learning rate on the bounded ν parameter s (ν = ν_lo + (ν_hi − ν_lo)·sigmoid(s))."""
+    beta1: float = 0.5
+    """Adam's momentum β₁ (lower reacts faster to a changing material and overshoots less)."""
     offline_iters: int = 30
     """Iterations of the offline baseline (each over the whole sequence)."""
     young_init: float | None = None
@@ -527,7 +529,7 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
             stored[t] = X0[t]
 
     lr = np.concatenate([np.full(R, config.lr), np.full(R, config.lr_poisson if config.fit_poisson else 0.0)])
-    adam = Adam(lr)
+    adam = Adam(lr, beta1=config.beta1)
     params = np.concatenate([log_e, s_nu])
 
     objective = WindowObjective(backend, obs, R, prange)

@@ -9,7 +9,8 @@ Sources, in order of precedence:
 - ``--board SPEC``: board views ``calib/CAM/VIEW.png``; equal VIEW names across cameras were
   taken at the same instant.  Intrinsics per camera, then extrinsics through shared views,
   refined jointly (stages/vision/calibration.py).
-- nothing given and CAPTURE/cameras.json exists: imported (method "json").
+- nothing given: CAPTURE/cameras.json is imported (method "json") when it exists, else the
+  board named in capture.toml ``[calibration] board = SPEC`` is used on calib/ views.
 
 The world frame of a board calibration (``--world``):
 
@@ -29,8 +30,9 @@ Diagnostics: WS/calibrate/CAM.png shows detected corners (green) and reprojected
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -56,8 +58,9 @@ class CalibrateConfig:
     """Import cameras from a COLMAP model folder (cameras/images .txt or .bin)."""
     from_transforms: str = ""
     """Import cameras from a nerfstudio transforms.json file."""
-    world: str = "auto"
-    """World frame of a board calibration: auto, board, poses (calib/board_poses.json) or json (align to CAPTURE/cameras.json)."""
+    world: Literal["auto", "board", "poses", "json"] = "auto"
+    """World frame of a board calibration: auto, board, poses (calib/board_poses.json) or json
+    (align to CAPTURE/cameras.json)."""
     world_view: str = ""
     """Calibration view whose board defines the world (default: first view seen by the most cameras)."""
     board_pose: str = ""
@@ -109,6 +112,9 @@ def run(config: CalibrateConfig, reporter: Reporter = SilentReporter()) -> Path:
     elif cap.cameras_json.is_file():
         cams = _order(read_cameras_json(cap.cameras_json), names, cap.cameras_json)
         method, inputs = "json", [cap.cameras_json]
+    elif _toml_board(cap):
+        reporter.info(f"board {_toml_board(cap)} from {cap.toml_path} [calibration]")
+        cams, method, inputs = _board(cap, replace(config, board=_toml_board(cap)), reporter, Path(config.workspace))
     else:
         raise RslError(f"{cap.root}: no cameras.json; give --board SPEC (with calib/CAM/*.png), --sfm, "
                        "--from-json, --from-colmap or --from-transforms.")
@@ -120,6 +126,13 @@ def run(config: CalibrateConfig, reporter: Reporter = SilentReporter()) -> Path:
                      + (f", RMS {min(rms):.3f}–{max(rms):.3f} px" if rms else "")
                      + f", widest baseline {spread:.3f} m -> {out}")
     return out
+
+
+def _toml_board(cap: Capture) -> str:
+    """capture.toml ``[calibration] board = SPEC`` when calib views exist, else ''."""
+    tab = cap.raw.get("calibration", {})
+    spec = tab.get("board", "") if isinstance(tab, dict) else ""
+    return str(spec) if spec and cap.calib_views() else ""
 
 
 def _order(cams: list[Camera], names: list[str], path: Path) -> list[Camera]:

@@ -48,7 +48,7 @@ class GenerateDataConfig:
     """Per-frame material: 'ramp' interpolates between two random end points of each sequence (log E, ν);
     'constant' holds one random value."""
     keyframe_gap: int = 0
-    """Frames between random keyframes (drawn in [gap, 2·gap]); 0 = a quarter of the capture's control length, at
+    """Frames between random keyframes (drawn between gap and 2·gap); 0 = a quarter of the capture's control length, at
     least 5."""
     jitter: float = 0.1
     """Random offset of each keyframe as a fraction of its control's range over the capture (translation, rotation

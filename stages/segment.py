@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -36,7 +37,7 @@ class SegmentConfig:
     """Capture folder (holds capture.toml)."""
     workspace: Path
     """Workspace folder for the artefacts."""
-    method: str = "auto"
+    method: Literal["auto", "background", "chroma", "grabcut", "sam2"] = "auto"
     """auto, background (plates), chroma (key colour), grabcut (seeded by the projected mesh) or sam2."""
     threshold: float = 0.0
     """Colour-difference threshold (RGB units) for background/chroma; 0 = adaptive."""
@@ -98,13 +99,13 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
     with reporter.task(f"segmenting ({method})", n_frames * len(cap.camera_names)) as task:
         for cam in cap.camera_names:
             src = cap.frame_source(cam)
-            video = src.read_all() if src.video is not None else None  # decode a video once
+            frames = _iter_frames(src, n_frames)
             plate = cap.background(cam) if method == "background" else None
             frames_used = []
             raw = []
             prev = priors[cam] if priors is not None else None
             for i in range(n_frames):
-                frame = video[i] if video is not None else src.read(i)
+                frame = next(frames)
                 if plate is not None and plate.shape != frame.shape:
                     raise RslError(f"{cap.root / 'background'}: plate of camera '{cam}' is "
                                    f"{plate.shape[1]}x{plate.shape[0]} but its frames are "
@@ -149,6 +150,11 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
                     raise RslError(f"{cap.truth_dir / 'masks' / cam}: truth mask size {truth.shape[::-1]} differs "
                                    f"from the frames {stack.shape[1:][::-1]}.")
                 ious[cam] = seg.iou(stack[0], truth)
+            all_truth = [(i, _truth_mask(cap, cam, i)) for i in range(1, n_frames)]
+            later = [seg.iou(stack[i], t) for i, t in all_truth if t is not None and t.shape == stack.shape[1:]]
+            if later:
+                reporter.info(f"camera '{cam}': IoU vs truth over frames 1..{n_frames - 1}: mean "
+                              f"{np.mean(later):.3f}, min {np.min(later):.3f}")
             for i, frame in frames_used:
                 write_image(ws / "segment" / f"{cam}_{i:06d}.png",
                             seg.overlay(frame, stack[i], truth=truth if i == 0 else None))
@@ -160,6 +166,25 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
         msg += f", IoU vs truth {min(ious.values()):.3f}–{max(ious.values()):.3f}"
     reporter.summary(msg + f" -> {out}")
     return out
+
+
+def _iter_frames(src, n: int):
+    """Frames 0..n-1 of a FrameSource in order; a video is decoded once, sequentially."""
+    if src.video is None:
+        for i in range(n):
+            yield src.read(i)
+        return
+    import cv2
+
+    vc = cv2.VideoCapture(str(src.video))
+    try:
+        for i in range(n):
+            ok, img = vc.read()
+            if not ok:
+                raise RslError(f"{src.video}: cannot decode frame {i} (the file announces {src.count} frames).")
+            yield cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    finally:
+        vc.release()
 
 
 def _overlay_frames(n: int, k: int) -> set[int]:
@@ -210,8 +235,9 @@ def _mesh_priors(cap: Capture, ws: Path) -> tuple[dict[str, np.ndarray], list[Pa
     return out, paths
 
 
-def _truth_mask(cap: Capture, cam: str) -> np.ndarray | None:
-    p = cap.truth_dir / "masks" / cam / "000000.png"
+def _truth_mask(cap: Capture, cam: str, frame: int = 0) -> np.ndarray | None:
+    """CAPTURE/truth/masks/CAM/NNNNNN.png as (H, W) bool, or None."""
+    p = cap.truth_dir / "masks" / cam / f"{frame:06d}.png"
     if not p.is_file():
         return None
     return read_image(p).max(axis=2) > 127

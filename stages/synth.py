@@ -46,6 +46,8 @@ class SynthConfig:
     scenario: Scenario = "stretch"
     """What drives the object: stretch or twist (two end handles), push (a moving sphere, both ends held), drop
     (onto a floor), cable (one end held, a load pulls the tip)."""
+    amplitude: float = 1.0
+    """Scale of the scenario's motion: stretch distance, twist angle, push depth, drop height, cable force."""
     cameras: int = 4
     """Number of cameras on a ring around the object."""
     frames: int = 60
@@ -260,11 +262,14 @@ def _rot_about(axis: np.ndarray, angle: float, center: np.ndarray) -> np.ndarray
 
 
 def scenario_controls(scenario: str, vertices: np.ndarray, faces: np.ndarray, frames: int, mass_kg: float,
-                      gravity: np.ndarray, young_max: float) -> tuple[Controls, dict]:
+                      gravity: np.ndarray, young_max: float, amp: float = 1.0) -> tuple[Controls, dict]:
     """Controls of a scenario for a mesh centred at the origin: (controls, notes).
 
     The long axis a is the bounding box's longest side; 'up' is −g. End handles hold the
-    vertices within 8 % of the length from each end, with a total stiffness 200 E A / L.
+    vertices within 8 % of the length from each end, with a total stiffness 200 E A / L. Motions
+    follow s(t) = sin²(π t/(T−1)) (out and back), scaled by ``amp``: stretch 0.25·L; twist 120° about
+    a with a 0.1·L push-in; push: a sphere of radius L/4 comes down to 0.15·L below the centre;
+    drop: from 0.1·L above a floor (friction 0.3); cable: a load of 0.8 × the weight on 6 tip vertices.
     """
     lo, hi = vertices.min(0), vertices.max(0)
     ext = hi - lo
@@ -304,31 +309,31 @@ def scenario_controls(scenario: str, vertices: np.ndarray, faces: np.ndarray, fr
     notes: dict = {"long_axis": "xyz"[ai], "length_m": L}
     if scenario == "stretch":
         moved = still.copy()
-        moved[:, :3] = (0.25 * L * s)[:, None] * a
+        moved[:, :3] = (0.25 * amp * L * s)[:, None] * a
         ctl.handles = [handle("left", 0, still), handle("right", 1, moved)]
-        notes["max_stretch_m"] = 0.25 * L
+        notes["max_stretch_m"] = 0.25 * amp * L
     elif scenario == "twist":
         c_right = np.array(vertices[end_box(1).select(vertices)].mean(0))
-        poses = np.stack([_rot_about(a, np.radians(120.0) * si, c_right) for si in s])
-        poses[:, :3] += (-0.1 * L * s)[:, None] * a
+        poses = np.stack([_rot_about(a, np.radians(120.0 * amp) * si, c_right) for si in s])
+        poses[:, :3] += (-0.1 * amp * L * s)[:, None] * a
         ctl.handles = [handle("left", 0, still), handle("right", 1, poses)]
-        notes["max_twist_deg"] = 120.0
+        notes["max_twist_deg"] = 120.0 * amp
     elif scenario == "push":
         thick = float(np.max((vertices - vertices.mean(0)) @ (-down)))  # top surface above the centre
         r = 0.25 * L
         start = -down * (thick + r + 0.05 * L)
-        depth = thick + 0.15 * L + 0.05 * L
+        depth = thick + 0.15 * amp * L + 0.05 * L
         track = still.copy()
         track[:, :3] = start + (depth * s)[:, None] * down
         ctl.handles = [handle("left", 0, still), handle("right", 1, still)]
         ctl.obstacles = [Obstacle("pusher", "sphere", radius=float(r), poses=Track(np.arange(frames), track, True))]
         notes["pusher_radius_m"] = r
-        notes["push_depth_below_top_m"] = thick + 0.15 * L  # lowest point of the sphere under the rest top
+        notes["push_depth_below_top_m"] = thick + 0.15 * amp * L  # lowest point of the sphere under the rest top
     elif scenario == "drop":
         height = float(np.min(vertices @ up))
-        ctl.obstacles = [Obstacle("floor", "plane", normal=up.copy(), offset=height - 0.1 * L)]
+        ctl.obstacles = [Obstacle("floor", "plane", normal=up.copy(), offset=height - 0.1 * amp * L)]
         ctl.friction = 0.3
-        notes["drop_height_m"] = 0.1 * L
+        notes["drop_height_m"] = 0.1 * amp * L
     elif scenario == "cable":
         tip = hi[ai]
         surf = np.unique(faces)
@@ -336,7 +341,7 @@ def scenario_controls(scenario: str, vertices: np.ndarray, faces: np.ndarray, fr
         ids = np.sort(surf[np.argsort(d)[:6]])
         weight = mass_kg * max(np.linalg.norm(g), 9.81)
         direction = 0.9 * up + 0.35 * side
-        force = (0.8 * weight * s)[:, None] * direction
+        force = (0.8 * amp * weight * s)[:, None] * direction
         ctl.handles = [handle("base", 0, still)]
         ctl.loads = [Load("cable", Selection("ids", ids=ids), Track(np.arange(frames), force, False))]
         notes["max_cable_force_n"] = float(np.linalg.norm(force, axis=1).max())
@@ -441,6 +446,8 @@ def _check_config(c: SynthConfig) -> None:
         raise RslError(f"--poisson should lie in [0, 0.5), found {c.poisson}.")
     if not c.young > 0 or not c.fps > 0 or not c.density > 0:
         raise RslError("--young, --fps and --density should be positive.")
+    if not c.amplitude > 0:
+        raise RslError(f"--amplitude should be positive, found {c.amplitude}.")
     if c.markers < 0 or c.calib_views < 0 or c.noise < 0:
         raise RslError("--markers, --calib-views and --noise should not be negative.")
 
@@ -487,7 +494,7 @@ def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
     poisson = np.full((c.frames, R), c.poisson)
     _, _, masses = rest_quantities(mesh.vertices, mesh.tets, c.density)
     ctl, notes = scenario_controls(c.scenario, mesh.vertices, mesh.faces, c.frames, float(masses.sum()),
-                                   gravity, float(young.max()))
+                                   gravity, float(young.max()), c.amplitude)
     controls_json = ctl.to_json()
     ctl = parse_controls(json.loads(json.dumps(controls_json)), Path("controls.json"))  # exactly what is written
     art = mesh_artefact(mesh, c.density, ctl)

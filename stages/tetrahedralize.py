@@ -9,7 +9,8 @@ The object is a closed surface (obj/ply/stl/off), tetrahedralized with fTetWild
   is an error;
 - regions: a tet whose centroid lies inside the closed mesh ``regions/NAME.obj``
   (generalised winding number ≥ ½) belongs to NAME, else to "body";
-- handles: vertex sets from controls.json;
+- handles: vertex sets from controls.json (``ids`` refer to the vertices of the object
+  file as written and are moved to the nearest vertex of the tet mesh);
 - rest volumes V, Dm⁻¹ and lumped masses m_i = Σ ρV/4 (stages.sim.mesh);
 - the outer surface: boundary triangles oriented outward;
 - quality: volumes, dihedral angles, and ``enclosed_volume``, the volume the
@@ -306,6 +307,39 @@ def assign_regions(vertices: np.ndarray, tets: np.ndarray, region_meshes: dict[s
     return remap[region], [names[i] for i in keep]
 
 
+def map_id_selections(controls, src: Path, vertices: np.ndarray, controls_path: Path):
+    """Controls whose ``ids`` selections (vertex ids of the object file as written) point at the nearest
+    vertices of the tet mesh, which fTetWild or the removal of unused vertices renumbered."""
+    import dataclasses
+
+    sels = [h for h in controls.handles + controls.loads if h.select.kind == "ids"]
+    if not sels:
+        return controls
+    if src.suffix.lower() in SURFACE_SUFFIXES:
+        import trimesh
+
+        original = np.asarray(trimesh.load(str(src), force="mesh", process=False).vertices, np.float64)
+    else:
+        import meshio
+
+        original = np.asarray(meshio.read(str(src)).points, np.float64)
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(vertices)
+
+    def mapped(item):
+        ids = np.asarray(item.select.ids)
+        if ids.max() >= len(original):
+            raise CaptureError(f"{controls_path}: '{item.name}' selects vertex id {int(ids.max())} but {src.name} "
+                               f"has {len(original)} vertices.")
+        _, near = tree.query(original[ids])
+        return dataclasses.replace(item, select=dataclasses.replace(item.select, ids=np.unique(near)))
+
+    return dataclasses.replace(
+        controls, handles=[mapped(h) if h.select.kind == "ids" else h for h in controls.handles],
+        loads=[mapped(ld) if ld.select.kind == "ids" else ld for ld in controls.loads])
+
+
 # =========================================================================== the stage
 def build_mesh(config: TetrahedralizeConfig, reporter: Reporter = SilentReporter()) -> tuple[MeshArtefact, list[Path]]:
     """Everything of mesh.h5 from the capture, and the input files it was made from."""
@@ -354,13 +388,16 @@ def build_mesh(config: TetrahedralizeConfig, reporter: Reporter = SilentReporter
     except ValueError as e:
         raise CaptureError(f"{src}: {e}.") from None
 
+    if "body" in cap.region_meshes():
+        raise CaptureError(f"{cap.region_meshes()['body']}: the region name 'body' is reserved for the tets "
+                           f"outside every region; rename the file.")
     region, region_names = assign_regions(v, t, cap.region_meshes(), reporter)
     inputs += list(cap.region_meshes().values())
     for name in cap.material.regions:
         if name not in cap.region_meshes():
             reporter.warn(f"capture.toml sets material for region '{name}' but regions/{name}.obj does not exist.")
 
-    controls = cap.controls()
+    controls = map_id_selections(cap.controls(), src, v, cap.controls_path)
     handles = select_handles(controls, v, cap.controls_path)
     if cap.controls_path.exists():
         inputs.append(cap.controls_path)
@@ -400,13 +437,13 @@ def draw_preview(mesh: MeshArtefact, path: Path) -> None:
         ax.set_xlabel("xyz"[i] + " (m)")
         ax.set_ylabel("xyz"[j] + " (m)")
         if k == 0:
-            ax.legend(fontsize=7, loc="best")
+            fig.legend(loc="upper center", ncol=max(1, len(mesh.region_names)), fontsize=8, markerscale=3)
     ax = fig.add_subplot(1, 4, 4)
     ax.hist(dihedral_angles(v, mesh.tets).ravel(), bins=60, color="gray")
     ax.set_xlabel("dihedral angle (deg)")
     ax.set_ylabel("count")
     ax.set_title(f"{mesh.n_tets} tets, {mesh.n_vertices} vertices, handles in red", fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.92))
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
     fig.savefig(tmp, format="png")

@@ -233,6 +233,13 @@ def test_board_frame_world_and_chained_extrinsics():
         est = compose(ext.cameras[f"c{ci}"], invert(W))  # true world -> camera
         assert rotation_angle_deg(est[0] @ R.T) < 0.3
         assert np.linalg.norm(-est[0].T @ est[1] - (-R.T @ t)) < 1e-2 * 0.75 + 2e-3
+    # --world-view v5 --board-pose (its true pose): the cameras come out in the true world directly
+    ext5 = calibrate_extrinsics(board, intr, dets, world_view="v5", world_pose=poses[5])
+    assert ext5.world_view == "v5"
+    for ci, (Kc, R, t) in enumerate(cams):
+        est = ext5.cameras[f"c{ci}"]
+        assert rotation_angle_deg(est[0] @ R.T) < 0.3
+        assert np.linalg.norm(-est[0].T @ est[1] - (-R.T @ t)) < 1e-2 * 0.75 + 2e-3
 
 
 @pytest.mark.slow
@@ -249,8 +256,14 @@ def test_synth_calibration_views_align_to_cameras_json(shared_data, tmp_path, rs
     p = rsl("calibrate", cap, "-w", tmp_path / "ws", "--board", board, "--world", "json")
     assert p.returncode == 0, p.stderr
     got = CamerasArtefact.load(tmp_path / "ws" / "cameras.h5")
-    for c, ref in zip(got.cameras, read_cameras_json(cap / "cameras.json")):
-        assert abs(c.K[0, 0] / ref.K[0, 0] - 1) < 0.02
-        assert rotation_angle_deg(c.R @ ref.R.T) < 1.0
-        assert np.linalg.norm(c.center - ref.center) < 0.01
-        assert c.rms_px < 0.3
+    # and with the board poses synth writes (calib/board_poses.json: --world auto picks them)
+    rep = SilentReporter()
+    run(CalibrateConfig(cap, tmp_path / "ws2", board=board), rep)
+    assert "world frame: calib/board_poses.json" in " ".join(rep.messages)
+    got2 = CamerasArtefact.load(tmp_path / "ws2" / "cameras.h5")
+    for cams in (got, got2):
+        for c, ref in zip(cams.cameras, read_cameras_json(cap / "cameras.json")):
+            assert abs(c.K[0, 0] / ref.K[0, 0] - 1) < 0.02
+            assert rotation_angle_deg(c.R @ ref.R.T) < 1.0
+            assert np.linalg.norm(c.center - ref.center) < 0.01
+            assert c.rms_px < 0.3

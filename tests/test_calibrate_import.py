@@ -94,3 +94,18 @@ def test_stage_imports(tmp_path):
                             from_colmap=str(tmp_path / "model")))
     with pytest.raises(RslError, match="give --board"):
         run(CalibrateConfig(make_capture(tmp_path / "cap3", ["a"]), tmp_path / "ws3"))
+
+
+def test_board_from_capture_toml(shared_data, tmp_path):
+    """Without options or cameras.json, capture.toml [calibration] board names the board."""
+    import shutil
+
+    cap = make_capture(tmp_path / "cap", ["left"])
+    with open(cap / "capture.toml", "a") as f:
+        f.write('[calibration]\nboard = "chessboard:9x6:0.025"\n')
+    d = cap / "calib" / "left"
+    d.mkdir(parents=True)
+    for v in ("01", "03", "04", "05", "06"):
+        shutil.copy(shared_data / "opencv_samples_chessboard" / f"left{v}.jpg", d / f"{v}.jpg")
+    art = CamerasArtefact.load(run(CalibrateConfig(cap, tmp_path / "ws")))
+    assert art.method == "chessboard" and art.cameras[0].rms_px < 0.5

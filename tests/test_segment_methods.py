@@ -142,4 +142,5 @@ def test_sam2_checkpoint_path(tmp_path):
                           "sam_mask_decoder.iou_token.weight": torch.randn(1, 8, generator=g)}}, tiny)
     expected = "does not match model config" if sam2_available() else "needs the optional 'sam2' package"
     with pytest.raises(RslError, match=expected):
-        run(SegmentConfig(cap, ws, method="sam2", checkpoint=str(tiny), sam2_config="configs/sam2.1/sam2.1_hiera_t.yaml"))
+        run(SegmentConfig(cap, ws, method="sam2", checkpoint=str(tiny),
+                          sam2_config="configs/sam2.1/sam2.1_hiera_t.yaml"))

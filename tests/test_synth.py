@@ -220,6 +220,10 @@ def test_scenario_controls_scale_with_the_object():
     left = ctl.handles[0].select.select(mesh.vertices)
     assert np.allclose(mesh.vertices[left, 0], -0.2)  # only the end face of a 0.1 m cell mesh
     json.dumps(ctl.to_json())  # serialisable
+    half, notes_half = scenario_controls("stretch", mesh.vertices, mesh.faces, 10, 1.0, np.array([0, 0, -9.81]),
+                                         1e5, amp=0.5)
+    assert notes_half["max_stretch_m"] == pytest.approx(0.5 * notes["max_stretch_m"]) == pytest.approx(0.05)
+    assert np.allclose(half.handles[1].poses.values[:, :3], 0.5 * ctl.handles[1].poses.values[:, :3])
 
 
 def test_surface_mesh_input_is_tetrahedralized(tmp_path):
@@ -235,3 +239,16 @@ def test_surface_mesh_input_is_tetrahedralized(tmp_path):
     assert len(m.cells_dict["tetra"]) > 10
     assert np.allclose(np.ptp(v, axis=0), (0.3, 0.06, 0.06), atol=1e-3)  # size 0 keeps the units
     assert read_truth(cap).vertices.shape[0] == 3 and cap.markers().shape == (3, 3, 3)
+
+
+def test_same_seed_gives_identical_captures(box_mesh, tmp_path):
+    outs = []
+    for k in range(2):
+        outs.append(run(SynthConfig(mesh=box_mesh, out=tmp_path / f"c{k}", scenario="push", cameras=1, frames=3,
+                                    resolution=32, markers=4, calib_views=1, noise=0.02, seed=5)))
+    files = sorted(p.relative_to(outs[0]) for p in outs[0].rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(outs[1]) for p in outs[1].rglob("*") if p.is_file())
+    for rel in files:
+        if rel.name == "capture.toml":  # names the output folder
+            continue
+        assert (outs[0] / rel).read_bytes() == (outs[1] / rel).read_bytes(), rel

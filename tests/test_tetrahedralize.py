@@ -262,3 +262,16 @@ def test_tet_mesh_reruns_are_bit_identical(sample_data: Path, tmp_path: Path) ->
     b = MeshArtefact.load(run(TetrahedralizeConfig(sample_data / "bar", tmp_path / "b")))
     for k in ("vertices", "tets", "surface_faces", "dm_inv", "vertex_masses"):
         np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+
+
+def test_id_handles_follow_the_surface_vertices(shared_data: Path, tmp_path: Path) -> None:
+    """``ids`` name vertices of the object file; on fTetWild's mesh they become the vertices at those points."""
+    box = trimesh.load(shared_data / "pytetwild_testdata" / "box.stl", process=False)
+    corner = int(np.argmax(np.asarray(box.vertices).sum(1)))  # the (1, 1, 1) corner, in the file's numbering
+    cap = make_capture(tmp_path / "box", shared_data / "pytetwild_testdata" / "box.stl",
+                       controls={"handles": [{"name": "corner", "select": {"ids": [corner]}}]})
+    m = MeshArtefact.load(run(TetrahedralizeConfig(cap, tmp_path / "ws", edge_length=0.3, preview=False)))
+    np.testing.assert_allclose(m.vertices[m.handles["corner"]], [[1, 1, 1]], atol=1e-9)
+    (cap / "controls.json").write_text(json.dumps({"handles": [{"name": "far", "select": {"ids": [99]}}]}))
+    with pytest.raises(CaptureError, match=r"controls.json: 'far' selects vertex id 99 but box.stl has \d+ vertices"):
+        run(TetrahedralizeConfig(cap, tmp_path / "ws", edge_length=0.3, preview=False))

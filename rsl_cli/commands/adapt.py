@@ -28,6 +28,7 @@ def register(app: typer.Typer) -> None:
         iters_per_frame: int = opt(AdaptConfig, "iters_per_frame", "--iters-per-frame"),
         lr: float = opt(AdaptConfig, "lr", "--lr"),
         lr_poisson: float = opt(AdaptConfig, "lr_poisson", "--lr-poisson"),
+        beta1: float = opt(AdaptConfig, "beta1", "--beta1"),
         offline_iters: int = opt(AdaptConfig, "offline_iters", "--offline-iters"),
         young_init: Optional[float] = opt(AdaptConfig, "young_init", "--young-init"),
         poisson_init: Optional[float] = opt(AdaptConfig, "poisson_init", "--poisson-init"),
@@ -45,6 +46,6 @@ def register(app: typer.Typer) -> None:
                 raise typer.BadParameter(f"{name} should be one of {', '.join(choices)}, found '{value}'.")
         run(AdaptConfig(capture=capture, workspace=workspace, window=window, space=space, mode=mode, loss=loss,
                         cameras=cameras, frames=frames, iters_per_frame=iters_per_frame, lr=lr, lr_poisson=lr_poisson,
-                        offline_iters=offline_iters, young_init=young_init, poisson_init=poisson_init,
+                        beta1=beta1, offline_iters=offline_iters, young_init=young_init, poisson_init=poisson_init,
                         fit_poisson=fit_poisson, refine=refine, appearance=appearance, follow=follow,
                         follow_timeout=follow_timeout, solver=solver, seed=seed), RichReporter())

@@ -21,6 +21,7 @@ def register(app: typer.Typer) -> None:
                                               "(.mesh/.msh)."),
         out: Path = typer.Argument(..., help="Capture folder to create."),
         scenario: str = opt(SynthConfig, "scenario"),
+        amplitude: float = opt(SynthConfig, "amplitude"),
         cameras: int = opt(SynthConfig, "cameras"),
         frames: int = opt(SynthConfig, "frames"),
         resolution: int = opt(SynthConfig, "resolution"),
@@ -45,9 +46,10 @@ def register(app: typer.Typer) -> None:
         newton_iterations: int = opt(SynthConfig, "newton_iterations"),
         overwrite: bool = opt(SynthConfig, "overwrite", "--overwrite"),
     ) -> None:
-        run(SynthConfig(mesh=mesh, out=out, scenario=scenario, cameras=cameras, frames=frames,
-                        resolution=resolution, fps=fps, young=young, young_schedule=young_schedule, ramp=ramp,
-                        poisson=poisson, region=region, markers=markers, seed=seed, size=size, density=density,
-                        model=model, edge_length=edge_length, max_tets=max_tets, elevation=elevation,
-                        calib_views=calib_views, board=board, noise=noise, supersample=supersample,
-                        newton_iterations=newton_iterations, overwrite=overwrite), RichReporter())
+        run(SynthConfig(mesh=mesh, out=out, scenario=scenario, amplitude=amplitude, cameras=cameras,
+                        frames=frames, resolution=resolution, fps=fps, young=young, young_schedule=young_schedule,
+                        ramp=ramp, poisson=poisson, region=region, markers=markers, seed=seed, size=size,
+                        density=density, model=model, edge_length=edge_length, max_tets=max_tets,
+                        elevation=elevation, calib_views=calib_views, board=board, noise=noise,
+                        supersample=supersample, newton_iterations=newton_iterations, overwrite=overwrite),
+            RichReporter())

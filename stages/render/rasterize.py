@@ -10,13 +10,15 @@ outputs are the premultiplied colour C (H, W, 3) and the coverage A (H, W); a
 background b is composited outside, I = C + (1 − A) b.
 
 Speed comes from: tile binning (16×16 px tiles; each Gaussian is listed only
-in the tiles its footprint touches, with the opacity-aware radius
-r = √(2 λ_max ln(255 o)) beyond which α < 1/255), one depth sort, a counting
-sort into per-tile lists that stay depth-ordered, per-pixel early stop, and
-compiled numba loops parallel over tiles.  The backward pass walks each
-pixel back to front from the stored final transmittance and contribution
-count (as 3DGS does) and writes per-(tile, Gaussian) gradients that a serial
-pass sums — no per-pixel × per-Gaussian tensor, no races, and deterministic.
+in the tiles its footprint touches: the bounding box of the opacity-aware ellipse
+dᵀ Σ⁻¹ d ≤ 2 ln(255 o) outside which α < 1/255), one depth sort, a counting
+sort into per-tile lists that stay depth-ordered, compiled numba loops parallel
+over tiles in which each Gaussian visits only the pixels of its footprint box,
+and a per-pixel early stop (a tile ends when all its pixels saturate).  The
+backward pass walks each pixel back to front from the stored final
+transmittance and contribution count (as 3DGS does) and writes
+per-(tile, Gaussian) gradients that a serial pass sums — no per-pixel ×
+per-Gaussian tensor, no races, and deterministic.
 
 The dense, obvious twin is ``stages/render/_torch_ref.py``; the tests hold
 this module to it, forward and backward.
@@ -47,25 +49,25 @@ T_MIN = 1e-4
 
 
 # --------------------------------------------------------------------------- binning
-def footprint_radius(conics: np.ndarray, opacities: np.ndarray) -> np.ndarray:
-    """Radius (px) outside which α < 1/255: √(2 λ_max ln(255 o)) + 1, 0 where o ≤ 1/255.
+def footprint_extent(conics: np.ndarray, opacities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Half-widths (rx, ry) px of the box outside which α < 1/255; 0 where o ≤ 1/255.
 
-    conics (N, 3) = (a, b, c) of Σ⁻¹; λ_max is the largest eigenvalue of Σ.
+    α ≥ 1/255 ⇔ dᵀ Σ⁻¹ d ≤ 2 ln(255 o), an ellipse whose bounding box has half-widths
+    √(2 ln(255 o) Σ_xx) and √(2 ln(255 o) Σ_yy); one pixel of margin is added.
+    conics (N, 3) = (a, b, c) of Σ⁻¹.
     """
     a, b, c = (conics[:, i].astype(np.float64) for i in range(3))
     det = a * c - b * b
     with np.errstate(divide="ignore", invalid="ignore"):
-        s00, s11, s01 = c / det, a / det, -b / det  # Σ = conic⁻¹
-        mid = 0.5 * (s00 + s11)
-        lam = mid + np.sqrt(np.maximum(mid * mid - (s00 * s11 - s01 * s01), 0.0))
         lg = np.log(np.maximum(255.0 * opacities.astype(np.float64), 1e-30))
-        r = np.sqrt(np.maximum(2.0 * lam * lg, 0.0)) + 1.0
-    ok = (det > 0) & (lg > 0) & np.isfinite(r)
-    return np.where(ok, r, 0.0)
+        rx = np.sqrt(np.maximum(2.0 * lg * c / det, 0.0)) + 1.0
+        ry = np.sqrt(np.maximum(2.0 * lg * a / det, 0.0)) + 1.0
+    ok = (det > 0) & (lg > 0) & np.isfinite(rx) & np.isfinite(ry)
+    return np.where(ok, rx, 0.0), np.where(ok, ry, 0.0)
 
 
 @nb.njit(cache=True)
-def _bin(mx, my, radius, order, width, height, tile):  # pragma: no cover - compiled
+def _bin(mx, my, rxs, rys, order, width, height, tile):  # pragma: no cover - compiled
     """Counting sort of (tile, Gaussian) pairs; ``order`` lists Gaussians front to back.
 
     Returns tile_start (ntiles + 1,) and entries (K,) of Gaussian ids, depth-ordered per tile.
@@ -78,11 +80,12 @@ def _bin(mx, my, radius, order, width, height, tile):  # pragma: no cover - comp
     rect = np.empty((n, 4), np.int64)
     for k in range(n):
         g = order[k]
-        r = radius[g]
-        x0 = int(math.floor((mx[g] - r) / tile))
-        x1 = int(math.floor((mx[g] + r) / tile))
-        y0 = int(math.floor((my[g] - r) / tile))
-        y1 = int(math.floor((my[g] + r) / tile))
+        rx = rxs[g]
+        ry = rys[g]
+        x0 = int(math.floor((mx[g] - rx) / tile))
+        x1 = int(math.floor((mx[g] + rx) / tile))
+        y0 = int(math.floor((my[g] - ry) / tile))
+        y1 = int(math.floor((my[g] + ry) / tile))
         x0 = max(x0, 0)
         y0 = max(y0, 0)
         x1 = min(x1, tx_n - 1)
@@ -109,160 +112,222 @@ def _bin(mx, my, radius, order, width, height, tile):  # pragma: no cover - comp
 
 
 def bin_gaussians(means2d: np.ndarray, conics: np.ndarray, opacities: np.ndarray, depths: np.ndarray,
-                  visible: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+                  visible: np.ndarray, width: int, height: int, extent: tuple | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Tile lists: (tile_start (ntiles+1,), entries (K,)) for the visible Gaussians with a footprint."""
-    radius = footprint_radius(conics, opacities)
-    keep = visible & (radius > 0)
+    rx, ry = footprint_extent(conics, opacities) if extent is None else extent
+    keep = visible & (rx > 0) & np.isfinite(means2d).all(1) & np.isfinite(depths)
     idx = np.nonzero(keep)[0]
     order = idx[np.argsort(depths[idx], kind="stable")].astype(np.int64)
-    return _bin(means2d[:, 0].astype(np.float64), means2d[:, 1].astype(np.float64), radius, order,
+    return _bin(means2d[:, 0].astype(np.float64), means2d[:, 1].astype(np.float64), rx, ry, order,
                 int(width), int(height), TILE)
 
 
 # --------------------------------------------------------------------------- kernels
-# gdata columns: 0 mx, 1 my, 2 a, 3 b, 4 c, 5 opacity, 6..8 colour.
-@nb.njit(cache=True, inline="always")
-def _load_tile(gdata, entries, s, k):  # pragma: no cover - compiled
-    """Copy a tile's Gaussians into a contiguous block; thr = ln(1/(255 o)) − margin.
-
-    power < thr implies α < 1/255, so the exponential is skipped there; the margin keeps
-    the exact α test in charge near the threshold (identical results, fewer exp calls).
-    """
-    loc = np.empty((k, 9), gdata.dtype)
-    thr = np.empty(k, gdata.dtype)
-    for i in range(k):
-        for j in range(9):
-            loc[i, j] = gdata[entries[s + i], j]
-        thr[i] = -math.log(255.0 * max(loc[i, 5], 1e-30)) - 1e-3
-    return loc, thr
-
-
+# gdata columns: 0 mx, 1 my, 2 a, 3 b, 4 c, 5 opacity, 6..8 colour, 9 rx, 10 ry (footprint half-widths).
+# Both kernels run Gaussian-outer within a tile: each Gaussian of the tile's depth-ordered list
+# visits only the pixels of its footprint box (clipped to the tile) and updates their running
+# state (transmittance, colour; in the backward pass the back-to-front accumulators), so the
+# work is the footprint area, not tile area × list length.  A tile ends when all its pixels
+# have saturated.
 @nb.njit(parallel=True, cache=True)
 def _forward(gdata, tile_start, entries, width, height, tile,
              out_color, out_alpha, t_final, n_contrib):  # pragma: no cover - compiled
     tx_n = (width + tile - 1) // tile
     nt = tile_start.shape[0] - 1
-    one = gdata.dtype.type(1.0)
-    half = gdata.dtype.type(0.5)
-    amin = gdata.dtype.type(ALPHA_MIN)
-    amax = gdata.dtype.type(ALPHA_MAX)
-    tmin = gdata.dtype.type(T_MIN)
+    dt = gdata.dtype.type
+    one = dt(1.0)
+    half = dt(0.5)
+    amin = dt(ALPHA_MIN)
+    amax = dt(ALPHA_MAX)
+    tmin = dt(T_MIN)
     for t in nb.prange(nt):
         s = tile_start[t]
         k = tile_start[t + 1] - s
         x0 = (t % tx_n) * tile
         y0 = (t // tx_n) * tile
-        loc, thr = _load_tile(gdata, entries, s, k)
-        for py in range(y0, min(y0 + tile, height)):
-            for px in range(x0, min(x0 + tile, width)):
-                T = one
-                r = gdata.dtype.type(0.0)
-                g = gdata.dtype.type(0.0)
-                b = gdata.dtype.type(0.0)
-                fx = gdata.dtype.type(px)
-                fy = gdata.dtype.type(py)
-                last = 0
-                for i in range(k):
-                    dx = loc[i, 0] - fx
-                    dy = loc[i, 1] - fy
-                    power = -half * (loc[i, 2] * dx * dx + loc[i, 4] * dy * dy) - loc[i, 3] * dx * dy
-                    if power > 0 or power < thr[i]:
+        w = min(tile, width - x0)
+        h = min(tile, height - y0)
+        T = np.ones((h, w), gdata.dtype)
+        C = np.zeros((h, w, 3), gdata.dtype)
+        last = np.zeros((h, w), np.int32)
+        done = np.zeros((h, w), np.bool_)
+        row_active = np.full(h, w, np.int64)  # unsaturated pixels per row
+        remaining = h * w
+        for i in range(k):
+            gi = entries[s + i]
+            mx = gdata[gi, 0]
+            my = gdata[gi, 1]
+            ca = gdata[gi, 2]
+            cb = gdata[gi, 3]
+            cc = gdata[gi, 4]
+            op = gdata[gi, 5]
+            thr = -math.log(255.0 * max(op, 1e-30)) - 1e-3  # power < thr ⇒ α < 1/255
+            px0 = max(x0, int(math.ceil(mx - gdata[gi, 9])))
+            px1 = min(x0 + w - 1, int(math.floor(mx + gdata[gi, 9])))
+            py0 = max(y0, int(math.ceil(my - gdata[gi, 10])))
+            py1 = min(y0 + h - 1, int(math.floor(my + gdata[gi, 10])))
+            for py in range(py0, py1 + 1):
+                ly = py - y0
+                if row_active[ly] == 0:
+                    continue
+                dy = my - dt(py)
+                for px in range(px0, px1 + 1):
+                    lx = px - x0
+                    if done[ly, lx]:
                         continue
-                    alpha = min(amax, loc[i, 5] * math.exp(power))
+                    dx = mx - dt(px)
+                    power = -half * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                    if power > 0 or power < thr:
+                        continue
+                    alpha = min(amax, op * math.exp(power))
                     if alpha < amin:
                         continue
-                    test_t = T * (one - alpha)
+                    tp = T[ly, lx]
+                    test_t = tp * (one - alpha)
                     if test_t < tmin:
-                        break
-                    w = alpha * T
-                    r += loc[i, 6] * w
-                    g += loc[i, 7] * w
-                    b += loc[i, 8] * w
-                    T = test_t
-                    last = i + 1
-                out_color[py, px, 0] = r
-                out_color[py, px, 1] = g
-                out_color[py, px, 2] = b
-                out_alpha[py, px] = one - T
-                t_final[py, px] = T
-                n_contrib[py, px] = last
+                        done[ly, lx] = True
+                        row_active[ly] -= 1
+                        remaining -= 1
+                        continue
+                    wgt = alpha * tp
+                    C[ly, lx, 0] += gdata[gi, 6] * wgt
+                    C[ly, lx, 1] += gdata[gi, 7] * wgt
+                    C[ly, lx, 2] += gdata[gi, 8] * wgt
+                    T[ly, lx] = test_t
+                    last[ly, lx] = i + 1
+            if remaining == 0:
+                break
+        for ly in range(h):
+            for lx in range(w):
+                out_color[y0 + ly, x0 + lx, 0] = C[ly, lx, 0]
+                out_color[y0 + ly, x0 + lx, 1] = C[ly, lx, 1]
+                out_color[y0 + ly, x0 + lx, 2] = C[ly, lx, 2]
+                out_alpha[y0 + ly, x0 + lx] = one - T[ly, lx]
+                t_final[y0 + ly, x0 + lx] = T[ly, lx]
+                n_contrib[y0 + ly, x0 + lx] = last[ly, lx]
 
 
 @nb.njit(parallel=True, cache=True)
 def _backward(gdata, tile_start, entries, width, height, tile, t_final, n_contrib,
               grad_color, grad_alpha, grad_entries):  # pragma: no cover - compiled
-    """Per pixel, back to front: writes ∂L/∂(mx, my, a, b, c, o, r, g, b) per tile entry."""
+    """Back to front over each tile's list: writes ∂L/∂(mx, my, a, b, c, o, r, g, b) per tile entry.
+
+    Per pixel, T is recovered from the stored final transmittance, Tᵢ = Tᵢ₊₁ / (1 − αᵢ), and
+    Sᵢ = Σ_{j>i} c_j α_j Π_{i<l<j} (1 − α_l) by Sᵢ = α_{i+1} c_{i+1} + (1 − α_{i+1}) S_{i+1}, so that
+    ∂C/∂αᵢ = Tᵢ (cᵢ − Sᵢ) and ∂A/∂αᵢ = T_final / (1 − αᵢ).
+    """
     tx_n = (width + tile - 1) // tile
     nt = tile_start.shape[0] - 1
-    one = gdata.dtype.type(1.0)
-    zero = gdata.dtype.type(0.0)
-    half = gdata.dtype.type(0.5)
-    amin = gdata.dtype.type(ALPHA_MIN)
-    amax = gdata.dtype.type(ALPHA_MAX)
+    dt = gdata.dtype.type
+    one = dt(1.0)
+    half = dt(0.5)
+    amin = dt(ALPHA_MIN)
+    amax = dt(ALPHA_MAX)
     for t in nb.prange(nt):
         s = tile_start[t]
         k = tile_start[t + 1] - s
         x0 = (t % tx_n) * tile
         y0 = (t // tx_n) * tile
-        loc, thr = _load_tile(gdata, entries, s, k)
-        acc_g = np.zeros((k, 9), np.float64)
-        for py in range(y0, min(y0 + tile, height)):
-            for px in range(x0, min(x0 + tile, width)):
-                n = n_contrib[py, px]
-                if n == 0:
+        w = min(tile, width - x0)
+        h = min(tile, height - y0)
+        T = np.empty((h, w), gdata.dtype)
+        acc = np.zeros((h, w, 3), gdata.dtype)
+        lcol = np.zeros((h, w, 3), gdata.dtype)
+        last_a = np.zeros((h, w), gdata.dtype)
+        nmax = 0
+        row_n = np.zeros(h, np.int64)  # largest contribution count per row
+        for ly in range(h):
+            for lx in range(w):
+                T[ly, lx] = t_final[y0 + ly, x0 + lx]
+                row_n[ly] = max(row_n[ly], n_contrib[y0 + ly, x0 + lx])
+            nmax = max(nmax, row_n[ly])
+        for i in range(nmax, k):
+            for j in range(9):
+                grad_entries[s + i, j] = 0.0
+        for i in range(nmax - 1, -1, -1):
+            gi = entries[s + i]
+            mx = gdata[gi, 0]
+            my = gdata[gi, 1]
+            ca = gdata[gi, 2]
+            cb = gdata[gi, 3]
+            cc = gdata[gi, 4]
+            op = gdata[gi, 5]
+            c0 = gdata[gi, 6]
+            c1 = gdata[gi, 7]
+            c2 = gdata[gi, 8]
+            thr = -math.log(255.0 * max(op, 1e-30)) - 1e-3
+            px0 = max(x0, int(math.ceil(mx - gdata[gi, 9])))
+            px1 = min(x0 + w - 1, int(math.floor(mx + gdata[gi, 9])))
+            py0 = max(y0, int(math.ceil(my - gdata[gi, 10])))
+            py1 = min(y0 + h - 1, int(math.floor(my + gdata[gi, 10])))
+            g0 = 0.0
+            g1 = 0.0
+            g2 = 0.0
+            g3 = 0.0
+            g4 = 0.0
+            g5 = 0.0
+            g6 = 0.0
+            g7 = 0.0
+            g8 = 0.0
+            for py in range(py0, py1 + 1):
+                ly = py - y0
+                if i >= row_n[ly]:
                     continue
-                tf = t_final[py, px]
-                T = tf
-                gc0 = grad_color[py, px, 0]
-                gc1 = grad_color[py, px, 1]
-                gc2 = grad_color[py, px, 2]
-                ga = grad_alpha[py, px]
-                acc0 = zero
-                acc1 = zero
-                acc2 = zero
-                last_a = zero
-                lc0 = zero
-                lc1 = zero
-                lc2 = zero
-                fx = gdata.dtype.type(px)
-                fy = gdata.dtype.type(py)
-                for i in range(n - 1, -1, -1):
-                    dx = loc[i, 0] - fx
-                    dy = loc[i, 1] - fy
-                    power = -half * (loc[i, 2] * dx * dx + loc[i, 4] * dy * dy) - loc[i, 3] * dx * dy
-                    if power > 0 or power < thr[i]:
+                dy = my - dt(py)
+                for px in range(px0, px1 + 1):
+                    if i >= n_contrib[py, px]:
+                        continue
+                    lx = px - x0
+                    dx = mx - dt(px)
+                    power = -half * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+                    if power > 0 or power < thr:
                         continue
                     G = math.exp(power)
-                    raw = loc[i, 5] * G
+                    raw = op * G
                     alpha = min(amax, raw)
                     if alpha < amin:
                         continue
-                    T = T / (one - alpha)
-                    w = alpha * T
-                    acc_g[i, 6] += w * gc0
-                    acc_g[i, 7] += w * gc1
-                    acc_g[i, 8] += w * gc2
-                    acc0 = last_a * lc0 + (one - last_a) * acc0
-                    acc1 = last_a * lc1 + (one - last_a) * acc1
-                    acc2 = last_a * lc2 + (one - last_a) * acc2
-                    lc0 = loc[i, 6]
-                    lc1 = loc[i, 7]
-                    lc2 = loc[i, 8]
-                    last_a = alpha
-                    dl_dalpha = T * ((lc0 - acc0) * gc0 + (lc1 - acc1) * gc1 + (lc2 - acc2) * gc2) \
-                        + ga * tf / (one - alpha)
+                    tp = T[ly, lx] / (one - alpha)
+                    T[ly, lx] = tp
+                    wgt = alpha * tp
+                    gc0 = grad_color[py, px, 0]
+                    gc1 = grad_color[py, px, 1]
+                    gc2 = grad_color[py, px, 2]
+                    g6 += wgt * gc0
+                    g7 += wgt * gc1
+                    g8 += wgt * gc2
+                    la = last_a[ly, lx]
+                    a0 = la * lcol[ly, lx, 0] + (one - la) * acc[ly, lx, 0]
+                    a1 = la * lcol[ly, lx, 1] + (one - la) * acc[ly, lx, 1]
+                    a2 = la * lcol[ly, lx, 2] + (one - la) * acc[ly, lx, 2]
+                    acc[ly, lx, 0] = a0
+                    acc[ly, lx, 1] = a1
+                    acc[ly, lx, 2] = a2
+                    lcol[ly, lx, 0] = c0
+                    lcol[ly, lx, 1] = c1
+                    lcol[ly, lx, 2] = c2
+                    last_a[ly, lx] = alpha
+                    dl_dalpha = tp * ((c0 - a0) * gc0 + (c1 - a1) * gc1 + (c2 - a2) * gc2) \
+                        + grad_alpha[py, px] * t_final[py, px] / (one - alpha)
                     if raw > amax:  # clamped: no gradient through α
                         continue
-                    acc_g[i, 5] += G * dl_dalpha
-                    dl_dpow = loc[i, 5] * G * dl_dalpha
-                    acc_g[i, 0] += -dl_dpow * (loc[i, 2] * dx + loc[i, 3] * dy)
-                    acc_g[i, 1] += -dl_dpow * (loc[i, 3] * dx + loc[i, 4] * dy)
-                    acc_g[i, 2] += -half * dl_dpow * dx * dx
-                    acc_g[i, 3] += -dl_dpow * dx * dy
-                    acc_g[i, 4] += -half * dl_dpow * dy * dy
-        for i in range(k):
-            for j in range(9):
-                grad_entries[s + i, j] = acc_g[i, j]
+                    g5 += G * dl_dalpha
+                    dl_dpow = op * G * dl_dalpha
+                    g0 += -dl_dpow * (ca * dx + cb * dy)
+                    g1 += -dl_dpow * (cb * dx + cc * dy)
+                    g2 += -0.5 * dl_dpow * dx * dx
+                    g3 += -dl_dpow * dx * dy
+                    g4 += -0.5 * dl_dpow * dy * dy
+            grad_entries[s + i, 0] = g0
+            grad_entries[s + i, 1] = g1
+            grad_entries[s + i, 2] = g2
+            grad_entries[s + i, 3] = g3
+            grad_entries[s + i, 4] = g4
+            grad_entries[s + i, 5] = g5
+            grad_entries[s + i, 6] = g6
+            grad_entries[s + i, 7] = g7
+            grad_entries[s + i, 8] = g8
 
 
 @nb.njit(cache=True)
@@ -274,9 +339,12 @@ def _scatter(entries, grad_entries, out):  # pragma: no cover - compiled
 
 
 def _pack(means2d, conics, colors, opacities) -> np.ndarray:
-    """(N, 9) contiguous array: mx, my, a, b, c, opacity, r, g, b."""
+    """(N, 11) contiguous array: mx, my, a, b, c, opacity, r, g, b, rx, ry."""
     f = lambda x: x.detach().cpu().numpy()  # noqa: E731
-    return np.concatenate([f(means2d), f(conics), f(opacities)[:, None], f(colors)], 1)
+    con, op = f(conics), f(opacities)
+    rx, ry = footprint_extent(con, op)
+    return np.concatenate([f(means2d), con, op[:, None], f(colors), rx[:, None].astype(con.dtype),
+                           ry[:, None].astype(con.dtype)], 1)
 
 
 class _Rasterize(torch.autograd.Function):
@@ -286,14 +354,14 @@ class _Rasterize(torch.autograd.Function):
         dt = gdata.dtype
         vis = visible.detach().cpu().numpy().astype(bool)
         tile_start, entries = bin_gaussians(gdata[:, 0:2], gdata[:, 2:5], gdata[:, 5],
-                                            depths.detach().cpu().numpy(), vis, width, height)
+                                            depths.detach().cpu().numpy(), vis, width, height,
+                                            (gdata[:, 9].astype(np.float64), gdata[:, 10].astype(np.float64)))
         color = np.empty((height, width, 3), dt)
         alpha = np.empty((height, width), dt)
         t_final = np.empty((height, width), dt)
         n_contrib = np.empty((height, width), np.int32)
         _forward(gdata, tile_start, entries, width, height, TILE, color, alpha, t_final, n_contrib)
         ctx.state = (gdata, tile_start, entries, t_final, n_contrib, width, height)
-        ctx.n_entries = int(entries.shape[0])
         return torch.from_numpy(color), torch.from_numpy(alpha)
 
     @staticmethod

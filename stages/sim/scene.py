@@ -286,7 +286,8 @@ def hessian(scene: Scene, inputs: FrameInputs, x, x_prev, young, poisson, projec
 
 # =========================================================================== Newton
 def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_init=None,
-         solver: str = "auto", *, rtol: float = 1e-8, xtol: float = 1e-12, max_iterations: int = 50, frame: int | None = None,
+         solver: str = "auto", *, rtol: float = 1e-8, xtol: float = 1e-12, max_iterations: int = 50,
+         frame: int | None = None,
          kernels: str = "auto", hessian_mode: str = "auto", timings: dict | None = None
          ) -> tuple[np.ndarray, dict]:
     """One implicit-Euler step: x_t (n, 3) and info {"iterations", "residual", "history"} (relative

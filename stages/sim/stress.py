@@ -12,12 +12,17 @@ What the adapted simulation reveals beyond the surface (paper §"Applications"):
   vertex 0 gets minus their sum,
 - the force on a set of vertices (a handle, a cable, a contact patch): the
   vector sum of the internal nodal forces over the set, and the sum of their
-  magnitudes (the paper's cable-tension estimate).
+  magnitudes (the paper's cable-tension estimate),
+- the force a handle or obstacle applies to the body: the spring pull
+  k Σ (x̄ − x) of a handle, −∂E_c/∂x of the contact penalty (stages/sim/potential).
+  At static equilibrium a handle's applied force balances the weight it holds,
+  while the internal-force sum over its vertices misses their own weight.
 
 No I/O and no printing here.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass
 
@@ -26,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stages.sim.materials import energy_density, lame
+from stages.sim.potential import contact_energy, obstacle_distance, scene_data
 
 jax.config.update("jax_enable_x64", True)
 
@@ -210,25 +216,17 @@ def set_forces(scene, inputs, x: np.ndarray, x_prev: np.ndarray, f_int: np.ndarr
 @functools.partial(jax.jit, static_argnums=(1,))
 def _obstacle_distances(x, shape, normal, offset, radius, half, pose):
     """Signed distances (n,) m of points x (n, 3) to one obstacle (stages.sim.potential.obstacle_distance)."""
-    from stages.sim.potential import obstacle_distance
-
     return jax.vmap(lambda p: obstacle_distance(p, shape, normal, offset, radius, half, pose))(x)
 
 
 @jax.jit
 def _contact_forces(x, x_prev, s, inputs):
     """−∂E_c/∂x (n, 3) N of stages.sim.potential.contact_energy (friction lagged at x_prev, or None)."""
-    from stages.sim.potential import contact_energy
-
     return -jax.grad(contact_energy)(x, s, inputs, x_prev)
 
 
 def _contact_inputs(scene, inputs, obstacles: tuple | None = None):
-    """(SceneData, FrameInputs) restricted to some obstacles (all by default), friction off when μ_f = 0."""
-    import dataclasses
-
-    from stages.sim.potential import scene_data
-
+    """(SceneData, FrameInputs) of the contact terms, restricted to some obstacles (all by default)."""
     poses = np.asarray(inputs.obstacle_poses, np.float64).reshape(-1, 7)
     if obstacles is not None:
         scene = dataclasses.replace(scene, obstacles=tuple(scene.obstacles[o] for o in obstacles))

@@ -21,6 +21,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.optimize import nnls  # noqa: E402
 
+from functools import partial  # noqa: E402
+
 from stages.sim.materials import energy_density  # noqa: E402
 from stages.sim.mesh import deformation_gradients  # noqa: E402
 from stages.subspace.networks import SubspaceMap  # noqa: E402
@@ -44,6 +46,23 @@ def _tet_grads(xe, dm_inv, volumes, mu, lam, model):
     return jax.vmap(jax.grad(one))(xe, dm_inv, volumes, mu, lam)
 
 
+@partial(jax.jit, static_argnames=("model",))
+def _cols_jit(x, jq, tet_ids, basis, tets, dm_inv, volumes, mu, lam, model):
+    """g_e for the tets tet_ids at one pose, (c, r)."""
+    te = tets[tet_ids]
+    ge = _tet_grads(x[te], dm_inv[tet_ids], volumes[tet_ids], mu[tet_ids], lam[tet_ids], model)  # (c, 4, 3)
+    return jnp.einsum("cai,caip->cp", ge, basis[te]) @ jq
+
+
+@partial(jax.jit, static_argnames=("model",))
+def _totals_jit(x, jq, region_onehot, basis, tets, dm_inv, volumes, mu, lam, model):
+    """Σ_{e∈R} g_e at one pose, (R, r): forces scattered to vertices first, then projected (O(n p))."""
+    ge = _tet_grads(x[tets], dm_inv, volumes, mu, lam, model)  # (m, 4, 3)
+    f = jnp.zeros((region_onehot.shape[1],) + x.shape).at[:, tets].add(
+        region_onehot.T[:, :, None, None] * ge[None])  # (R, n, 3)
+    return jnp.einsum("Rni,nip->Rp", f, basis) @ jq
+
+
 class ReducedForceSampler:
     """g_e(z_k) for chosen tets at fixed poses z_k (K, r): the columns of A.
 
@@ -58,23 +77,14 @@ class ReducedForceSampler:
         zj = jnp.asarray(z)
         self.x = np.asarray(sub.decode(zj))  # (K, n, 3)
         self.jq = np.asarray(jax.vmap(sub.jacobian_q)(zj))  # (K, p, r)
-        basis = jnp.asarray(sub.basis)
-        tets_j, dmi_j, vol_j = jnp.asarray(self.tets), jnp.asarray(self.dm_inv), jnp.asarray(self.volumes)
-        mu_j, lam_j = jnp.asarray(self.mu), jnp.asarray(self.lam)
+        arrays = (jnp.asarray(sub.basis), jnp.asarray(self.tets), jnp.asarray(self.dm_inv),
+                  jnp.asarray(self.volumes), jnp.asarray(self.mu), jnp.asarray(self.lam))
 
-        @jax.jit
         def cols(x, jq, tet_ids):
-            te = tets_j[tet_ids]
-            ge = _tet_grads(x[te], dmi_j[tet_ids], vol_j[tet_ids], mu_j[tet_ids], lam_j[tet_ids], model)  # (c, 4, 3)
-            gq = jnp.einsum("cai,caip->cp", ge, basis[te])  # (c, p)
-            return gq @ jq  # (c, r)
+            return _cols_jit(x, jq, tet_ids, *arrays, model)
 
-        @jax.jit
         def totals(x, jq, region_onehot):
-            te = tets_j
-            ge = _tet_grads(x[te], dmi_j, vol_j, mu_j, lam_j, model)  # (m, 4, 3)
-            gq = jnp.einsum("cai,caip->cp", ge, basis[te])  # (m, p)
-            return region_onehot.T @ (gq @ jq)  # (R, r)
+            return _totals_jit(x, jq, region_onehot, *arrays, model)
 
         self._cols, self._totals = cols, totals
 
