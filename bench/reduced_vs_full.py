@@ -87,11 +87,11 @@ def make_case(name: str, quick: bool):
     return scene, r, w
 
 
-def sequence(scene: Scene, seed: int, frames: int) -> list[FrameInputs]:
+def sequence(scene: Scene, seed: int, frames: int, scale: float = 1.0) -> list[FrameInputs]:
     """The clamp translates and turns about its centre by a random amount, easing in over 10 frames."""
     rng = np.random.default_rng(seed)
     diag = np.linalg.norm(scene.rest.max(0) - scene.rest.min(0))
-    amp = rng.uniform(-1, 1, 6) * np.array([0.05 * diag, 0.05 * diag, 0.05 * diag, 0.3, 0.3, 0.3])
+    amp = scale * rng.uniform(-1, 1, 6) * np.array([0.05 * diag, 0.05 * diag, 0.05 * diag, 0.3, 0.3, 0.3])
     hid = scene.handles[0].ids
     c = scene.rest[hid].mean(0)
     out = []
@@ -114,7 +114,9 @@ def run_case(name: str, quick: bool, n_seq: int, frames: int, epochs: int, cub_t
     diag = np.linalg.norm(scene.rest.max(0) - scene.rest.min(0))
     E, nu = np.array([YOUNG]), np.array([POISSON])
     t0 = time.perf_counter()
-    seqs = [(inp := sequence(scene, s, frames), simulate(scene, inp, E, nu, rtol=RTOL)) for s in range(n_seq)]
+    scale = 1.0 if name == "bar" else 0.5  # the dinosaur turns about its feet: gentler motions
+    seqs = [(inp := sequence(scene, s, frames, scale), simulate(scene, inp, E, nu, rtol=RTOL, max_iterations=100))
+            for s in range(n_seq)]
     log(f"{name}: {n} vertices, {len(scene.tets)} tets; {n_seq}×{frames} full-space frames in "
         f"{time.perf_counter() - t0:.0f} s")
     train = np.concatenate([x for _, x in seqs[:-1]])

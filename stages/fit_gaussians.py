@@ -257,6 +257,9 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
                 loss = (1 - lam) * l1(out.image, tgt) + lam * (1 - ssim(out.image, tgt))
                 if m is not None and config.mask_weight > 0:
                     loss = loss + config.mask_weight * (out.alpha - m).abs().mean()
+                if not torch.isfinite(loss):
+                    raise RslError(f"{ws / KIND_FILES['gaussians']}: the fit diverged at iteration {it} "
+                                   f"(non-finite loss in camera '{cam.name}'); lower --lr.")
                 (loss / len(cams)).backward()
                 ps.append(psnr(out.image, tgt))
             opt.step()

@@ -28,7 +28,9 @@ from stages.artefacts import KIND_FILES, AdaptArtefact, MeshArtefact, Provenance
 from stages.capture import Controls, load_capture, load_controls, select_handles
 from stages.errors import RslError
 from stages.progress import Reporter, SilentReporter
-from stages.sim import stress as st
+from stages.lazy import lazy_module
+
+st = lazy_module("stages.sim.stress")  # jax loads on first use
 
 ROLLOUT_FILE = "rollout.h5"
 MATERIALS = ("last", "replay")

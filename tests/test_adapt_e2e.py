@@ -346,3 +346,32 @@ def test_online_vision_reduced_space_recovers_young_from_4x_off(tmp_path, rsl):
     assert proc.returncode == 0, proc.stderr
     ev = json.loads((ws / "evaluation.json").read_text())
     assert ev["psnr_mean"] > 20
+
+
+def test_follow_ends_cleanly_on_ctrl_c_with_the_frames_so_far_saved(beam, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    cap, ws = beam
+    cap2 = tmp_path / "cap"
+    shutil.copytree(cap, cap2)
+    write_markers(cap2 / "markers.csv", read_markers(cap / "markers.csv")[:6])  # the writer then stalls
+    ws2 = tmp_path / "ws"
+    ws2.mkdir()
+    shutil.copy(ws / "mesh.h5", ws2 / "mesh.h5")
+    env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu", COLUMNS="200")
+    proc = subprocess.Popen([sys.executable, "-m", "rsl_cli.app", "adapt", str(cap2), "-w", str(ws2), "--space",
+                             "full", "--loss", "markers", "--window", "2", "--follow"],
+                            stderr=subprocess.PIPE, text=True, env=env)
+    for line in proc.stderr:  # wait for the loop to start
+        if "adapt online" in line:
+            break
+    time.sleep(8)  # some frames get processed, then it waits for frame 6
+    proc.send_signal(signal.SIGINT)
+    rest = proc.stderr.read()
+    assert proc.wait(timeout=120) == 0, rest
+    art = AdaptArtefact.load(ws2 / "adapt.h5")
+    assert 1 <= len(art.frames) <= 6 and art.extra["status"] == "interrupted"
+    assert "stopped early" in rest

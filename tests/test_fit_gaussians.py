@@ -21,7 +21,7 @@ from stages.sim.mesh import rest_quantities
 
 FIT_PSNR_DB = 25.0
 """PSNR the fit must reach on every camera of the test capture (frame 0)."""
-SYNTH_FIT_PSNR_DB = 20.0
+SYNTH_FIT_PSNR_DB = 28.0
 """PSNR the fit must reach on every camera of a textured `rsl synth` capture (slow test)."""
 
 

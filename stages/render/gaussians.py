@@ -22,7 +22,9 @@ API for the stages (adapt, fit-gaussians, export)::
 ``camera`` is an ``artefacts.Camera`` (or a ``projection.CameraTensors``);
 ``background`` is None (the artefact's colour), a (3,) colour or an (H, W, 3)
 image.  ``rasterizer="fast"`` (numba, default), ``"tiled"`` or ``"dense"``
-(the pure-PyTorch twins) pick the implementation.  Rendering runs in float32;
+(the pure-PyTorch twins) pick the implementation; with "fast", binding and projection
+run fused in numba too (``bind_project.py``; pinhole cameras, SH degree 0), else as
+torch ops.  Rendering runs in float32;
 gradients flow back to ``positions`` in its own dtype.  ``g.double()`` renders in float64
 (for gradient checks).
 
@@ -38,6 +40,7 @@ import numpy as np
 import torch
 
 from stages.render import _torch_ref
+from stages.render.bind_project import bind_project
 from stages.render.projection import CameraTensors, project_gaussians
 from stages.render.rasterize import rasterize
 
@@ -201,20 +204,35 @@ class BoundGaussians(torch.nn.Module):
             return camera
         return CameraTensors.from_camera(camera, self.dtype)
 
-    def render(self, positions: torch.Tensor, camera, background: torch.Tensor | np.ndarray | None = None,
-               rasterizer: str = "fast") -> RenderOutput:
-        """Render the Gaussians at mesh positions (n, 3) into ``camera``; see the module docstring."""
-        cam = self.camera(camera)
+    def project(self, positions: torch.Tensor, cam: CameraTensors, fused: bool = True
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """(means2d, conics, depths, visible, centres or None) in ``cam``.
+
+        ``fused``: the numba twin (bind_project.py) where it applies (pinhole camera, SH degree 0);
+        otherwise the torch ops (centres, covariance_factors, project_gaussians).
+        """
+        if fused and not cam.has_distortion and self.sh.shape[1] == 1:
+            x = torch.as_tensor(positions)
+            m2d, con, dep, vis = bind_project(x, self.bary_logits, self.log_scales, self.rotations,
+                                              self.host_vertices, self.dm_inv, cam)
+            return m2d, con, dep, vis, None
         corners = self._corners(positions)
         means = self.centres(positions, corners)
         proj = project_gaussians(means, None, cam, factors=self.covariance_factors(positions, corners))
+        return proj.means2d, proj.conics, proj.depths, proj.visible, means
+
+    def render(self, positions: torch.Tensor, camera, background: torch.Tensor | np.ndarray | None = None,
+               rasterizer: str = "fast", fused_projection: bool = True) -> RenderOutput:
+        """Render the Gaussians at mesh positions (n, 3) into ``camera``; see the module docstring."""
+        cam = self.camera(camera)
+        m2d, con, dep, vis, means = self.project(positions, cam, fused_projection and rasterizer == "fast")
         dirs = None
         if self.sh.shape[1] >= 4:
             d = means - cam.centre
             dirs = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
         colors = sh_to_color(self.sh, dirs)
-        premult, alpha = RASTERIZERS[rasterizer](proj.means2d, proj.conics, colors, self.opacities(),
-                                                 proj.depths, proj.visible, cam.width, cam.height)
+        premult, alpha = RASTERIZERS[rasterizer](m2d, con, colors, self.opacities(), dep, vis,
+                                                 cam.width, cam.height)
         bg = self.background if background is None else torch.as_tensor(background, dtype=self.dtype)
         image = premult + (1 - alpha)[..., None] * bg
         return RenderOutput(image, alpha, premult)
