@@ -5,17 +5,19 @@ PY     := $(VENV)/bin/python
 RSL    := $(VENV)/bin/rsl
 OUT    ?= out
 export JAX_ENABLE_X64 := 1
+DEB_PACKAGES := libusb-1.0-0 libsuitesparse-dev libopenblas0-serial
 
 .PHONY: setup demo test test-slow bench clean
 
 setup: $(VENV)/.installed
 
 $(VENV)/.installed: pyproject.toml
-	@# Debian packages: libusb for open3d, SuiteSparse headers for CHOLMOD (scikit-sparse)
-	@if ! ldconfig -p | grep -q libusb-1.0 || [ ! -f /usr/include/suitesparse/cholmod.h ]; then \
-	  echo "installing Debian's libusb-1.0-0 and libsuitesparse-dev"; \
+	@# Debian packages: libusb for open3d; SuiteSparse headers and a serial OpenBLAS for CHOLMOD
+	@missing=$$(for p in $(DEB_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages: $$missing"; \
 	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
-	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0 libsuitesparse-dev; \
+	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq $$missing; \
 	fi
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
 	# the pinned CPU wheel first: a plain `torch` would pull a CUDA build of several GB

@@ -229,9 +229,9 @@ def write_markdown(path: Path, machine: str, date: str, cases, frames: int, repe
 
 RESULTS_NOTE = """\
 Newton (hessian_mode "auto") uses the exact Hessian as long as it is positive definite (CHOLMOD: the
-Cholesky factorisation accepts it; SuperLU: the step is a descent direction) and otherwise uses the PSD-
-projected one until a projected step is accepted in full. Near rest the exact Hessian of the incremental
-potential is positive definite thanks to the mass term M/Δt², and the exact Newton converges
+Cholesky factorisation accepts it; SuperLU: the step is a descent direction) and otherwise uses the
+PSD-projected one until a projected step is accepted in full. Near rest the exact Hessian of the
+incremental potential is positive definite thanks to the mass term M/Δt², and the exact Newton converges
 quadratically where the projected one (stable Neo-Hookean's twist modes are indefinite under slight
 compression and get clamped) needs several times the iterations (rows "projected"); the exact element
 Hessians also skip the eigensystem. The sparse factorisation dominates the iteration. This machine's 2
