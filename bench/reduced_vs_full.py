@@ -115,8 +115,15 @@ def run_case(name: str, quick: bool, n_seq: int, frames: int, epochs: int, cub_t
     E, nu = np.array([YOUNG]), np.array([POISSON])
     t0 = time.perf_counter()
     scale = 1.0 if name == "bar" else 0.5  # the dinosaur turns about its feet: gentler motions
-    seqs = [(inp := sequence(scene, s, frames, scale), simulate(scene, inp, E, nu, rtol=RTOL, max_iterations=100))
-            for s in range(n_seq)]
+    cache = Path(os.environ.get("RSL_BENCH_CACHE", "")) / f"reduced_vs_full_{name}_{n_seq}x{frames}.npy"
+    ins = [sequence(scene, s, frames, scale) for s in range(n_seq)]
+    if os.environ.get("RSL_BENCH_CACHE") and cache.exists():
+        xs = np.load(cache)
+    else:
+        xs = np.stack([simulate(scene, inp, E, nu, rtol=RTOL, max_iterations=100) for inp in ins])
+        if os.environ.get("RSL_BENCH_CACHE"):
+            np.save(cache, xs)
+    seqs = list(zip(ins, xs))
     log(f"{name}: {n} vertices, {len(scene.tets)} tets; {n_seq}×{frames} full-space frames in "
         f"{time.perf_counter() - t0:.0f} s")
     train = np.concatenate([x for _, x in seqs[:-1]])
@@ -139,20 +146,23 @@ def run_case(name: str, quick: bool, n_seq: int, frames: int, epochs: int, cub_t
     model.step(inp[0], E, nu, model.z_rest, model.z_rest, rtol=RTOL)
     step(scene, inp[0], E, nu, scene.rest, scene.rest, rtol=RTOL)
     z1 = z2 = model.z_rest
-    Z, tr = [], []
+    Z, tr, its, hess = [], [], [], []
     for t in range(frames):
         t0 = time.perf_counter()
-        z, _ = model.step(inp[t], E, nu, z1, z2, rtol=RTOL)
+        z, info = model.step(inp[t], E, nu, z1, z2, rtol=RTOL)
         tr.append(time.perf_counter() - t0)
+        its.append(info["iterations"])
+        hess.append(info["hessians"])
         Z.append(z)
         z2, z1 = z1, z
     Z = np.stack(Z)
-    tf = []
+    tf, fits = [], []
     x1 = x2 = scene.rest
     for t in range(min(frames, 8)):
         t0 = time.perf_counter()
-        x, _ = step(scene, inp[t], E, nu, x1, x2, solver="auto", rtol=RTOL)
+        x, finfo = step(scene, inp[t], E, nu, x1, x2, solver="auto", rtol=RTOL)
         tf.append(time.perf_counter() - t0)
+        fits.append(finfo["iterations"])
         x2, x1 = x1, x
     err = float(np.linalg.norm(model.decode(Z) - x_full, axis=-1).mean() / diag)
 
@@ -181,7 +191,8 @@ def run_case(name: str, quick: bool, n_seq: int, frames: int, epochs: int, cub_t
             "pca_dim": sub.p, "cubature_tets": int(len(ids)), "cubature_error_rel": cinfo["error_rel"],
             "reconstruction_error_rel": rec,
             "full_forward_s": med(tf), "full_backward_s": med(bf), "reduced_forward_s": med(tr),
-            "reduced_backward_s": med(br)}
+            "reduced_backward_s": med(br), "full_newton_iterations": float(np.mean(fits)),
+            "reduced_newton_iterations": float(np.mean(its)), "reduced_hessians_per_frame": float(np.mean(hess))}
     case["ratio"] = (case["full_forward_s"] + case["full_backward_s"]) / (case["reduced_forward_s"]
                                                                           + case["reduced_backward_s"])
     case["trajectory_error_rel"] = err

@@ -7,6 +7,12 @@ dL/dθ (θ shared by the window frames: the per-frame gradients are summed), and
 move the parameters p = (log E, s) with ν = ν_lo + (ν_hi − ν_lo)·sigmoid(s).  The window's
 states are then stored; a state is final once its frame leaves the window.
 
+Observations are anchored at frame 0 (one step from rest): markers are bound to the frame-0 surface
+simulated with the current θ, and Gaussians fitted with the mesh at rest to frame f are rendered at
+x_t − (x_f − rest); both anchors are refreshed as θ changes.  adapt.h5 stores, per frame, θ after
+that frame's Adam steps, the frame's final state (z and positions), the window loss and the time
+spent in forward simulation, adjoint, rendering (loss forward + backward) and in total.
+
 ``--mode offline`` is the baseline of §5.3: one θ for the whole sequence, fitted by the same
 machinery (forward over all frames, adjoint over all frames, Adam) for a fixed number of
 iterations.  ``--space full`` runs on the full-space FEM (stages/sim), ``--space reduced`` on the
@@ -21,7 +27,6 @@ value (bench/adapt.py, case refine: a 192-tet box reported 0.56 E_true, refined 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 from dataclasses import dataclass
@@ -30,8 +35,8 @@ from typing import Callable, Literal, Sequence
 
 import numpy as np
 
-from stages.adapt_loss import (Adam, MarkerBinding, bind_markers, chain_params, marker_loss,
-                               params_from_theta, theta_from_params)
+from stages.adapt_loss import (Adam, MarkerBinding, bind_markers, chain_params, params_from_theta,
+                               theta_from_params)
 from stages.artefacts import KIND_FILES, AdaptArtefact, MeshArtefact, Provenance
 from stages.capture import IMAGE_SUFFIXES, Capture, CaptureError, load_capture, read_image
 from stages.errors import RslError

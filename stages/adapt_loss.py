@@ -196,26 +196,57 @@ class ImageLoss:
         self.backgrounds = [None if b is None else self.torch.as_tensor(np.asarray(b, np.float32))
                             for b in backgrounds]
 
+    def images(self, xt) -> list:
+        """Renders (H, W, 3) of every camera at positions xt (n, 3), torch, differentiable.
+
+        The same image formation as ``BoundGaussians.render`` (the reference the tests hold this to), with
+        the position-dependent geometry computed once for all cameras: μ = Σ βₖ xₖ, Σ = F Σ₀ Fᵀ, where the
+        barycentric weights β and rest covariances Σ₀ = R S² Rᵀ are fixed (only colours and opacities are
+        ever refined here).
+        """
+        torch = self.torch
+        from stages.render.gaussians import RASTERIZERS, sh_to_color
+        from stages.render.projection import project_gaussians
+
+        g = self.g
+        if not hasattr(self, "_bary"):
+            with torch.no_grad():
+                self._bary = g.bary().detach()  # (G, 4)
+                self._cov0 = g.rest_covariances().detach()  # (G, 3, 3)
+        corners = g._corners(xt)  # (G, 4, 3)
+        means = (self._bary[:, :, None] * corners).sum(1)
+        ds = (corners[:, 1:4] - corners[:, 0:1]).transpose(1, 2)
+        F = ds @ g.dm_inv
+        covs = F @ self._cov0 @ F.transpose(1, 2)
+        opac = g.opacities()
+        out = []
+        for cam, bg in zip(self.cams, self.backgrounds):
+            proj = project_gaussians(means, covs, cam)
+            dirs = None
+            if g.sh.shape[1] >= 4:
+                d = means - cam.centre
+                dirs = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
+            colors = sh_to_color(g.sh, dirs)
+            premult, alpha = RASTERIZERS[self.rasterizer](proj.means2d, proj.conics, colors, opac, proj.depths,
+                                                          proj.visible, cam.width, cam.height)
+            out.append(premult + (1 - alpha)[..., None] * (g.background if bg is None else bg))
+        return out
+
     def __call__(self, x: np.ndarray, targets: list[np.ndarray]) -> tuple[float, np.ndarray]:
         """(L, dL/dx (n, 3)) for positions x (n, 3) and one target image (H, W, 3) in [0, 1] per camera."""
         torch = self.torch
         xt = torch.tensor(np.asarray(x, np.float64), requires_grad=True)
         if self.opt is not None:
             self.opt.zero_grad()
-        total = 0.0
-        for cam, bg, target in zip(self.cams, self.backgrounds, targets):
-            img = self.g.render(xt, cam, background=bg, rasterizer=self.rasterizer).image
-            loss = (img - torch.as_tensor(target, dtype=torch.float32)).abs().sum()
-            loss.backward()
-            total += float(loss.detach())
+        loss = sum((img - torch.as_tensor(target, dtype=torch.float32)).abs().sum()
+                   for img, target in zip(self.images(xt), targets))
+        loss.backward()
         if self.opt is not None:
             self.opt.step()
-        return total, xt.grad.numpy().copy()
+        return float(loss.detach()), xt.grad.numpy().copy()
 
     def render(self, x: np.ndarray) -> list[np.ndarray]:
         """Images (H, W, 3) float32 in [0, 1], one per camera, at positions x (n, 3)."""
         torch = self.torch
         with torch.no_grad():
-            xt = torch.tensor(np.asarray(x, np.float64))
-            return [self.g.render(xt, cam, background=bg, rasterizer=self.rasterizer).image.numpy().copy()
-                    for cam, bg in zip(self.cams, self.backgrounds)]
+            return [im.numpy().copy() for im in self.images(torch.tensor(np.asarray(x, np.float64)))]

@@ -24,16 +24,17 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-import torch
+from stages.lazy import lazy_module
 
-from stages.artefacts import (KIND_FILES, CamerasArtefact, GaussiansArtefact, MasksArtefact, MeshArtefact,
-                              Provenance)
+torch = lazy_module("torch")  # torch and the render package load on first use
+
+from stages.artefacts import KIND_FILES, CamerasArtefact, MasksArtefact, MeshArtefact, Provenance
 from stages.capture import load_capture, write_image
 from stages.errors import RslError
 from stages.progress import Reporter, SilentReporter
-from stages.render.gaussians import BoundGaussians, color_to_sh0
-from stages.render.loss import l1, psnr, ssim
-from stages.render.projection import CameraTensors, project_points
+gauss = lazy_module("stages.render.gaussians")
+rloss = lazy_module("stages.render.loss")
+proj = lazy_module("stages.render.projection")
 
 
 @dataclass(frozen=True)
@@ -111,7 +112,7 @@ def _sample_colours(centres: np.ndarray, cams: list, images: list, masks: list) 
     cnt = np.zeros(len(centres))
     seen = []
     for cam, img, m in zip(cams, images, masks):
-        uv, z = project_points(torch.as_tensor(centres), CameraTensors.from_camera(cam, torch.float64))
+        uv, z = proj.project_points(torch.as_tensor(centres), proj.CameraTensors.from_camera(cam, torch.float64))
         uv, z = uv.numpy(), z.numpy()
         px = np.round(uv).astype(np.int64)
         ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
@@ -223,8 +224,8 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
                            f"its {cam.width}x{cam.height} image); check the calibration or the mesh units.")
     k = (config.sh_degree + 1) ** 2
     sh = np.zeros((config.gaussians, k, 3))
-    sh[:, 0] = color_to_sh0(colour)
-    g = BoundGaussians(mesh.tets, mesh.dm_inv, host, bary, np.repeat(log_sigma[:, None], 3, 1),
+    sh[:, 0] = gauss.color_to_sh0(colour)
+    g = gauss.BoundGaussians(mesh.tets, mesh.dm_inv, host, bary, np.repeat(log_sigma[:, None], 3, 1),
                        np.tile([1.0, 0.0, 0.0, 0.0], (config.gaussians, 1)),
                        np.zeros(config.gaussians), sh, background)
     positions = torch.as_tensor(mesh.vertices, dtype=torch.float32)
@@ -254,14 +255,14 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
             ps = []
             for cam, tgt, m, bg in zip(cams, tgt_t, mask_t, bg_t):
                 out = g.render(positions, cam, bg)
-                loss = (1 - lam) * l1(out.image, tgt) + lam * (1 - ssim(out.image, tgt))
+                loss = (1 - lam) * rloss.l1(out.image, tgt) + lam * (1 - rloss.ssim(out.image, tgt))
                 if m is not None and config.mask_weight > 0:
                     loss = loss + config.mask_weight * (out.alpha - m).abs().mean()
                 if not torch.isfinite(loss):
                     raise RslError(f"{ws / KIND_FILES['gaussians']}: the fit diverged at iteration {it} "
                                    f"(non-finite loss in camera '{cam.name}'); lower --lr.")
                 (loss / len(cams)).backward()
-                ps.append(psnr(out.image, tgt))
+                ps.append(rloss.psnr(out.image, tgt))
             opt.step()
             task.advance(1, psnr=f"{np.mean(ps):.2f} dB")
 
@@ -271,7 +272,7 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
     with torch.no_grad():
         for cam, tgt, bg in zip(cams, tgt_t, bg_t):
             img = g.render(positions, cam, bg).image
-            fit_psnr[cam.name] = round(psnr(img, tgt), 3)
+            fit_psnr[cam.name] = round(rloss.psnr(img, tgt), 3)
             write_image(out_dir / f"{cam.name}.png", _side_by_side(img.numpy(), tgt.numpy()))
     art = g.to_artefact(fit_psnr)
     path = art.save(ws / KIND_FILES["gaussians"], Provenance.make(config, inputs))

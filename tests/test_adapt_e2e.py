@@ -263,6 +263,34 @@ def test_appearance_refinement_lowers_the_image_loss_at_fixed_positions(beam):
     assert frozen(mesh.vertices, target)[0] == pytest.approx(frozen(mesh.vertices, target)[0])
 
 
+@pytest.mark.parametrize("sh_coeffs", [1, 4])
+def test_multi_camera_render_matches_bound_gaussians_render_forward_and_backward(beam, sh_coeffs):
+    """ImageLoss.images (geometry once for all cameras) against BoundGaussians.render per camera."""
+    import torch
+
+    from stages.adapt_loss import ImageLoss
+
+    cap, ws = beam
+    mesh = MeshArtefact.load(ws / "mesh.h5")
+    cams = CamerasArtefact.load(ws / "cameras.h5").cameras
+    ga = _random_gaussians(mesh, 80, seed=3)
+    ga.sh = np.random.default_rng(4).normal(0, 0.5, (80, sh_coeffs, 3))
+    loss = ImageLoss(ga, mesh, cams)
+    plate = load_capture(cap).background(cams[0].name).astype(np.float32) / 255.0
+    loss.set_backgrounds([plate])
+    rng = np.random.default_rng(5)
+    x = mesh.vertices + 0.002 * rng.standard_normal(mesh.vertices.shape)
+    w = torch.as_tensor(rng.standard_normal((cams[0].height, cams[0].width, 3)), dtype=torch.float32)
+    xa = torch.tensor(x, requires_grad=True)
+    ia = loss.images(xa)[0]
+    (ia * w).sum().backward()
+    xb = torch.tensor(x, requires_grad=True)
+    ib = loss.g.render(xb, cams[0], background=plate).image
+    (ib * w).sum().backward()
+    assert torch.allclose(ia, ib, atol=1e-6)
+    assert np.allclose(xa.grad.numpy(), xb.grad.numpy(), rtol=1e-4, atol=1e-6 * np.abs(xb.grad.numpy()).max())
+
+
 def _theta_w(p, w):
     E, nu = theta_from_params(p[:1], p[1:], (0.3, 0.49))
     return np.tile(E, (w, 1)), np.tile(nu, (w, 1))
@@ -304,7 +332,8 @@ def test_marker_loss_gradient_through_reduced_adjoint_matches_finite_differences
     cap, ws = beam_reduced
     obj, backend = _objective(cap, ws, "markers", space="reduced")
     obj.rebind = False
-    _check_fd(obj, backend, 6, 4, h=1e-5, rtol=1e-4)
+    # the reduced Newton stops at a relative residual of 1e-8, which bounds the accuracy of the differences
+    _check_fd(obj, backend, 6, 4, h=1e-4, rtol=1e-3)
 
 
 def test_online_reduced_space_writes_z_and_decoded_positions(beam_reduced):

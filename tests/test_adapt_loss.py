@@ -107,3 +107,34 @@ def test_refine_tets_keeps_volume_orientation_and_coarse_vertices():
     assert np.allclose(vol.reshape(2, 8).sum(1), signed_volumes(v, t))
     assert np.array_equal(r2, [0] * 8 + [1] * 8)
     assert len(v2) == 5 + 9  # 9 distinct edges
+
+
+def test_camera_choice_by_index_or_name_and_its_errors():
+    from pathlib import Path
+
+    from stages.adapt import _pick_cameras
+    from stages.errors import RslError
+
+    names = ["cam0", "cam1", "cam2"]
+    assert _pick_cameras("", names, Path("cameras.h5")) == names
+    assert _pick_cameras("2, 0", names, Path("cameras.h5")) == ["cam2", "cam0"]
+    assert _pick_cameras("cam1,1", names, Path("cameras.h5")) == ["cam1"]
+    with pytest.raises(RslError, match="asks for camera 5 but it holds 3"):
+        _pick_cameras("5", names, Path("cameras.h5"))
+    with pytest.raises(RslError, match="'left', which is not one of"):
+        _pick_cameras("left", names, Path("cameras.h5"))
+
+
+def test_frame_range_parsing():
+    from pathlib import Path
+
+    from stages.adapt import _parse_frames
+    from stages.errors import RslError
+
+    assert _parse_frames("", 40, Path("c")) == (0, 40)
+    assert _parse_frames("5:20", 40, Path("c")) == (5, 20)
+    assert _parse_frames("5:", 40, Path("c")) == (5, 40)
+    assert _parse_frames(":7", None, Path("c")) == (0, 7)
+    for bad, msg in (("7:3", "empty or negative"), ("0:50", "only 40 exist"), ("a:b", "should be A:B")):
+        with pytest.raises(RslError, match=msg):
+            _parse_frames(bad, 40, Path("c"))

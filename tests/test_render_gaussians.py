@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from stages.artefacts import Camera, GaussiansArtefact
-from stages.render.gaussians import BoundGaussians, quat_to_rotmat, rotmat_to_quat, sh_to_color, SH_C0, SH_C1
+from stages.render.gaussians import SH_C0, SH_C1, BoundGaussians, quat_to_rotmat, rotmat_to_quat, sh_to_color
 from stages.render.loss import l1_dssim, psnr, ssim
 from stages.render.projection import CameraTensors, project_gaussians, project_points
 from test_fit_gaussians import box_tet_mesh, look_at, mesh_artefact, truth_gaussians
@@ -136,7 +136,8 @@ def test_position_gradients_fast_dense_and_fd(bound):
     g = BoundGaussians.from_artefact(sub, mesh).double()
     cam = look_at("c", [0.25, -0.15, 0.2], 24, f=40.0)
     target = torch.rand(24, 24, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
-    x0 = torch.as_tensor(mesh.vertices) + 0.003 * torch.as_tensor(np.random.default_rng(6).normal(size=mesh.vertices.shape))
+    noise = np.random.default_rng(6).normal(size=mesh.vertices.shape)
+    x0 = torch.as_tensor(mesh.vertices) + 0.003 * torch.as_tensor(noise)
 
     def loss(x, r="fast"):
         return ((g.render(x, cam, rasterizer=r).image - target) ** 2).sum()

@@ -155,6 +155,8 @@ class ReducedModel:
         self.energy_jax = lambda z, z1, z2, y, nu, rin: _energy(z, z1, z2, y, nu, rin, d, kind, ref)  # traceable
         self._E = lambda *a: _E_jit(*a, d, kind, ref)
         self._G = lambda *a: _G_jit(*a, d, kind, ref)
+        self._EG = lambda *a: _EG_jit(*a, d, kind, ref)
+        self._factor = None  # the last factorised reduced Hessian (reused by step while it contracts)
         self._EGH = lambda *a: _EGH_jit(*a, d, kind, ref)
         self._hvjp = lambda *a: _hvjp_jit(*a, d, kind, ref)
         self._GN = lambda *a: _GN_jit(*a, d, kind, ref)
@@ -216,45 +218,65 @@ class ReducedModel:
 
     # ------------------------------------------------------------------ forward
     def step(self, inputs, young, poisson, z_prev, z_prev2, z_init=None, rtol: float = 1e-8,
-             max_iterations: int = 50, frame: int | None = None) -> tuple[np.ndarray, dict]:
+             max_iterations: int = 100, frame: int | None = None, reuse_hessian: bool = True
+             ) -> tuple[np.ndarray, dict]:
         """z_t = argmin E(z) by Newton + backtracking (warm start z_init, default 2 z_{t−1} − z_{t−2}).
 
-        Converged when ‖h‖ ≤ rtol · max(‖h(z_init)‖, ‖Jqᵀ Uᵀ M g‖) or a full step no longer lowers E.
-        Returns (z (r,), {"iterations", "residual"}).
+        reuse_hessian: keep the factorised reduced Hessian (from the previous iteration or frame) while
+        it still contracts the residual (‖h‖ falls below half at each step), refactorising only when it
+        does not; the solution is the same, at the cost of cheap gradient evaluations instead of a
+        Hessian per iteration.  Converged when ‖h‖ ≤ rtol · ‖h(z_init)‖.
+        Returns (z (r,), {"iterations", "hessians", "residual", "residual_rel"}).
         """
         rin = inputs if isinstance(inputs, ReducedInputs) else self.reduce_inputs(inputs)
         z_prev, z_prev2 = np.asarray(z_prev, np.float64), np.asarray(z_prev2, np.float64)
         z = (2.0 * z_prev - z_prev2) if z_init is None else np.asarray(z_init, np.float64)
         rest = self._args(z, z_prev, z_prev2, young, poisson, rin)[1:]
-        e, g, h = (np.asarray(a) for a in self._EGH(jnp.asarray(z), *rest))
+        e, g = (np.asarray(a) for a in self._EG(jnp.asarray(z), *rest))
         if not np.isfinite(e):
             z = z_prev.copy()
-            e, g, h = (np.asarray(a) for a in self._EGH(jnp.asarray(z), *rest))
+            e, g = (np.asarray(a) for a in self._EG(jnp.asarray(z), *rest))
+        factor = self._factor if (reuse_hessian and getattr(self, "_factor", None) is not None) else None
+        fresh = False
+        n_hess = 0
         g0 = max(float(np.linalg.norm(g)), 1e-300)
         tol = rtol * g0
         it = 0
         for it in range(1, max_iterations + 1):
-            if np.linalg.norm(g) <= tol:
+            gn = float(np.linalg.norm(g))
+            if gn <= tol:
                 it -= 1
                 break
-            dz = _newton_direction(h, g)
-            alpha, e_new = 1.0, np.inf
-            while alpha > 1e-10:
+            if factor is None:
+                factor = _factorise(np.asarray(self._EGH(jnp.asarray(z), *rest)[2]))
+                fresh, n_hess = True, n_hess + 1
+            dz = _cho_solve(factor, -g)
+            slope = float(g @ dz)
+            alpha = 1.0
+            while slope < 0 and alpha > 1e-10:
                 z_try = z + alpha * dz
                 e_new = float(self._E(jnp.asarray(z_try), *rest))
-                if np.isfinite(e_new) and e_new <= e + 1e-4 * alpha * float(g @ dz) + 1e-13 * abs(e):
+                if np.isfinite(e_new) and e_new <= e + 1e-4 * alpha * slope + 1e-13 * abs(e):
                     break
                 alpha *= 0.5
-            if alpha <= 1e-10:
-                break  # no descent left at float64 precision
+            if slope >= 0 or alpha <= 1e-10:
+                if fresh:
+                    break  # no descent left at float64 precision
+                factor = None  # a stale Hessian: refactorise and retry
+                continue
             z = z_try
-            e, g, h = (np.asarray(a) for a in self._EGH(jnp.asarray(z), *rest))
+            e, g = (np.asarray(a) for a in self._EG(jnp.asarray(z), *rest))
+            if not reuse_hessian or np.linalg.norm(g) > 0.5 * gn:
+                factor = None  # slow contraction: refactorise at the new point
+            else:
+                fresh = False
+        self._factor = factor if factor is not None else getattr(self, "_factor", None)
         res = float(np.linalg.norm(g))
         if not np.all(np.isfinite(z)) or res > max(1e3 * tol, 1e-6 * g0):
             where = f" at frame {frame}" if frame is not None else ""
             raise ReducedSolveError(f"Reduced Newton did not converge{where} (residual {res / g0:.1e} of the "
                                     f"initial after {it} iterations).")
-        return z, {"iterations": it, "residual": res, "residual_rel": res / g0}
+        return z, {"iterations": it, "hessians": n_hess, "residual": res, "residual_rel": res / g0}
 
     def simulate(self, inputs: Sequence, young, poisson, z_prev=None, z_prev2=None, rtol: float = 1e-8,
                  callback: Callable[[int], None] | None = None) -> np.ndarray:
@@ -363,6 +385,11 @@ def _G_jit(z, z1, z2, y, nu, rin, d, kind, reference):
 
 
 @partial(jax.jit, static_argnames=_STATIC)
+def _EG_jit(z, z1, z2, y, nu, rin, d, kind, reference):
+    return jax.value_and_grad(_energy)(z, z1, z2, y, nu, rin, d, kind, reference)
+
+
+@partial(jax.jit, static_argnames=_STATIC)
 def _EGH_jit(z, z1, z2, y, nu, rin, d, kind, reference):
     """(E, ∂E/∂z, ∂²E/∂z²) — the Hessian includes the decoder curvature."""
     e, g = jax.value_and_grad(_energy)(z, z1, z2, y, nu, rin, d, kind, reference)
@@ -384,19 +411,24 @@ def _GN_jit(z, z1, z2, y, nu, rin, d, kind, reference):
     return jq.T @ h_q @ jq
 
 
-def _newton_direction(h: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """−(H + τI)⁻¹ g with the smallest τ ≥ 0 (from 0, then growing) that makes H + τI positive definite."""
+def _factorise(h: np.ndarray) -> np.ndarray:
+    """Cholesky factor of H + τI with the smallest τ ≥ 0 (from 0, then growing) that is positive definite."""
     hs = 0.5 * (h + h.T)
     tau = 0.0
     scale = max(float(np.max(np.abs(np.diag(hs)))), 1e-300)
-    for _ in range(60):
+    for _ in range(80):
         try:
-            c = np.linalg.cholesky(hs + tau * np.eye(len(g)))
-            y = np.linalg.solve(c, -g)
-            return np.linalg.solve(c.T, y)
+            return np.linalg.cholesky(hs + tau * np.eye(len(h)))
         except np.linalg.LinAlgError:
             tau = max(2.0 * tau, 1e-8 * scale)
-    return -g / scale
+    return np.sqrt(scale) * np.eye(len(h))
+
+
+def _cho_solve(c: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(C Cᵀ)⁻¹ b for a lower-triangular Cholesky factor C."""
+    from scipy.linalg import solve_triangular
+
+    return solve_triangular(c.T, solve_triangular(c, b, lower=True), lower=False)
 
 
 def _solve_sym(h: np.ndarray, b: np.ndarray) -> np.ndarray:
