@@ -4,13 +4,16 @@ A frame solves h(z) = ∂E/∂z = J(z)ᵀ r(φ(z)) = 0 by Newton with a backtrac
 
     E(z) = ½/Δt² (q − q_y)ᵀ G (q − q_y) − qᵀ Uᵀ(M g + f)                    inertia, gravity, loads
            + Σ_{e∈C} w_e V_e Ψ(F_e(φ_C(z)))                                    elastic (cubature)
-           + handles(φ_H(z)) + contact(φ_S(z); φ_S(z_{t−1}))                 stages.sim.potential terms
+           + ½ qᵀ (Σ_h k_h U_hᵀU_h) q − qᵀ Σ_h k_h U_hᵀ(x̂_h − x̄_h)              handle springs (exact)
+           + contact(φ_S(z); φ_S(z_{t−1}))                                   stages.sim.potential terms
 
 with q = q(z) the decoder's PCA coefficients (x = x̄ + U q), q_y = 2 q(z_{t−1}) − q(z_{t−2}) (so
 y = 2φ(z_{t−1}) − φ(z_{t−2}) = x̄ + U q_y exactly) and G = Uᵀ M U.  Inertia, gravity and loads are
-thus exact and cost O(p²) whatever the mesh: only the vertices touched by the cubature tets C,
-the handles H and, when the scene has obstacles, the surface S are decoded (rows of U).  The
-elastic, handle and contact terms are stages.sim.potential's own functions evaluated on a
+thus exact and cost O(p²) whatever the mesh (the handle springs ½k‖x_h − x̂_h‖², x̂_h the targets,
+are quadratic in q too, so their Hessian is precomputed and their targets projected once per frame):
+only the vertices touched by the cubature tets C and, when the scene has obstacles, the surface S
+are decoded (rows of U).  The
+elastic and contact terms are stages.sim.potential's own functions evaluated on a
 restricted SceneData (local vertex ids, volumes w_e V_e, zero masses).
 
 ``reference=True`` instead evaluates the full incremental potential of stages.sim.potential on
@@ -52,6 +55,7 @@ class ReducedInputs(NamedTuple):
     load_q: jnp.ndarray  # (p,) Uᵀ f, loads projected on the basis
     obstacle_poses: jnp.ndarray  # (n_obstacles, 7)
     load_forces: jnp.ndarray  # (k_sub, 3) zeros: loads are carried by load_q
+    handle_q: jnp.ndarray  # (p,) Σ_h k_h U_hᵀ (targets − x̄_h): the handle springs' linear term in q
 
 
 def surface_vertices(tets: np.ndarray) -> np.ndarray:
@@ -93,7 +97,12 @@ class ReducedModel:
             tet_ids, weights = np.asarray(cubature[0], np.int64), np.asarray(cubature[1], np.float64)
         self.cubature_tets, self.cubature_weights = tet_ids, weights
         tets = np.asarray(scene.tets)
-        verts = [tets[tet_ids].ravel()] + [np.asarray(h.ids) for h in scene.handles]
+        # handle springs ½k‖x̄_h + U_h q − target‖² are quadratic in q: Hessian k U_hᵀU_h precomputed
+        h_mat = np.zeros((basis.shape[2],) * 2)
+        for h in scene.handles:
+            uh = basis[np.asarray(h.ids)].reshape(-1, basis.shape[2])
+            h_mat += float(h.stiffness) * uh.T @ uh
+        verts = [tets[tet_ids].ravel()]
         if len(scene.obstacles):
             verts.append(surface_vertices(tets))
         vs = np.unique(np.concatenate(verts)) if verts else np.zeros(0, np.int64)
@@ -107,13 +116,13 @@ class ReducedModel:
             volumes=jnp.asarray(np.asarray(scene.volumes)[tet_ids] * weights),
             masses=jnp.zeros(len(vs)), tet_region=jnp.asarray(np.asarray(scene.tet_region)[tet_ids], np.int32),
             gravity=jnp.zeros(3),
-            handle_ids=tuple(jnp.asarray(local[np.asarray(h.ids)], np.int32) for h in scene.handles),
+            handle_ids=(), handle_stiffness=(),
         )
         sub_scene = P.SceneData(leaves, full.material, full.shapes, full.n_regions)
         self.data = dict(
             net={k: jnp.asarray(v) for k, v in sub.net.items()}, q_scale=jnp.asarray(sub.q_scale),
             rest_s=jnp.asarray(np.asarray(sub.rest)[vs]), basis_s=jnp.asarray(basis[vs]),
-            G=jnp.asarray(g_mat), grav_q=jnp.asarray(grav_q), scene_s=sub_scene,
+            G=jnp.asarray(g_mat), grav_q=jnp.asarray(grav_q), scene_s=sub_scene, H_handle=jnp.asarray(h_mat),
         )
         if reference:
             self.data.update(rest=jnp.asarray(sub.rest), basis=self._basis_full, scene=full)
@@ -171,8 +180,15 @@ class ReducedModel:
         poses = np.asarray(inputs.obstacle_poses, np.float64).reshape(-1, 7)
         nload = len(self.scene.rest) if self.reference else len(self.vertex_subset)
         lf = jnp.asarray(f) if self.reference else jnp.zeros((nload, 3))
-        return ReducedInputs(tuple(jnp.asarray(t, jnp.float64) for t in inputs.handle_targets),
-                             jnp.zeros(self.p) if self.reference else jnp.asarray(lq), jnp.asarray(poses), lf)
+        if self.reference:
+            return ReducedInputs(tuple(jnp.asarray(t, jnp.float64) for t in inputs.handle_targets),
+                                 jnp.zeros(self.p), jnp.asarray(poses), lf, jnp.zeros(self.p))
+        hq = np.zeros(self.p)
+        for h, target in zip(self.scene.handles, inputs.handle_targets):
+            ids = np.asarray(h.ids)
+            d = np.asarray(target, np.float64) - np.asarray(self.sub.rest)[ids]
+            hq += float(h.stiffness) * np.einsum("kip,ki->p", basis[ids], d)
+        return ReducedInputs((), jnp.asarray(lq), jnp.asarray(poses), lf, jnp.asarray(hq))
 
     # ------------------------------------------------------------------ maps
     def decode(self, z) -> np.ndarray:
@@ -218,7 +234,8 @@ class ReducedModel:
 
     # ------------------------------------------------------------------ forward
     def step(self, inputs, young, poisson, z_prev, z_prev2, z_init=None, rtol: float = 1e-8,
-             max_iterations: int = 100, frame: int | None = None, reuse_hessian: bool = True
+             max_iterations: int = 100, frame: int | None = None, reuse_hessian: bool = True,
+             contraction: float = 0.5
              ) -> tuple[np.ndarray, dict]:
         """z_t = argmin E(z) by Newton + backtracking (warm start z_init, default 2 z_{t−1} − z_{t−2}).
 
@@ -239,7 +256,9 @@ class ReducedModel:
         factor = self._factor if (reuse_hessian and getattr(self, "_factor", None) is not None) else None
         fresh = False
         n_hess = 0
-        g0 = max(float(np.linalg.norm(g)), 1e-300)
+        d = self.data
+        f_ext = np.asarray(_jqt_jit(jnp.asarray(z), d["grav_q"] + rin.load_q, d["net"], d["q_scale"], self.kind))
+        g0 = max(float(np.linalg.norm(g)) + float(np.linalg.norm(f_ext)), 1e-300)  # as stages.sim.scene.step
         tol = rtol * g0
         it = 0
         for it in range(1, max_iterations + 1):
@@ -266,7 +285,7 @@ class ReducedModel:
                 continue
             z = z_try
             e, g = (np.asarray(a) for a in self._EG(jnp.asarray(z), *rest))
-            if not reuse_hessian or np.linalg.norm(g) > 0.5 * gn:
+            if not reuse_hessian or np.linalg.norm(g) > contraction * gn:
                 factor = None  # slow contraction: refactorise at the new point
             else:
                 fresh = False
@@ -335,6 +354,13 @@ class ReducedModel:
 
 # =========================================================================== pure kernels
 @partial(jax.jit, static_argnames=("kind",))
+def _jqt_jit(z, w, net, q_scale, kind):
+    """(∂q/∂z)ᵀ w, w (p,) → (r,)."""
+    _, vjp = jax.vjp(lambda zz: _q_of_z(kind, net, q_scale, zz), z)
+    return vjp(w)[0]
+
+
+@partial(jax.jit, static_argnames=("kind",))
 def _jt_jit(z, v, net, q_scale, basis, kind):
     """Jᵀ v = (∂q/∂z)ᵀ Uᵀ v, v (n, 3) → (r,)."""
     uv = jnp.einsum("nip,ni->p", basis, v)
@@ -354,7 +380,8 @@ def _energy_q(q, q1, q2, young, poisson, rin, d, reference: bool):
         return P.incremental_potential(phi(q), 2.0 * phi(q1) - phi(q2), full, rin, mu, lam, phi(q1))
     s = d["scene_s"]
     dq = q - (2.0 * q1 - q2)
-    e = 0.5 / s.dt ** 2 * dq @ (d["G"] @ dq) - q @ (d["grav_q"] + rin.load_q)
+    e = 0.5 / s.dt ** 2 * dq @ (d["G"] @ dq) - q @ (d["grav_q"] + rin.load_q + rin.handle_q) \
+        + 0.5 * q @ (d["H_handle"] @ q)
     x = d["rest_s"] + jnp.einsum("nip,p->ni", d["basis_s"], q)
     x1 = d["rest_s"] + jnp.einsum("nip,p->ni", d["basis_s"], q1)
     mu, lam = P.tet_lame(s, young, poisson)
