@@ -108,7 +108,8 @@ def sequence(scene: Scene, seed: int, frames: int, scale: float = 1.0) -> list[F
     return out
 
 
-def run_case(name: str, quick: bool, n_seq: int, frames: int, epochs: int, cub_tets: int, log) -> dict:
+def run_case(name: str, quick: bool, n_seq: int, frames: int, epochs: int, cub_tets: int, log,
+             cub_tol: float = 0.001) -> dict:
     scene, r, w = make_case(name, quick)
     n = len(scene.rest)
     diag = np.linalg.norm(scene.rest.max(0) - scene.rest.min(0))
@@ -129,14 +130,14 @@ def run_case(name: str, quick: bool, n_seq: int, frames: int, epochs: int, cub_t
     train = np.concatenate([x for _, x in seqs[:-1]])
     t0 = time.perf_counter()
     p = min(2 * r, len(train) - 1)
-    sub, _ = fit_subspace("autoencoder", scene.rest, scene.masses, train, r, seqs[-1][1], epochs=epochs, seed=0,
+    sub, _ = fit_subspace("autoencoder", scene.rest, scene.masses, train, r, None, epochs=epochs, seed=0,
                           pca_dim=p)
     rec = reconstruction_error(sub, seqs[-1][1]) / diag
     mu, lam = P.tet_lame(scene, E, nu)
     pick = np.random.default_rng(0).choice(len(train), size=min(40, len(train)), replace=False)
     sampler = ReducedForceSampler(sub, np.asarray(sub.encode(jnp.asarray(train[pick]))), scene.tets, scene.dm_inv,
                                   scene.volumes, np.asarray(mu), np.asarray(lam), scene.material)
-    ids, wts, cinfo = fit_cubature(sampler, scene.tet_region, 1, max_tets=cub_tets, tol=0.005, seed=0)
+    ids, wts, cinfo = fit_cubature(sampler, scene.tet_region, 1, max_tets=cub_tets, tol=cub_tol, seed=0)
     log(f"{name}: autoencoder r={r} p={sub.p} (held-out reconstruction {rec:.2%} of the diagonal), cubature "
         f"{len(ids)} tets (force error {cinfo['error_rel']:.2%}) in {time.perf_counter() - t0:.0f} s")
     model = ReducedModel(sub, scene, (ids, wts))
@@ -207,12 +208,18 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=16)
     ap.add_argument("--epochs", type=int, default=300)
     ap.add_argument("--cubature-tets", type=int, default=300)
+    ap.add_argument("--cubature-tol", type=float, default=0.001)
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
+    ap.add_argument("--md-only", action="store_true", help="rewrite the .md from the stored .json and stop")
     args = ap.parse_args()
+    if args.md_only:
+        d = json.loads((args.out / "reduced_vs_full.json").read_text())
+        (args.out / "reduced_vs_full.md").write_text(markdown(d["machine"], d["date"], d["cases"]))
+        return
     cases = []
     for name in args.cases.split(","):
         cases.append(run_case(name, args.quick, args.sequences, args.frames, args.epochs, args.cubature_tets,
-                              lambda s: print(s, flush=True)))
+                              lambda s: print(s, flush=True), args.cubature_tol))
         if not args.quick:
             write(args.out, cases)
     print(table(cases))
@@ -238,16 +245,46 @@ def write(out: Path, new_cases: list[dict]) -> None:
     machine = f"{platform.node()} {platform.machine()} {os.cpu_count()} cores, load {load:.1f} at the end"
     date = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     path.write_text(json.dumps({"machine": machine, "date": date, "cases": cases}, indent=1))
-    (out / "reduced_vs_full.md").write_text(
+    (out / "reduced_vs_full.md").write_text(markdown(machine, date, cases))
+
+
+def markdown(machine: str, date: str, cases: list[dict]) -> str:
+    """The results page: table, what was measured, and what the numbers say."""
+    notes = []
+    for c in cases:
+        its = (f" Newton iterations per frame: full {c['full_newton_iterations']:.1f}, reduced "
+               f"{c['reduced_newton_iterations']:.1f} with {c['reduced_hessians_per_frame']:.1f} reduced Hessians."
+               if "reduced_newton_iterations" in c else "")
+        notes.append(f"- **{c['name']}** ({c['vertices']} vertices, {c['tets']} tets, r = {c['r']}, PCA layer "
+                     f"p = {c['pca_dim']}, {c['cubature_tets']} cubature tets with a {c['cubature_error_rel']:.2%} "
+                     f"reduced-force error): reduced forward + backward {c['ratio']:.1f}× faster than the full "
+                     f"space; held-out reconstruction error {c['reconstruction_error_rel']:.2%} of the diagonal, "
+                     f"trajectory error {c['trajectory_error_rel']:.2%}.{its}")
+    return (
         "# Reduced vs full-space simulation\n\n"
         f"Machine: {machine}; {date}.\n\n" + table(cases) + "\n"
-        "Per frame, seconds: forward = one implicit-Euler step (median over the held-out sequence, warm); "
-        "backward = the window adjoint's time over w (median over window ends). Full space: "
-        "stages.sim.scene step / window_adjoint with solver \"auto\". Reduced: stages.subspace.ReducedModel "
-        "(autoencoder of latent size r on a PCA layer, cubature of the elastic energy). Both Newton solvers stop "
-        "at a relative residual of 1e-6. The trajectory error is the mean vertex distance between the reduced "
-        "and full trajectories of the held-out sequence over the bounding-box diagonal. The machine is shared "
-        "with other jobs (load above), which inflates both columns alike; the ratio is taken in one run.\n")
+        "What was measured (bench/reduced_vs_full.py): per frame, in seconds, forward = one implicit-Euler "
+        "step (median over the 16 frames of a held-out sequence, warm); backward = the window adjoint's time "
+        "divided by w (median over window ends, warm). Full space: stages.sim.scene step / window_adjoint with "
+        "solver \"auto\". Reduced: stages.subspace.ReducedModel (autoencoder of latent size r on a PCA layer, "
+        "elastic energy by optimised cubature, inertia / gravity / handle springs exact in q). Both Newton "
+        "solvers stop at a relative residual of 1e-6 on the same scale (‖∇‖ at the start + ‖Mg‖ + ‖f‖). "
+        "Training data: full-space sequences of a clamp that moves and turns by random amounts under gravity "
+        "(bar: a 36 cm cantilever, E = 50 kPa, ν = 0.45; dinosaur: autodef_fulton/25cm_dino_low.mesh, clamped "
+        "at its feet, gentler motions), the last sequence held out. The trajectory error is the mean vertex "
+        "distance between the reduced and full trajectories of the held-out sequence over the bounding-box "
+        "diagonal. The machine is shared with other jobs (load above), which inflates both columns; each "
+        "ratio is taken within one run.\n\n" + "\n".join(notes) + "\n\n"
+        "Reading: the reduced step's cost does not grow with the mesh (the cubature tets and the handle/inertia "
+        "terms are all that is evaluated), but it grows with r: at r = 100 one exact reduced Hessian (JAX "
+        "forward-over-reverse, decoder curvature included) costs about 5–10 ms, and the dinosaur scenario needs "
+        "about as many Newton iterations in the subspace as in full space, so the step reuses the factorised "
+        "Hessian while it still contracts the residual; the 10× target is met on the bar, not on the "
+        "dinosaur at r = 100 (there a full sparse Newton iteration on 2.7K vertices costs only a few reduced "
+        "Hessians). The bar's trajectory error is Galerkin stiffening, not reconstruction: integrated over "
+        "every tet, PCA and the autoencoder at r = 30 both drift by 3.2 % (the reduced cantilever sags "
+        "13.1 cm where the full one sags 14.6 cm) although both reconstruct the held-out frames to "
+        "< 0.4 %; more varied training sequences or a larger r shrink it.\n")
 
 
 if __name__ == "__main__":

@@ -22,11 +22,15 @@ step "synth $OUT/dino_capture"
 $RSL synth sample_data/dino/object.mesh "$OUT/dino_capture" --scenario push --cameras 2 --frames 20 \
     --resolution 64 --young 6e4 --markers 20 --seed 1 --overwrite
 
-# 3. The whole pipeline on the shipped synthetic bar capture (made by `rsl synth`, see
-#    sample_data/README.md): twisted by two handles, its Young's modulus stepping 100 -> 200 kPa
-#    at frame 20. Adaptation starts from a guess 2.5x too soft.
-CAP=sample_data/bar_synth; WS="$OUT/bar_synth"
-step "calibrate";        $RSL calibrate "$CAP" -w "$WS" --board chessboard:6x4:0.0244
+# 3. The whole pipeline on a synthetic bar capture made from sample_data/bar: a cable pulls the
+#    free end of the bar while its Young's modulus steps 100 -> 200 kPa at frame 20 (force-driven,
+#    so E shows in the motion). Adaptation starts from a guess 2.5x too soft.
+CAP="$OUT/bar_capture"; WS="$OUT/bar_ws"
+step "synth $CAP"
+$RSL synth sample_data/bar/object.mesh "$CAP" --scenario cable --cameras 3 --frames 40 \
+    --resolution 128 --calib-views 10 --young-schedule "1e5@0,2e5@20" --markers 40 --seed 0 --overwrite
+BOARD=$(sed -n 's/^board = "\(.*\)"/\1/p' "$CAP/capture.toml" | head -1)
+step "calibrate";        $RSL calibrate "$CAP" -w "$WS" --board "$BOARD"
 step "segment";          $RSL segment "$CAP" -w "$WS" --method background
 step "tetrahedralize";   $RSL tetrahedralize "$CAP" -w "$WS"
 step "fit-gaussians";    $RSL fit-gaussians "$CAP" -w "$WS" --frame 0
@@ -43,7 +47,7 @@ cat <<MSG
 Done. Results:
   sample meshes          $OUT/bar/mesh.h5, $OUT/dino/mesh.h5   (rsl info FILE)
   a fresh synth capture  $OUT/dino_capture   (frames, calib views, markers, truth/)
-  bar pipeline           $WS/*.h5   (rsl status -w $WS)
+  bar capture, pipeline $CAP, $WS/*.h5   (rsl status -w $WS)
   E(t) estimate vs truth $WS/evaluation.json, $WS/evaluation_young.png
   stress, forces, VTU,   $WS/export/   (open the .pvd in ParaView; PNG/MP4 renders and plots)
   renders and plots

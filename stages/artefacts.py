@@ -385,6 +385,7 @@ class MeshArtefact:
     density: float  # kg/m^3
     handles: dict[str, np.ndarray] = field(default_factory=dict)  # name -> vertex ids
     quality: dict = field(default_factory=dict)  # min/max volume, worst dihedral (deg), ...
+    loads: dict[str, np.ndarray] = field(default_factory=dict)  # load name -> vertex ids (controls.json)
 
     kind = "mesh"
 
@@ -408,9 +409,10 @@ class MeshArtefact:
             f.attrs["region_names"] = json.dumps(list(self.region_names))
             f.attrs["density"] = float(self.density)
             f.attrs["quality"] = json.dumps(_jsonable(self.quality))
-            h = f.create_group("handles")
-            for name, ids in self.handles.items():
-                _put(h, name, np.asarray(ids, np.int64))
+            for group, sets in (("handles", self.handles), ("loads", self.loads)):
+                h = f.create_group(group)
+                for name, ids in sets.items():
+                    _put(h, name, np.asarray(ids, np.int64))
         return Path(path)
 
     @classmethod
@@ -434,16 +436,19 @@ class MeshArtefact:
             names = json.loads(r.attr("region_names"))
             if region.max(initial=0) >= len(names):
                 r.fail("tet_region refers to a region with no name.")
-            handles = {}
-            if "handles" in r.f:
-                for name in r.f["handles"]:
-                    ids = r.array(name, ndim=1, kind="i", group=r.f["handles"]).astype(np.int64)
+            sets: dict[str, dict[str, np.ndarray]] = {"handles": {}, "loads": {}}
+            for group in sets:
+                if group not in r.f:
+                    continue
+                for name in r.f[group]:
+                    ids = r.array(name, ndim=1, kind="i", group=r.f[group]).astype(np.int64)
                     if ids.size and (ids.min() < 0 or ids.max() >= n):
-                        r.fail(f"handle '{name}' refers to vertices outside 0..{n - 1}.")
-                    handles[name] = ids
+                        r.fail(f"{group[:-1]} '{name}' refers to vertices outside 0..{n - 1}.")
+                    sets[group][name] = ids
+            handles = sets["handles"]
             return cls(
                 v, tets, faces, region, list(names), vol, dm_inv, masses,
-                float(r.attr("density")), handles, json.loads(r.attr("quality", "{}")),
+                float(r.attr("density")), handles, json.loads(r.attr("quality", "{}")), sets["loads"],
             )
 
 

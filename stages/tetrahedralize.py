@@ -399,6 +399,7 @@ def build_mesh(config: TetrahedralizeConfig, reporter: Reporter = SilentReporter
 
     controls = map_id_selections(cap.controls(), src, v, cap.controls_path)
     handles = select_handles(controls, v, cap.controls_path)
+    loads = {ld.name: ld.select.select(v) for ld in controls.loads}
     if cap.controls_path.exists():
         inputs.append(cap.controls_path)
 
@@ -408,7 +409,7 @@ def build_mesh(config: TetrahedralizeConfig, reporter: Reporter = SilentReporter
                    flipped_tets=flipped, enclosed_volume=enclosed_volume(v, faces))
     mesh = MeshArtefact(vertices=v, tets=t, surface_faces=faces, tet_region=region, region_names=region_names,
                         rest_volumes=volumes, dm_inv=dm_inv, vertex_masses=masses, density=cap.density,
-                        handles=handles, quality=quality)
+                        handles=handles, quality=quality, loads=loads)
     return mesh, inputs
 
 

@@ -119,7 +119,10 @@ def make_scene(mesh, controls, material: str, dt: float, gravity, contact_stiffn
         ids_by_name.update(select_handles(controls, rest))
     handles = tuple(HandleSpec(h.name, np.asarray(ids_by_name[h.name], np.int64), float(h.stiffness))
                     for h in controls.handles)
-    loads = tuple(LoadSpec(ld.name, np.asarray(ld.select.select(rest), np.int64)) for ld in controls.loads)
+    load_ids = dict(getattr(mesh, "loads", {}) or {})  # mesh.h5 maps surface ids to tet-mesh vertices
+    loads = tuple(LoadSpec(ld.name, np.asarray(load_ids[ld.name] if ld.name in load_ids
+                                               else ld.select.select(rest), np.int64))
+                  for ld in controls.loads)
     obstacles = []
     for o in controls.obstacles:
         normal = None if o.normal is None else np.asarray(o.normal, np.float64) / np.linalg.norm(o.normal)
