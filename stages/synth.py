@@ -118,7 +118,7 @@ class SynthMesh:
 
 def load_tets(path: Path, edge_length: float, max_tets: int, reporter: Reporter) -> tuple[np.ndarray, np.ndarray]:
     """(vertices (n, 3), tets (m, 4)) from a tet mesh or a closed surface (fTetWild)."""
-    from stages.tetrahedralize import read_surface, read_tet_mesh, tetwild
+    from stages.meshing import read_surface, read_tet_mesh, tetwild
 
     path = Path(path)
     if not path.is_file():
@@ -131,18 +131,8 @@ def load_tets(path: Path, edge_length: float, max_tets: int, reporter: Reporter)
                            f"or its surface.")
         return v, t
     if suf in SURFACE_SUFFIXES:
-        import dataclasses
-        import inspect
-
-        from stages.tetrahedralize import TetrahedralizeConfig
-
         sv, sf = read_surface(path, reporter)
-        # the tetrahedralize stage's own settings, by name (its defaults for anything else)
-        defaults = {f.name: f.default for f in dataclasses.fields(TetrahedralizeConfig)}
-        given = dict(defaults, vertices=sv, faces=sf, edge_length=edge_length, max_tets=max_tets, threads=1,
-                     reporter=reporter)
-        params = inspect.signature(tetwild).parameters
-        v, t, _ = tetwild(**{k: given[k] for k in params if k in given})
+        v, t, _ = tetwild(sv, sf, edge_length=edge_length, max_tets=max_tets, threads=1, reporter=reporter)
         return v, t
     raise RslError(f"{path}: unsupported mesh type '{path.suffix}'; use obj, ply, stl, off, mesh or msh.")
 
@@ -151,7 +141,7 @@ def prepare_mesh(vertices: np.ndarray, tets: np.ndarray, size: float, region: st
                  tilt_deg: float = 0.0, source: str = "mesh") -> SynthMesh:
     """Scale (longest side = size), optionally tilt about x, centre at the origin, orient the tets
     positively, extract the surface and assign the optional second region."""
-    from stages.tetrahedralize import boundary_faces, orient_tets
+    from stages.meshing import boundary_faces, orient_tets
 
     v = np.asarray(vertices, np.float64).copy()
     ext = v.max(0) - v.min(0)
