@@ -271,7 +271,11 @@ def test_id_handles_follow_the_surface_vertices(shared_data: Path, tmp_path: Pat
     cap = make_capture(tmp_path / "box", shared_data / "pytetwild_testdata" / "box.stl",
                        controls={"handles": [{"name": "corner", "select": {"ids": [corner]}}]})
     m = MeshArtefact.load(run(TetrahedralizeConfig(cap, tmp_path / "ws", edge_length=0.3, preview=False)))
-    np.testing.assert_allclose(m.vertices[m.handles["corner"]], [[1, 1, 1]], atol=1e-9)
+    # fTetWild keeps its surface within the envelope (1e-3 × the bounding-box diagonal) of the input,
+    # and is not deterministic: the corner vertex lands at the corner up to that envelope.
+    envelope = TetrahedralizeConfig.envelope * float(np.linalg.norm(np.ptp(np.asarray(box.vertices), axis=0)))
+    assert len(m.handles["corner"]) == 1
+    np.testing.assert_allclose(m.vertices[m.handles["corner"]], [[1, 1, 1]], atol=envelope)
     (cap / "controls.json").write_text(json.dumps({"handles": [{"name": "far", "select": {"ids": [99]}}]}))
     with pytest.raises(CaptureError, match=r"controls.json: 'far' selects vertex id 99 but box.stl has \d+ vertices"):
         run(TetrahedralizeConfig(cap, tmp_path / "ws", edge_length=0.3, preview=False))
