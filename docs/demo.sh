@@ -39,6 +39,18 @@ step "train-subspace";   $RSL train-subspace -w "$WS" --dim 12
 step "adapt (online, reduced space, vision loss)"
 $RSL adapt "$CAP" -w "$WS" --window 3 --space reduced --mode online --loss vision --young-init 4e4
 step "evaluate";         $RSL evaluate "$CAP" -w "$WS"
+# the E estimate beside the truth, every 5th frame
+.venv/bin/python - "$CAP" "$WS" <<'PY'
+import sys
+from stages.artefacts import AdaptArtefact
+from stages.capture import load_capture, read_truth
+cap, ws = sys.argv[1], sys.argv[2]
+a, truth = AdaptArtefact.load(f"{ws}/adapt.h5"), read_truth(load_capture(cap))
+print(f"{'frame':>5}  {'E estimated (Pa)':>17}  {'E truth (Pa)':>13}")
+for i, f in enumerate(a.frames):
+    if f % 5 == 0 or i == len(a.frames) - 1:
+        print(f"{f:>5}  {a.young[i, 0]:>17.4g}  {truth.young[min(f, len(truth.young) - 1), 0]:>13.4g}")
+PY
 step "export";           $RSL export -w "$WS"
 $RSL status -w "$WS"
 
