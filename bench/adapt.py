@@ -10,6 +10,10 @@ rsl evaluate in-process):
                      settle_frames: frames after a step until the estimate stays within 5 % of the new value.
   markers_vs_vision  dinosaur pushed by a sphere: 40 markers vs 2 cameras' images (online, full space).
   regions            two regions whose E differ 3× (body 1e5, stiff 3e5): both estimates vs truth.
+  markers_vs_vision_noisy  the dinosaur again, markers with 0 / 2 / 5 mm Gaussian noise (rsl synth
+                     --marker-noise) vs images from 4 cameras at 96² and 128².
+  regions_nu         two regions, ν fitted: more frames (80), more Adam steps per frame (4), a smaller ν
+                     learning rate (0.01), and a wrong ν start (0.40).
   ablation           window w ∈ {1, 3, 5, 10} (markers, full) and subspace dimension r ∈ {4, 8, 16}
                      (markers, reduced, PCA) on the step capture.
   refine             a coarse 8×2×2-cell box adapting to a capture simulated on a 24×6×6-cell box:
@@ -65,13 +69,14 @@ LOG = Log()
 # =========================================================================== building blocks
 def make_capture(work: Path, name: str, mesh: Path, scenario: str, frames: int, cameras: int = 1,
                  resolution: int = 32, young: float = 1e5, young_schedule: str = "", region: str = "",
-                 markers: int = 40) -> tuple[Path, Path]:
+                 markers: int = 40, marker_noise: float = 0.0) -> tuple[Path, Path]:
     """`rsl synth` capture + workspace (mesh.h5 from truth/object.mesh, cameras.h5 from cameras.json)."""
     cap, ws = work / name / "cap", work / name / "ws"
     if not (cap / "capture.toml").exists():
         synth.run(synth.SynthConfig(mesh=mesh, out=cap, scenario=scenario, cameras=cameras, frames=frames,
                                     resolution=resolution, young=young, young_schedule=young_schedule,
-                                    region=region, markers=markers, calib_views=0, seed=0), LOG)
+                                    region=region, markers=markers, marker_noise=marker_noise,
+                                    calib_views=0, seed=0), LOG)
         toml = cap / "capture.toml"
         toml.write_text(toml.read_text().replace('mesh = "object.obj"', 'mesh = "truth/object.mesh"'))
     if not (ws / "mesh.h5").exists():
@@ -313,8 +318,83 @@ def case_refine(work: Path, quick: bool) -> list[dict]:
     return rows
 
 
+def case_markers_vs_vision_noisy(work: Path, quick: bool) -> list[dict]:
+    """Experiment 2 made fair: 40 markers with motion-capture noise (std 0, 2 and 5 mm, `rsl synth
+    --marker-noise`) vs images from 4 cameras at 96² and at 128² (same simulation, same seed: one truth
+    surface). vertex_error_last_half_m: mean vertex error over the second half of the frames (after the
+    estimate has moved away from its 4×-too-soft start)."""
+    def last_half(ev: dict) -> float:
+        v = np.asarray(ev["vertex_error_per_frame_m"])
+        return float(v[len(v) // 2:].mean())
+
+    rows, series = [], {}
+    for mn in (0.0, 0.002, 0.005):
+        name = f"dino_mn{int(round(mn * 1000))}mm"
+        cap, ws = make_capture(work, name, DINO, "push", frames=40, cameras=1, resolution=32, young=1e5,
+                               markers=40, marker_noise=mn)
+        art, ev = run_adapt(cap, ws, work / name / "markers", space="full", loss="markers", window=3,
+                            young_init=2.5e4)
+        series[f"40 markers, noise {mn * 1000:g} mm"] = (art.frames, art.young[:, 0])
+        rows.append(case_row(f"dinosaur push, markers σ={mn * 1000:g} mm", art, ev, marker_noise_m=mn,
+                             vertex_error_last_half_m=last_half(ev)))
+    for res, n_g, iters in ((96, 2000, 60 if quick else 120), (128, 2000, 60 if quick else 150),
+                            (128, 4000, 100 if quick else 250)):
+        name = f"dino_4cam{res}"
+        label = f"dinosaur push, vision 4×{res}², {n_g} Gaussians"
+        cap, ws = make_capture(work, name, DINO, "push", frames=40, cameras=4, resolution=res, young=1e5,
+                               markers=40)
+        ws_g = ws.parent / f"ws_g{n_g}"
+        if not ws_g.exists():
+            shutil.copytree(ws, ws_g)
+        with_gaussians(cap, ws_g, n_g, iters)
+        try:
+            art, ev = run_adapt(cap, ws_g, work / name / f"vision_g{n_g}", space="full", loss="vision", window=3,
+                                young_init=2.5e4)
+        except Exception as e:  # a variant that fails is reported, not hidden
+            rows.append({"name": label, "space": "full", "mode": "online", "loss": "vision", "cameras": 4,
+                         "gaussians": n_g, "failed": f"{type(e).__name__}: {e}"})
+            print(f"  failed: {rows[-1]['failed']}", flush=True)
+            continue
+        series[f"vision, 4 cameras {res}², {n_g} G"] = (art.frames, art.young[:, 0])
+        rows.append(case_row(label, art, ev, cameras=4, gaussians=n_g, vertex_error_last_half_m=last_half(ev)))
+    plot_young(RESULTS / "adapt_markers_vs_vision_noisy.png",
+               "Dinosaur: markers (0, 2, 5 mm noise) vs images (4 cameras, 96² / 128²)", series, np.full(40, 1e5))
+    return rows
+
+
+def case_regions_nu(work: Path, quick: bool) -> list[dict]:
+    """Two regions with ν fitted: do more frames, more Adam steps per frame or a smaller ν learning rate get
+    both regions within 10 %?"""
+    rows, series = [], {}
+    variants = [("40 frames, 4 iters/frame", 40, {"iters_per_frame": 4}),
+                ("40 frames, lr_ν 0.01", 40, {"lr_poisson": 0.01}),
+                ("40 frames, 4 iters/frame, lr_ν 0.01", 40, {"iters_per_frame": 4, "lr_poisson": 0.01}),
+                ("80 frames", 80, {}),
+                ("80 frames, lr_ν 0.01", 80, {"lr_poisson": 0.01}),
+                ("80 frames, 4 iters/frame, lr_ν 0.01", 80, {"iters_per_frame": 4, "lr_poisson": 0.01}),
+                ("40 frames, ν₀ 0.40", 40, {"poisson_init": 0.40}),
+                ("40 frames, lr_ν 0.01, ν₀ 0.40", 40, {"lr_poisson": 0.01, "poisson_init": 0.40})]
+    for k, (label, frames, kw) in enumerate(variants):
+        name = "regions" if frames == 40 else f"regions{frames}"
+        cap, ws = make_capture(work, name, BEAM, "cable", frames=frames, young=1e5, region="stiff=3e5@x>0.5")
+        art, ev = run_adapt(cap, ws, work / name / f"nu{k}", space="full", loss="markers", window=5,
+                            young_init=3e4, fit_poisson=True, **kw)
+        per_region = {r: float(np.median(np.abs(np.array(v[-8:])))) for r, v in ev["young_rel_error_per_region"].items()}
+        final = {r: float(abs(v[-1])) for r, v in ev["young_rel_error_per_region"].items()}
+        worst = {r: float(np.abs(np.array(v[len(v) // 2:])).max()) for r, v in ev["young_rel_error_per_region"].items()}
+        series.update({f"{r} ({label})": (art.frames, art.young[:, j]) for j, r in enumerate(art.region_names)})
+        rows.append(case_row(f"two regions (E ×3), ν fitted, {label}", art, ev,
+                             young_rel_error_last8_per_region=per_region, regions=art.region_names,
+                             poisson_final=art.poisson[-1].tolist() if hasattr(art, "poisson") else None,
+                             young_rel_error_final_per_region=final, young_rel_error_max_second_half=worst,
+                             settings=kw, frames_total=frames))
+    plot_young(RESULTS / "adapt_regions_nu.png", "Two regions, ν fitted: frames / iterations / lr_ν", series, None)
+    return rows
+
+
 CASES = {"refine": case_refine, "step": case_step, "markers_vs_vision": case_markers_vs_vision, "regions": case_regions,
-         "ablation": case_ablation, "timing": case_timing}
+         "ablation": case_ablation, "timing": case_timing,
+         "markers_vs_vision_noisy": case_markers_vs_vision_noisy, "regions_nu": case_regions_nu}
 
 
 # =========================================================================== report
@@ -341,7 +421,8 @@ def table(rows: list[dict]) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--cases", "--only", default=",".join(CASES),
+                    help="Comma-separated cases to run; the other cases' rows are kept from adapt.json.")
     ap.add_argument("--work", default="/tmp/rsl_bench_adapt", help="Folder for captures and workspaces (reused).")
     ap.add_argument("--quick", action="store_true", help="Fewer iterations and variants.")
     ap.add_argument("--report-only", action="store_true", help="Rewrite adapt.md from adapt.json; run nothing.")
@@ -411,10 +492,31 @@ def _results_paragraph(rows: list[dict]) -> list[str]:
                    f"{fmt(mv['young_rel_error_final'])}, vision {fmt(vv['young_rel_error_final'])}; mean surface "
                    f"error markers {fmt(mv['vertex_error_mean_m'])} m, vision {fmt(vv['vertex_error_mean_m'])} m. "
                    f"Plot: adapt_markers_vs_vision.png.")
-    for rg in (r for r in rows if r["name"].startswith("two regions")):
+    noisy = [r for r in rows if r.get("case") == "markers_vs_vision_noisy"]
+    if noisy:
+        out.append("- **Markers (noisy) vs vision** (the same dinosaur push, same simulation and truth surface; 40 "
+                   "markers with Gaussian position noise of std σ per frame and axis, `rsl synth --marker-noise`; "
+                   "images from 4 cameras; w = 3; started at E_true / 4): " + "; ".join(
+                       f"{r['name'][15:]}: failed ({r['failed'].rstrip('.')})" if r.get("failed") else
+                       f"{r['name'][15:]}: E error final {fmt(r['young_rel_error_final'])}, median "
+                       f"{fmt(r['young_rel_error_median'])}, vertex error vs the truth surface mean "
+                       f"{fmt(r['vertex_error_mean_m'])} m (second half {fmt(r.get('vertex_error_last_half_m'))} m)"
+                       for r in noisy) + ". Plot: adapt_markers_vs_vision_noisy.png.")
+    for rg in (r for r in rows if r["name"].startswith("two regions") and r.get("case") == "regions"):
         out.append(f"- **Two regions** (E 1e5 and 3e5 Pa, {rg['name'].split(', ')[-1]}): median error over the last "
                    f"8 frames per region {fmt(rg.get('young_rel_error_last8_per_region'))} (target < 0.10). "
                    f"Plot: adapt_regions.png.")
+    nu = [r for r in rows if r.get("case") == "regions_nu"]
+    if nu:
+        out.append("- **Two regions, ν fitted: frames / iterations / lr_ν** (ν starts at the truth 0.45 unless "
+                   "ν₀ says otherwise; per region: median |E error| over the last 8 frames / at the last frame / "
+                   "worst over the second half): " + "; ".join(
+                       f"{r['name'].split('ν fitted, ', 1)[1]}: " + ", ".join(
+                           f"{k} {fmt(r['young_rel_error_last8_per_region'][k])} / "
+                           f"{fmt(r['young_rel_error_final_per_region'][k])} / "
+                           f"{fmt(r['young_rel_error_max_second_half'][k])}" for k in r["regions"])
+                       + f" (ν final {fmt([round(x, 3) for x in r['poisson_final']])})" for r in nu)
+                   + ". Plot: adapt_regions_nu.png.")
     abl = [r for r in rows if r["name"].startswith("ablation")]
     if abl:
         out.append("- **Ablations** (step capture): " + "; ".join(
@@ -435,7 +537,10 @@ def _results_paragraph(rows: list[dict]) -> list[str]:
                    f"backward {fmt(tr['backward_s'])}, render {fmt(tr['render_s'])}); full total "
                    f"{fmt(tf['total_s'])} s; physics speed-up {fmt(tr.get('physics_speedup'))}×, total "
                    f"{fmt(tr.get('total_speedup'))}× (targets: reduced ≤ 0.5 s/frame, physics ≥ 10×).")
-    out += ["", "What was measured, on what: every capture is made by `rsl synth` (noise-free frames and markers), "
+    out += ["", "What was measured, on what: every capture is made by `rsl synth` (noise-free frames; markers "
+            "noise-free except in the markers-vs-vision-noisy case, where `--marker-noise` adds i.i.d. Gaussian "
+            "noise of std 2 or 5 mm per frame and axis; the vertex error there is the symmetric surface distance "
+            "of the adapted surface to the noise-free truth surface, never to the markers), "
             "the workspace mesh is the tet mesh the capture was simulated on (so the identified E is comparable "
             "with the truth directly; the `refine` case is the exception, on purpose), online runs start from "
             "E_true / 4 (E_true / 3.3 for two regions), with Adam (lr 0.15 on log E, 0.05 on the bounded ν, "
@@ -443,9 +548,23 @@ def _results_paragraph(rows: list[dict]) -> list[str]:
             "shared with other jobs while this ran, so absolute times are noisy; ratios come from one run.",
             "",
             "Observations: (1) with ν fitted as well, E and ν trade off where the motion constrains them weakly "
-            "(the stiff region above drifts to ν ≈ 0.47 and E 20 % low); with ν known, both regions are within "
-            "1 %. (2) In these noise-free synthetic captures 40 markers pin E down better than two 64² views; "
-            "the paper's advantage of images comes from real, sparse, noisy markers. (3) The reduced-space "
+            "(the stiff region drifts to ν ≈ 0.47 and E 20 % low); with ν known, both regions are within 1 %. "
+            "Of the knobs tried (regions_nu rows), only a smaller ν learning rate (0.01) brings both regions "
+            "within 10 % over the last 8 frames (40 frames: body 1.4 %, stiff 5.8 %; 80 frames: 3.9 %, 9.7 %) — "
+            "but that is because ν starts at the true 0.45 (capture.toml) and a small rate keeps it there: "
+            "started at ν = 0.40, ν stays near 0.41–0.44 and E ends 11 %/24 % off (lr_ν 0.05) or 18 %/45 % off "
+            "(lr_ν 0.01). 4 Adam steps per frame make the estimate jumpier (last-frame errors up to 26 %) and "
+            "80 frames of the same cable motion do not help (stiff 23 % at lr_ν 0.05). This motion does not "
+            "identify ν; fix ν (or give its true value) when E per region matters. (2) In the noise-free "
+            "captures 40 markers pin E down better than two 64² views. With realistic marker noise (2 and 5 mm) "
+            "and a fairer camera setup (4 cameras at 96² or 128²) markers still win here, on E (final 1.7–3.7 %, "
+            "median 3.6–4.1 % vs vision 5.8–6.6 % final, 14–17 % median; vision wanders 77–95 % of E_true in "
+            "mid-sequence) and on the surface (0.21–0.29 mm vs 1.07–1.09 mm over the second half): i.i.d. noise "
+            "averages out over 40 markers × 3 window frames, and our vision loss is limited by the Gaussian "
+            "appearance model (PSNR ≈ 30 dB). So the paper's result (vision 0.026 m vs markers 0.052 m) is not "
+            "reproduced in simulation; real markers also carry systematic errors (offset from the surface, "
+            "slip, occlusion gaps) that i.i.d. noise does not model. 4 cameras at 128² with 4000 Gaussians "
+            "failed (Newton did not converge in the window simulation at frame 2). (3) The reduced-space "
             "time per frame is dominated by rendering (4 cameras × 3 window frames, forward + backward on the "
             "CPU rasterizer); the physics alone is 0.07 s/frame, ~38× faster than full space."]
     return out

@@ -70,6 +70,9 @@ class SynthConfig:
     Young's modulus E."""
     markers: int = 40
     """Number of surface markers followed through the simulation (markers.csv); 0 = none."""
+    marker_noise: float = 0.0
+    """Standard deviation (m) of Gaussian noise added to the marker positions in markers.csv (each frame, each
+    axis, independently; seeded), e.g. 0.002 for motion-capture markers wobbling on soft skin."""
     seed: int = 0
     """Seed of every random choice (markers, texture, board poses, backgrounds, noise)."""
     size: float = 0.2
@@ -438,8 +441,8 @@ def _check_config(c: SynthConfig) -> None:
         raise RslError("--young, --fps and --density should be positive.")
     if not c.amplitude > 0:
         raise RslError(f"--amplitude should be positive, found {c.amplitude}.")
-    if c.markers < 0 or c.calib_views < 0 or c.noise < 0:
-        raise RslError("--markers, --calib-views and --noise should not be negative.")
+    if c.markers < 0 or c.calib_views < 0 or c.noise < 0 or c.marker_noise < 0:
+        raise RslError("--markers, --calib-views, --noise and --marker-noise should not be negative.")
 
 
 def _check_out(out: Path, overwrite: bool) -> None:
@@ -578,7 +581,10 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, art: MeshArtefac
     if c.markers:
         fi, bary = sample_surface_points(mesh.vertices, mesh.faces, c.markers, rng)
         tri = mesh.faces[fi]  # (M, 3)
-        write_markers(root / "markers.csv", np.einsum("mk,tmkd->tmd", bary, X[:, tri]))
+        pts = np.einsum("mk,tmkd->tmd", bary, X[:, tri])
+        if c.marker_noise > 0:  # own stream: the other random choices stay those of the noise-free capture
+            pts = pts + np.random.default_rng([c.seed, 11]).normal(0.0, c.marker_noise, pts.shape)
+        write_markers(root / "markers.csv", pts)
 
     young_all = young.ravel()
     toml = {

@@ -252,3 +252,25 @@ def test_same_seed_gives_identical_captures(box_mesh, tmp_path):
         if rel.name == "capture.toml":  # names the output folder
             continue
         assert (outs[0] / rel).read_bytes() == (outs[1] / rel).read_bytes(), rel
+
+
+def test_marker_noise_perturbs_only_the_markers(box_mesh, tmp_path):
+    """--marker-noise M adds seeded N(0, M²) noise to markers.csv; frames and truth stay those of M = 0."""
+    import tomllib
+
+    clean = run(SynthConfig(mesh=box_mesh, out=tmp_path / "clean", scenario="push", cameras=1, frames=3,
+                            resolution=32, markers=50, calib_views=0, seed=2))
+    noisy = tmp_path / "noisy"
+    proc = run_rsl("synth", box_mesh, noisy, "--scenario", "push", "--cameras", "1", "--frames", "3",
+                   "--resolution", "32", "--markers", "50", "--calib-views", "0", "--seed", "2",
+                   "--marker-noise", "0.003")
+    assert proc.returncode == 0, proc.stderr
+    d = load_capture(noisy).markers() - load_capture(clean).markers()
+    assert d.shape == (3, 50, 3)
+    assert abs(d.mean()) < 1e-3 and 0.0025 < d.std() < 0.0035
+    assert tomllib.loads((noisy / "capture.toml").read_text())["synth"]["marker_noise"] == 0.003
+    assert tomllib.loads((clean / "capture.toml").read_text())["synth"]["marker_noise"] == 0.0
+    for rel in ("frames/cam0/000002.png", "truth/surface.npz"):
+        assert (clean / rel).read_bytes() == (noisy / rel).read_bytes(), rel
+    with pytest.raises(RslError, match="--marker-noise"):
+        run(SynthConfig(mesh=box_mesh, out=tmp_path / "bad", marker_noise=-1.0))

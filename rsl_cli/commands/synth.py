@@ -32,6 +32,7 @@ def register(app: typer.Typer) -> None:
         poisson: float = opt(SynthConfig, "poisson"),
         region: str = opt(SynthConfig, "region", "--region", "--region-young"),
         markers: int = opt(SynthConfig, "markers"),
+        marker_noise: float = opt(SynthConfig, "marker_noise"),
         seed: int = opt(SynthConfig, "seed"),
         size: float = opt(SynthConfig, "size"),
         density: float = opt(SynthConfig, "density"),
@@ -48,7 +49,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         run(SynthConfig(mesh=mesh, out=out, scenario=scenario, amplitude=amplitude, cameras=cameras,
                         frames=frames, resolution=resolution, fps=fps, young=young, young_schedule=young_schedule,
-                        ramp=ramp, poisson=poisson, region=region, markers=markers, seed=seed, size=size,
+                        ramp=ramp, poisson=poisson, region=region, markers=markers,
+                        marker_noise=marker_noise, seed=seed, size=size,
                         density=density, model=model, edge_length=edge_length, max_tets=max_tets,
                         elevation=elevation, calib_views=calib_views, board=board, noise=noise,
                         supersample=supersample, newton_iterations=newton_iterations, overwrite=overwrite),
