@@ -13,7 +13,6 @@ import datetime
 import json
 import os
 import platform
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -34,20 +33,11 @@ from stages.sim.meshgen import box_tets, mesh_artefact  # noqa: E402
 from stages.sim.scene import (_cache, _region_lame, _vertex_terms, frame_inputs, make_scene, simulate,  # noqa: E402
                               step, window_adjoint)
 
+from _timing import median_times  # noqa: E402  (bench/ is on sys.path)
+
 CASES = {"bar-1k": (30, 5, 5), "bar-3k": (40, 8, 8), "bar-5k": (60, 9, 8)}
 QUICK = {"bar-0.3k": (16, 4, 3)}
 YOUNG, POISSON, DENSITY = 1.0e5, 0.45, 1000.0
-
-
-def median_times(fn, repeats: int) -> tuple[float, float]:
-    """(median wall seconds, median CPU seconds of this process) over ``repeats`` runs."""
-    ts, cs = [], []
-    for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        ts.append(time.perf_counter() - t0)
-        cs.append(time.process_time() - c0)
-    return statistics.median(ts), statistics.median(cs)
 
 
 def median_time(fn, repeats: int) -> float:

@@ -24,9 +24,7 @@ import datetime
 import json
 import os
 import platform
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +41,8 @@ from stages.render.gaussians import BoundGaussians, color_to_sh0  # noqa: E402
 from stages.render.projection import project_gaussians  # noqa: E402
 from stages.render.rasterize import tile_stats  # noqa: E402
 from stages.sim.mesh import rest_quantities  # noqa: E402
+
+from _timing import median_times  # noqa: E402  (bench/ is on sys.path)
 
 CASES = [(5000, 128), (5000, 256), (20000, 128), (20000, 256)]
 QUICK = [(2000, 64)]
@@ -84,18 +84,6 @@ def gaussians(mesh: MeshArtefact, n: int) -> BoundGaussians:
     return BoundGaussians.from_artefact(art, mesh)
 
 
-def median_times(fn, repeats: int) -> tuple[float, float]:
-    """(median wall s, median CPU s of this process) over ``repeats`` runs after one warm-up."""
-    fn()
-    ts, cs = [], []
-    for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        ts.append(time.perf_counter() - t0)
-        cs.append(time.process_time() - c0)
-    return statistics.median(ts), statistics.median(cs)
-
-
 def run_case(mesh: MeshArtefact, n: int, size: int, repeats: int) -> dict:
     g = gaussians(mesh, n)
     cam = camera(size)
@@ -120,15 +108,15 @@ def run_case(mesh: MeshArtefact, n: int, size: int, repeats: int) -> dict:
     coverage = float((img - g.background).abs().sum(-1).gt(1e-3).float().mean())
     out = {"gaussians": n, "resolution": size, "tile_pairs": st["pairs"], "max_per_tile": st["max_per_tile"],
            "coverage": round(coverage, 3)}
-    out["fast_fwd_s"], out["fast_fwd_cpu_s"] = median_times(fwd("fast"), repeats)
-    out["fast_fwd_bwd_s"], out["fast_fwd_bwd_cpu_s"] = median_times(fwd_bwd("fast"), repeats)
+    out["fast_fwd_s"], out["fast_fwd_cpu_s"] = median_times(fwd("fast"), repeats, warmup=True)
+    out["fast_fwd_bwd_s"], out["fast_fwd_bwd_cpu_s"] = median_times(fwd_bwd("fast"), repeats, warmup=True)
     threads = numba.get_num_threads()
     numba.set_num_threads(1)
-    _, out["fast_fwd_bwd_1thread_cpu_s"] = median_times(fwd_bwd("fast"), repeats)
+    _, out["fast_fwd_bwd_1thread_cpu_s"] = median_times(fwd_bwd("fast"), repeats, warmup=True)
     numba.set_num_threads(threads)
     rep_ref = max(2, repeats // 2)
-    out["reference_fwd_s"], out["reference_fwd_cpu_s"] = median_times(fwd("tiled"), rep_ref)
-    out["reference_fwd_bwd_s"], out["reference_fwd_bwd_cpu_s"] = median_times(fwd_bwd("tiled"), rep_ref)
+    out["reference_fwd_s"], out["reference_fwd_cpu_s"] = median_times(fwd("tiled"), rep_ref, warmup=True)
+    out["reference_fwd_bwd_s"], out["reference_fwd_bwd_cpu_s"] = median_times(fwd_bwd("tiled"), rep_ref, warmup=True)
     out["ratio"] = out["reference_fwd_bwd_s"] / out["fast_fwd_bwd_s"]
     out["ratio_cpu"] = out["reference_fwd_bwd_cpu_s"] / out["fast_fwd_bwd_cpu_s"]
     return out
