@@ -33,7 +33,8 @@ from stages.sim.meshgen import box_tets, mesh_artefact  # noqa: E402
 from stages.sim.scene import (_cache, _region_lame, _vertex_terms, frame_inputs, make_scene, simulate,  # noqa: E402
                               step, window_adjoint)
 
-from _timing import median_times  # noqa: E402  (bench/ is on sys.path)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/, also when imported by a test
+from _timing import median_times  # noqa: E402
 
 CASES = {"bar-1k": (30, 5, 5), "bar-3k": (40, 8, 8), "bar-5k": (60, 9, 8)}
 QUICK = {"bar-0.3k": (16, 4, 3)}

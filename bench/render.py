@@ -42,7 +42,8 @@ from stages.render.projection import project_gaussians  # noqa: E402
 from stages.render.rasterize import tile_stats  # noqa: E402
 from stages.sim.mesh import rest_quantities  # noqa: E402
 
-from _timing import median_times  # noqa: E402  (bench/ is on sys.path)
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/, also when imported by a test
+from _timing import median_times  # noqa: E402
 
 CASES = [(5000, 128), (5000, 256), (20000, 128), (20000, 256)]
 QUICK = [(2000, 64)]
