@@ -1,6 +1,6 @@
 """CPU splatting benchmark: one view, forward and forward+backward, fast (numba) vs tiled pure PyTorch.
 
-    .venv/bin/python bench/render.py [--quick] [--repeats 5]
+    .venv/bin/python bench/render.py [--quick] [--repeats 7]
 
 The scene is the sample dinosaur tet mesh (sample_data/dino) scaled to 0.2 m with Gaussians
 seeded as `rsl fit-gaussians` seeds them (denser near the surface, opacity 0.88, random
@@ -10,10 +10,12 @@ colours, rasterization, background; the backward pass goes to the vertex positio
 (float64, as adapt hands them) and every appearance parameter.  The fast path runs binding
 and projection fused in numba (stages/render/bind_project.py) and the numba tile rasterizer;
 the reference is the same render in pure PyTorch: binding and projection as torch ops and
-the tiled rasterizer of stages/render/_torch_ref.rasterize_tiled (the same tile lists, dense
-maths per tile, autograd backward); the dense reference
-(pixels × Gaussians) would hold 20K × 65K float32 ≈ 5 GB in each of its several
-intermediates at 256², so it is not a baseline here.
+the tiled rasterizer of stages/render/_torch_ref.rasterize_tiled (tile binning and sorting in
+torch ops — the same tile lists as the numba binning — then dense maths per tile, autograd
+backward).  "lean" is that rasterizer on the compiled numba binning (the baseline of earlier
+runs), reported as an extra column.  The dense reference (pixels × Gaussians) would hold
+20K × 65K float32 ≈ 5 GB in each of its several intermediates at 256², so it is not a baseline.
+For the largest case the fast view's one-thread CPU time is also split into its parts.
 
 Prints a Markdown table and writes docs/results/render.md and docs/results/render.json.
 """
@@ -24,6 +26,7 @@ import datetime
 import json
 import os
 import platform
+import statistics
 import sys
 from pathlib import Path
 
@@ -37,7 +40,10 @@ import torch  # noqa: E402
 
 from stages.artefacts import Camera, GaussiansArtefact, MeshArtefact  # noqa: E402
 from stages.fit_gaussians import seed_gaussians  # noqa: E402
-from stages.render.gaussians import BoundGaussians, color_to_sh0  # noqa: E402
+from stages.render import _torch_ref  # noqa: E402
+from stages.render import rasterize as rast  # noqa: E402
+from stages.render.bind_project import bind_project  # noqa: E402
+from stages.render.gaussians import BoundGaussians, color_to_sh0, sh_to_color  # noqa: E402
 from stages.render.projection import project_gaussians  # noqa: E402
 from stages.render.rasterize import tile_stats  # noqa: E402
 from stages.sim.mesh import rest_quantities  # noqa: E402
@@ -47,6 +53,41 @@ from _timing import median_times  # noqa: E402
 
 CASES = [(5000, 128), (5000, 256), (20000, 128), (20000, 256)]
 QUICK = [(2000, 64)]
+AB_NOTE = """Between runs on this shared machine the ratios move by about ±10 %: three earlier runs in this round
+(2026-11-22, load 4–5, kernels ≈ 5 % slower than the final ones; one run of the 20K/256² case alone with 2
+rounds) gave 21.9–24.1× (CPU) against the pure-PyTorch render at 20K/256² and 20.9–26.0× against the lean
+one, whose ratio the previous version reported as 14.2× (wall; 38.6 ms).  The small 5000/256² case stays
+below or near 20× (its fixed costs weigh more); the target is the 20K/256² view.
+
+What changed in this round, measured in separate interleaved A/B runs (2026-11-22, one numba and one
+torch thread, process CPU time, medians of 15–25 rounds, machine load ≈ 3) against the code of commit
+3a71307: the whole 20K/256² view went from 40.3 to 23.0 ms (1.76×; 1.3–2.0× over the four cases, least at
+20K/128² where binding, projection and binning weigh most); on the same tile lists the rasterizer forward
+kernel went from 11.9 to 5.2 ms (2.3×) and the backward kernel from 14.3 to 8.4 ms (1.7×), with images
+equal to 2.4·10⁻⁷, identical contribution counts and per-entry gradients within 6·10⁻⁷ (relative).
+
+* SIMD over pixels: each Gaussian updates all 16 pixels of a tile row in one branch-free loop (per-pixel
+  tests as selects) that LLVM vectorizes (16 float32 lanes with AVX-512).  numba has no vector exp here
+  (no SVML), so exp is a polynomial (Cody–Waite reduction by ln 2, Taylor of degree 7 in float32 and 11 in
+  float64, 2⁻ᵐ from its bit pattern; within 1 ulp of exp in float32, 4·10⁻¹⁵ in float64; tested).  Getting
+  numba to emit vector code took one scratch buffer with the per-pixel fields at constant offsets, unsigned
+  indices, a runtime trip count, no int64 values inside the loop, and the per-tile work in serial njit
+  functions called from the prange (inside the parfor body the same loops stay scalar) — noted in
+  rasterize.py.  The exact per-row spans of the previous kernels are gone (a whole row costs what a span
+  did); the backward pass still skips rows the ellipse misses, the forward pass no longer does (the test's
+  branch cost more than the rows it saved).
+* Backward: per pixel one loss-weighted sum of the colour behind, B, with
+  ∂L/∂αᵢ = Tᵢ (∂L/∂C · cᵢ) + (∂L/∂A · T_final − B)/(1 − αᵢ), instead of the seven per-pixel fields of the
+  recursive form (≈ 10 % of the backward kernel); per-lane gradient sums reduced once per (tile, Gaussian),
+  not once per row, and not at all for pairs whose rows are all skipped (≈ 5 %).
+* Depth order: one numpy sort of packed (float32 depth bits, index) keys instead of a stable argsort
+  (1.3 → 0.3 ms at 20K; the same permutation, tested); per-entry gradients kept in float32 (the kernel sums
+  in float32) and scattered straight into the Gaussians' order.
+* Fused binding + projection: the backward pass reuses the forward's seven exps (bit-identical values;
+  its kernel 3.6 → 3.0 ms at 20K).
+
+Binding and projection are now the second-largest part (above); their numba kernels are still scalar per
+Gaussian, which is where the next gain would be."""
 
 
 def dino_mesh() -> MeshArtefact:
@@ -109,33 +150,120 @@ def run_case(mesh: MeshArtefact, n: int, size: int, repeats: int) -> dict:
     coverage = float((img - g.background).abs().sum(-1).gt(1e-3).float().mean())
     out = {"gaussians": n, "resolution": size, "tile_pairs": st["pairs"], "max_per_tile": st["max_per_tile"],
            "coverage": round(coverage, 3)}
-    out["fast_fwd_s"], out["fast_fwd_cpu_s"] = median_times(fwd("fast"), repeats, warmup=True)
-    out["fast_fwd_bwd_s"], out["fast_fwd_bwd_cpu_s"] = median_times(fwd_bwd("fast"), repeats, warmup=True)
+    # Interleaved: every round times each variant once (the fast ones 3 times), so load from other
+    # processes falls on all of them alike; medians over the rounds.
     threads = numba.get_num_threads()
-    numba.set_num_threads(1)
-    _, out["fast_fwd_bwd_1thread_cpu_s"] = median_times(fwd_bwd("fast"), repeats, warmup=True)
-    numba.set_num_threads(threads)
-    rep_ref = max(2, repeats // 2)
-    out["reference_fwd_s"], out["reference_fwd_cpu_s"] = median_times(fwd("tiled"), rep_ref, warmup=True)
-    out["reference_fwd_bwd_s"], out["reference_fwd_bwd_cpu_s"] = median_times(fwd_bwd("tiled"), rep_ref, warmup=True)
+
+    def one_thread(f):
+        def g1():
+            numba.set_num_threads(1)
+            try:
+                f()
+            finally:
+                numba.set_num_threads(threads)
+        return g1
+
+    runs = {"fast_fwd": (fwd("fast"), 3), "fast_fwd_bwd": (fwd_bwd("fast"), 3),
+            "fast_fwd_bwd_1thread": (one_thread(fwd_bwd("fast")), 3), "reference_fwd": (fwd("tiled"), 1),
+            "reference_fwd_bwd": (fwd_bwd("tiled"), 1), "lean_fwd_bwd": (fwd_bwd("tiled_lean"), 1)}
+    wall = {k: [] for k in runs}
+    cpu = {k: [] for k in runs}
+    for f, _ in runs.values():
+        f()  # warm-up (and compilation)
+    for _ in range(repeats):
+        for k, (f, times) in runs.items():
+            for _ in range(times):
+                w, c = median_times(f, 1)
+                wall[k].append(w)
+                cpu[k].append(c)
+    for k in runs:
+        out[k + "_s"] = statistics.median(wall[k])
+        out[k + "_cpu_s"] = statistics.median(cpu[k])
     out["ratio"] = out["reference_fwd_bwd_s"] / out["fast_fwd_bwd_s"]
     out["ratio_cpu"] = out["reference_fwd_bwd_cpu_s"] / out["fast_fwd_bwd_cpu_s"]
+    out["ratio_lean"] = out["lean_fwd_bwd_s"] / out["fast_fwd_bwd_s"]
+    out["ratio_lean_cpu"] = out["lean_fwd_bwd_cpu_s"] / out["fast_fwd_bwd_cpu_s"]
     return out
+
+
+def split(mesh: MeshArtefact, n: int, size: int, repeats: int) -> dict:
+    """One-thread CPU ms of the fast view's parts (numba pinned to one thread; medians of warm runs)."""
+    g = gaussians(mesh, n)
+    cam = g.camera(camera(size))
+    x = torch.as_tensor(mesh.vertices)
+    target = torch.rand(size, size, 3, generator=torch.Generator().manual_seed(1))
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    cpu = lambda f: median_times(f, repeats, warmup=True)[1] * 1e3  # noqa: E731
+
+    def whole():
+        xr = x.clone().requires_grad_(True)
+        g.zero_grad(set_to_none=True)
+        (g.render(xr, cam).image - target).abs().sum().backward()
+
+    def project():
+        xr = x.clone().requires_grad_(True)
+        m, c, _, _ = bind_project(xr, g.bary_logits, g.log_scales, g.rotations, g.host_vertices, g.dm_inv, cam)
+        (m.sum() + c.sum()).backward()
+
+    with torch.no_grad():
+        m2d, con, dep, vis = bind_project(x, g.bary_logits, g.log_scales, g.rotations, g.host_vertices, g.dm_inv, cam)
+        col, op = sh_to_color(g.sh, None), g.opacities()
+    gd = rast._pack(m2d, con, col, op)
+    dn, vn = dep.numpy(), vis.numpy()
+    ext = (gd[:, 9].astype(np.float64), gd[:, 10].astype(np.float64))
+
+    def binning():
+        gdp = rast._pack(m2d, con, col, op)
+        e = (gdp[:, 9].astype(np.float64), gdp[:, 10].astype(np.float64))
+        ts, _, order = rast._bin_ranked(gdp[:, 0:2], gdp[:, 2:5], gdp[:, 5], dn, vn, size, size, e, True)
+        rast._schedule(ts, 1)
+        return np.ascontiguousarray(gdp[order])
+
+    ts, ent, order = rast._bin_ranked(gd[:, 0:2], gd[:, 2:5], gd[:, 5], dn, vn, size, size, ext, True)
+    gd = np.ascontiguousarray(gd[order])
+    to, bs = rast._schedule(ts, 1)
+    ec = rast.exp_coefficients(gd.dtype)
+    c, a = np.empty((size, size, 3), gd.dtype), np.empty((size, size), gd.dtype)
+    tf, nc = np.empty((size, size), gd.dtype), np.empty((size, size), np.int32)
+    gc = np.random.default_rng(0).normal(size=(size, size, 3)).astype(gd.dtype)
+    ga = np.random.default_rng(1).normal(size=(size, size)).astype(gd.dtype)
+    ge = np.empty((ent.shape[0], 9))
+    parts = {"whole view": cpu(whole), "binding + projection fwd+bwd (numba)": cpu(project),
+             "packing, depth sort, binning, scheduling": cpu(binning),
+             "rasterizer forward kernel": cpu(lambda: rast._forward(gd, ts, ent, to, bs, size, size, rast.TILE, ec,
+                                                                    c, a, tf, nc)),
+             "rasterizer backward kernel": cpu(lambda: rast._backward(gd, ts, ent, to, bs, size, size, rast.TILE, ec,
+                                                                      tf, nc, gc, ga, ge))}
+    parts["the rest (colours, loss, autograd, copies)"] = parts["whole view"] - sum(
+        v for k, v in parts.items() if k != "whole view")
+    numba.set_num_threads(threads)
+    # the two baselines differ only in their binning: its cost in torch ops and in numba
+    with torch.no_grad():
+        pm, pc, pd, pv, _ = g.project(x, cam, fused=False)
+    f = lambda t: t.detach().numpy()  # noqa: E731
+    binning_ms = {"torch": cpu(lambda: _torch_ref.bin_gaussians_torch(pm, pc, op, pd, pv, size, size)),
+                  "numba": cpu(lambda: rast.bin_gaussians(f(pm), f(pc), f(op), f(pd), f(pv), size, size))}
+    return parts, binning_ms
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one tiny case (a smoke run)")
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=7, help="rounds of the interleaved timing")
     args = ap.parse_args()
     torch.set_num_threads(1)  # see the note in the results: torch's pool only waits on a shared machine
     mesh = dino_mesh()
+    load_start = os.getloadavg()[0]
+    repeats = args.repeats
     cases = []
     for n, size in QUICK if args.quick else CASES:
         c = run_case(mesh, n, size, args.repeats)
         cases.append(c)
         print(f"  {n} Gaussians {size}²: fast {c['fast_fwd_bwd_s'] * 1e3:.1f} ms, "
-              f"reference {c['reference_fwd_bwd_s'] * 1e3:.0f} ms", file=sys.stderr)
+              f"reference {c['reference_fwd_bwd_s'] * 1e3:.0f} ms, lean {c['lean_fwd_bwd_s'] * 1e3:.0f} ms",
+              file=sys.stderr)
+    parts, binning_ms = split(mesh, *(QUICK[0] if args.quick else CASES[-1]), max(args.repeats, 7))
     load = os.getloadavg()[0]
     machine = (f"{platform.node() or 'vm'} {platform.machine()} {os.cpu_count()} cores, "
                f"numba {numba.__version__} ({numba.threading_layer()} layer, {numba.get_num_threads()} threads), "
@@ -143,21 +271,33 @@ def main() -> None:
     date = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     rows = ["| Gaussians | resolution | tile pairs | fast fwd (ms) | fast fwd+bwd (ms) | fast fwd+bwd CPU (ms) "
             "| fast fwd+bwd 1 thread CPU (ms) | reference fwd (ms) | reference fwd+bwd (ms) | ratio (wall) "
-            "| ratio (CPU) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|"]
+            "| ratio (CPU) | lean fwd+bwd (ms) | ratio vs lean (wall) | ratio vs lean (CPU) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in cases:
         rows.append(f"| {c['gaussians']} | {c['resolution']}² | {c['tile_pairs']} | {c['fast_fwd_s'] * 1e3:.1f} "
                     f"| {c['fast_fwd_bwd_s'] * 1e3:.1f} | {c['fast_fwd_bwd_cpu_s'] * 1e3:.1f} "
                     f"| {c['fast_fwd_bwd_1thread_cpu_s'] * 1e3:.1f} | {c['reference_fwd_s'] * 1e3:.0f} "
-                    f"| {c['reference_fwd_bwd_s'] * 1e3:.0f} | {c['ratio']:.1f} | {c['ratio_cpu']:.1f} |")
+                    f"| {c['reference_fwd_bwd_s'] * 1e3:.0f} | {c['ratio']:.1f} | {c['ratio_cpu']:.1f} "
+                    f"| {c['lean_fwd_bwd_s'] * 1e3:.0f} | {c['ratio_lean']:.1f} | {c['ratio_lean_cpu']:.1f} |")
     table = "\n".join(rows)
     print(table)
+    whole = parts["whole view"]
+    split_rows = ["| part (fast view, one numba thread) | CPU (ms) | share |", "|---|---|---|"]
+    split_rows += [f"| {k} | {v:.1f} | {100 * v / whole:.0f} % |" for k, v in parts.items()]
+    split_table = "\n".join(split_rows)
+    print(split_table)
     if args.quick:
         return
     big = next(c for c in cases if c["gaussians"] == 20000 and c["resolution"] == 256)
+    lean_note = ("the lean baseline's ratio also clears 20×" if big["ratio_lean"] >= 20
+                 else "against the lean baseline the ratio is below 20×")
+    ref_wait = big["reference_fwd_bwd_s"] / big["reference_fwd_bwd_cpu_s"]
+    wait_note = (f"This run was loaded and the CPU ratio is the fair one: the long reference runs waited for a "
+                 f"core (wall {ref_wait:.2f}× their CPU time)." if ref_wait > 1.1 else
+                 f"This run saw little contention (the reference's wall time was {ref_wait:.2f}× its CPU time).")
     text = f"""# CPU Gaussian splatting (bench/render.py)
 
-Machine: {machine}; {date}.
+Machine: {machine} (at the start: {load_start:.1f}); {date}.
 
 One view of the sample dinosaur (sample_data/dino, 256 vertices, scaled to 0.2 m) with N Gaussians seeded
 as `rsl fit-gaussians` seeds them (host tets ∝ volume, 4× denser at the surface, opacity 0.88, random
@@ -165,15 +305,19 @@ colours), filling about {big['coverage'] * 100:.0f} % of the image.  "fwd" is th
 adapt stage runs — centres and F Σ Fᵀ from the vertex positions, EWA projection, colours, rasterization,
 background — and "fwd+bwd" adds an L1 loss and the backward pass to the float64 vertex positions and all
 appearance parameters.  "fast" runs binding and projection fused in numba (stages/render/bind_project.py)
-and the numba tile rasterizer (stages/render/rasterize.py), 2 threads; the reference is the same render in
-pure PyTorch: binding and projection as torch ops (the twin the tests hold bind_project.py to) and the tiled
-rasterizer (stages/render/_torch_ref.py: same tile lists, dense maths per 16×16 tile, autograd backward;
-the dense pixels × Gaussians twin would hold ≈5 GB in each of several intermediates at 20K/256² and is
-kept for the tests).  Times are medians of several warm runs; the ratio
-is reference over fast, measured in the same run.  CPU columns are process CPU time (all threads): this
+and the numba tile rasterizer (stages/render/rasterize.py), 2 threads.  The **reference** is the same render
+entirely in PyTorch: binding and projection as torch ops (the twin the tests hold bind_project.py to) and
+the tiled rasterizer of stages/render/_torch_ref.py — tile binning in torch ops (footprint boxes →
+(tile, depth rank) keys → sort → per-tile ranges; the tests hold its lists equal to the numba binning's),
+then dense maths per 16×16 tile over the tile's list and an autograd backward.  **Lean** is that rasterizer
+on the compiled numba binning (the reference of earlier runs of this benchmark), kept as an extra column.
+The dense pixels × Gaussians twin would hold ≈5 GB in each of several intermediates at 20K/256² and is
+kept for the tests.  Timing is interleaved: each of {repeats} rounds runs every variant once (the fast ones
+three times), so load from other jobs falls on all alike; the table gives medians, and the ratios are
+reference (or lean) over fast from the same run.  CPU columns are process CPU time (all threads): this
 machine's 2 cores are shared with other jobs (see the load above), so wall times are pessimistic and
 "1 thread CPU" — the fast path pinned to one numba thread — is the contention-free cost on one core.
-Torch runs with one intra-op thread for both variants: on this loaded machine each multi-threaded
+Torch runs with one intra-op thread for every variant: on this loaded machine each multi-threaded
 torch op waits for a second thread to be scheduled (measured: the same 30-iteration `fit-gaussians` run
 took 56 s wall with 2 torch threads against 12 s with 1), and `rsl fit-gaussians` sets the same.
 
@@ -181,24 +325,31 @@ took 56 s wall with 2 torch threads against 12 s with 1), and `rsl fit-gaussians
 
 Result: forward+backward of one 256² view of 20K Gaussians took {big['fast_fwd_bwd_s'] * 1e3:.0f} ms wall
 ({big['fast_fwd_bwd_1thread_cpu_s'] * 1e3:.0f} ms of CPU on one thread) against
-{big['reference_fwd_bwd_s'] * 1e3:.0f} ms for the pure-PyTorch render, {big['ratio']:.0f}× faster
-in wall time ({big['ratio_cpu']:.0f}× in CPU time).  Targets: ≤ 100 ms (met) and ≥ 20× ({"met" if big['ratio'] >= 20
-else "not met"}).  Our tiled PyTorch baseline is itself lean (it reuses the compiled binning and works only on
-each tile's list), so the ratio is smaller than against a tiled torch rasterizer that bins in torch; at one
-thread the fast view splits roughly into rasterizer backward ≈ 40 %, forward ≈ 30 %, binning, sorting and
-packing ≈ 10 %, fused projection and the remaining torch ops ≈ 20 %.  The rasterizer kernels already spend
-only ≈ 7 ns per evaluated (pixel, Gaussian) pair in scalar code (exp, blend, early-out tests); the last round
-(exact per-row ellipse spans instead of footprint boxes, precomputed thresholds, depth-ordered packing,
-tile-local copies in the backward pass, float32 accumulators, fastmath) cut about 8–10 % of the one-thread
-CPU time in an interleaved A/B run against the previous kernels, and dealing tiles to the two threads in
-blocks of equal work (prange had put ≈ 64 % of the tile pairs on one thread) helps the wall time only when
-the second core is free.  On this shared 2-core machine the wall ratio therefore depends on the load;
-further gains would need SIMD over pixels.
+{big['reference_fwd_bwd_s'] * 1e3:.0f} ms for the pure-PyTorch render: {big['ratio']:.1f}× in wall time,
+{big['ratio_cpu']:.1f}× in CPU time.  Against the lean baseline ({big['lean_fwd_bwd_s'] * 1e3:.0f} ms) the
+ratios are {big['ratio_lean']:.1f}× (wall) and {big['ratio_lean_cpu']:.1f}× (CPU).  Targets: ≤ 100 ms
+({"met" if big['fast_fwd_bwd_s'] <= 0.1 else "not met"}) and ≥ 20× against the pure-PyTorch render
+({"met" if min(big['ratio'], big['ratio_cpu']) >= 20 else "not met"} in both columns); {lean_note}.  {wait_note}
+The fast view's wall time was {big['fast_fwd_bwd_s'] / big['fast_fwd_bwd_1thread_cpu_s']:.2f}× its one-thread
+CPU time: the second numba thread only helps when the second core is free.  The two baselines differ only in their
+binning, which costs {binning_ms['torch']:.1f} ms in torch ops and {binning_ms['numba']:.1f} ms in numba at
+20K/256² (one-thread CPU) against ≈ {big['reference_fwd_bwd_cpu_s'] * 1e3:.0f} ms for the whole reference
+view, so they are within noise of each other: the per-tile dense maths and autograd dominate.  (The issue
+quoted 0.6–3.6 s and 3 GB for a tiled PyTorch rasterizer; ours is leaner than that, which keeps the
+ratio honest rather than large.)
+
+One-thread CPU split of the fast 20K/256² view (numba pinned to one thread; each part timed on its own,
+"the rest" is the whole minus the parts):
+
+{split_table}
+
+{AB_NOTE}
 """
     out = ROOT / "docs" / "results"
     out.mkdir(parents=True, exist_ok=True)
     (out / "render.md").write_text(text)
-    (out / "render.json").write_text(json.dumps({"machine": machine, "date": date, "cases": cases}, indent=1))
+    (out / "render.json").write_text(json.dumps({"machine": machine, "date": date, "cases": cases,
+                                                 "split_cpu_ms": parts, "binning_cpu_ms": binning_ms}, indent=1))
     print(f"wrote {out / 'render.md'} and {out / 'render.json'}", file=sys.stderr)
 
 

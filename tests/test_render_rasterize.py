@@ -1,11 +1,17 @@
 """The numba rasterizer against its dense PyTorch twin, forward and backward, and gradchecks."""
 from __future__ import annotations
 
+import math
+
+import numba as nb
+import numpy as np
 import pytest
 import torch
 
-from stages.render._torch_ref import rasterize_dense, rasterize_tiled
-from stages.render.rasterize import ALPHA_MAX, bin_gaussians, rasterize
+from stages.render._torch_ref import (bin_gaussians_torch, footprint_extent_torch, rasterize_dense, rasterize_tiled,
+                                      rasterize_tiled_lean)
+from stages.render.rasterize import (ALPHA_MAX, EXP_LO, _exp_neg, bin_gaussians, depth_order, exp_coefficients,
+                                     footprint_extent, rasterize)
 
 GRADCHECK_KWARGS = dict(eps=1e-6, atol=1e-5, rtol=1e-4)
 """Tolerances of torch.autograd.gradcheck in float64."""
@@ -65,12 +71,13 @@ def test_fast_matches_dense(n, width, height, seed, dtype):
             assert float((a - b).abs().max()) <= FP32_REL * float(b.abs().max()) + 1e-7
 
 
-def test_tiled_reference_matches_dense():
+@pytest.mark.parametrize("fn", [rasterize_tiled, rasterize_tiled_lean], ids=["torch-binning", "numba-binning"])
+def test_tiled_reference_matches_dense(fn):
     scene = random_scene(500, 70, 50, 5, torch.float64)
     gen = torch.Generator().manual_seed(9)
     g_col = torch.randn(50, 70, 3, generator=gen, dtype=torch.float64)
     g_alpha = torch.randn(50, 70, generator=gen, dtype=torch.float64)
-    ct, at, gt = _grads(rasterize_tiled, scene, 70, 50, g_col, g_alpha)
+    ct, at, gt = _grads(fn, scene, 70, 50, g_col, g_alpha)
     cd, ad, gd = _grads(rasterize_dense, scene, 70, 50, g_col, g_alpha)
     torch.testing.assert_close(ct, cd)
     torch.testing.assert_close(at, ad)
@@ -158,3 +165,61 @@ def test_backward_is_deterministic():
     b = _grads(rasterize, scene, 96, 96, g, torch.zeros(96, 96))[2]
     for x, y in zip(a, b):
         assert torch.equal(x, y)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("n,width,height,seed",
+                         [(400, 96, 64, 11), (1500, 80, 64, 2), (300, 37, 29, 6), (0, 32, 32, 0)])
+def test_torch_binning_lists_exactly_what_numba_lists(n, width, height, seed, dtype):
+    """bin_gaussians_torch (the pure-PyTorch baseline's binning) = rasterize.bin_gaussians, list for list."""
+    scene = random_scene(max(n, 1), width, height, seed, dtype, spread=0.5)
+    if n == 0:
+        scene = tuple(x[:0] for x in scene)
+    m, c, col, o, d, v = scene
+    o = o.clone()
+    if n:
+        o[: n // 20] = 0.003  # below 1/255: no footprint, listed nowhere
+        m = m.clone()
+        m[n // 20: n // 10] += 1e7  # far off-screen but finite
+    ts_n, e_n = bin_gaussians(m.numpy(), c.numpy(), o.numpy(), d.numpy(), v.numpy(), width, height)
+    ts_t, e_t = bin_gaussians_torch(m, c, o, d, v, width, height)
+    assert np.array_equal(ts_t.numpy(), ts_n) and np.array_equal(e_t.numpy(), e_n)
+    if n:
+        assert len(e_n) > n // 2  # the scene is not trivially empty
+    rx_n, ry_n = footprint_extent(c.numpy(), o.numpy())
+    rx_t, ry_t = footprint_extent_torch(c, o)
+    np.testing.assert_allclose(rx_t.numpy(), rx_n, rtol=1e-14)
+    np.testing.assert_allclose(ry_t.numpy(), ry_n, rtol=1e-14)
+
+
+@nb.njit(cache=True)
+def _exp_neg_all(xs, coef):
+    out = np.empty_like(xs)
+    for i in range(xs.shape[0]):
+        out[i] = _exp_neg(xs[i], coef)
+    return out
+
+
+@pytest.mark.parametrize("dtype,tol", [(np.float32, 3e-7), (np.float64, 1e-14)])
+def test_vector_exp_matches_math_exp(dtype, tol):
+    """The kernels' polynomial exp, relative to exp in float64, over [EXP_LO, 0]; clamped outside."""
+    xs = np.concatenate([np.linspace(EXP_LO, 0.0, 20001), -np.random.default_rng(0).uniform(0, -EXP_LO, 5000),
+                         [-math.log(2) * k for k in range(24)]]).astype(dtype)
+    got = _exp_neg_all(xs, exp_coefficients(dtype))
+    ref = np.exp(xs.astype(np.float64))
+    assert np.max(np.abs(got - ref) / ref) < tol
+    edge = _exp_neg_all(np.array([1.0, 5.0, EXP_LO - 3.0], dtype), exp_coefficients(dtype))
+    np.testing.assert_allclose(edge.astype(np.float64), [1.0, 1.0, math.exp(EXP_LO)], rtol=tol)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_depth_order_is_the_stable_argsort(dtype):
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=5000).astype(dtype)
+    d[::7] = d[3]  # ties
+    d[1::11] = 0.0
+    d[2::13] = -0.0
+    d[5] = np.inf
+    d[6] = -np.inf
+    idx = np.sort(rng.choice(5000, 4000, replace=False))
+    np.testing.assert_array_equal(depth_order(d, idx), idx[np.argsort(d[idx], kind="stable")])

@@ -63,15 +63,27 @@ def _rotmat(q0, q1, q2, q3, R):  # pragma: no cover - compiled
 
 
 @nb.njit(inline="always")
-def _geometry(g, x, hv, dm_inv, bl, ls, rot, beta, P, Ds, F, Rq, sc, RS, M):  # pragma: no cover
-    """Fill β, corners P, D_s, F, R(q), s, R S, M = F R S for Gaussian g; returns (μ, |q|, q̂)."""
-    mx = bl[g, 0]
-    for k in range(1, 4):
-        mx = max(mx, bl[g, k])
-    sb = 0.0
-    for k in range(4):
-        beta[k] = math.exp(bl[g, k] - mx)
-        sb += beta[k]
+def _geometry(g, x, hv, dm_inv, bl, ls, rot, beta, P, Ds, F, Rq, sc, RS, M, cache, reuse):  # pragma: no cover
+    """Fill β, corners P, D_s, F, R(q), s, R S, M = F R S for Gaussian g; returns (μ, |q|, q̂).
+
+    ``cache`` (G, 8) holds exp(bary_logits − max) (0..3), exp(log_scales) (4..6) and their softmax sum
+    (7) per Gaussian: written when ``reuse`` is False (the forward pass), read when True (the backward
+    pass skips the 7 exps; the values are the very same floats, so both passes see identical geometry).
+    """
+    if reuse:
+        sb = cache[g, 7]
+        for k in range(4):
+            beta[k] = cache[g, k]
+    else:
+        mx = bl[g, 0]
+        for k in range(1, 4):
+            mx = max(mx, bl[g, k])
+        sb = 0.0
+        for k in range(4):
+            beta[k] = math.exp(bl[g, k] - mx)
+            cache[g, k] = beta[k]
+            sb += beta[k]
+        cache[g, 7] = sb
     m0 = 0.0
     m1 = 0.0
     m2 = 0.0
@@ -90,7 +102,11 @@ def _geometry(g, x, hv, dm_inv, bl, ls, rot, beta, P, Ds, F, Rq, sc, RS, M):  # 
     _mm(Ds, dm_inv[g], F)
     qn, qw, qx, qy, qz = _rotmat(rot[g, 0], rot[g, 1], rot[g, 2], rot[g, 3], Rq)
     for j in range(3):
-        sc[j] = math.exp(ls[g, j])
+        if reuse:
+            sc[j] = cache[g, 4 + j]
+        else:
+            sc[j] = math.exp(ls[g, j])
+            cache[g, 4 + j] = sc[j]
         for i in range(3):
             RS[i, j] = Rq[i, j] * sc[j]
     _mm(F, RS, M)
@@ -98,7 +114,7 @@ def _geometry(g, x, hv, dm_inv, bl, ls, rot, beta, P, Ds, F, Rq, sc, RS, M):  # 
 
 
 @nb.njit(parallel=True, cache=True)
-def _forward(x, hv, dm_inv, bl, ls, rot, cam, means2d, conics, depths, visible):  # pragma: no cover
+def _forward(x, hv, dm_inv, bl, ls, rot, cam, means2d, conics, depths, visible, cache):  # pragma: no cover
     fx, sk, cx, fy, cy = cam[0], cam[1], cam[2], cam[3], cam[4]
     Rc = cam[5:14].reshape(3, 3)
     lx, ly, vx, vy, near, lp = cam[17], cam[18], cam[19], cam[20], cam[21], cam[22]
@@ -115,7 +131,8 @@ def _forward(x, hv, dm_inv, bl, ls, rot, cam, means2d, conics, depths, visible):
         jw0 = np.empty(3)
         jw1 = np.empty(3)
         for g in range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK)):
-            m0, m1, m2, _, _, _, _, _ = _geometry(g, x, hv, dm_inv, bl, ls, rot, beta, P, Ds, F, Rq, sc, RS, M)
+            m0, m1, m2, _, _, _, _, _ = _geometry(g, x, hv, dm_inv, bl, ls, rot, beta, P, Ds, F, Rq, sc, RS, M,
+                                                  cache, False)
             p0 = Rc[0, 0] * m0 + Rc[0, 1] * m1 + Rc[0, 2] * m2 + cam[14]
             p1 = Rc[1, 0] * m0 + Rc[1, 1] * m1 + Rc[1, 2] * m2 + cam[15]
             z = Rc[2, 0] * m0 + Rc[2, 1] * m1 + Rc[2, 2] * m2 + cam[16]
@@ -160,7 +177,7 @@ def _forward(x, hv, dm_inv, bl, ls, rot, cam, means2d, conics, depths, visible):
 
 @nb.njit(parallel=True, cache=True)
 def _backward(x, hv, dm_inv, bl, ls, rot, cam, visible, g_m2d, g_con,
-              g_corners, g_bl, g_ls, g_rot):  # pragma: no cover - compiled
+              g_corners, g_bl, g_ls, g_rot, cache):  # pragma: no cover - compiled
     fx, sk, fy = cam[0], cam[1], cam[3]
     Rc = cam[5:14].reshape(3, 3)
     lx, ly, lp = cam[17], cam[18], cam[22]
@@ -198,7 +215,7 @@ def _backward(x, hv, dm_inv, bl, ls, rot, cam, visible, g_m2d, g_con,
                 continue
             # ---- recompute the forward
             m0, m1, m2, qn, qw, qx, qy, qz = _geometry(g, x, hv, dm_inv, bl, ls, rot, beta, P, Ds, F, Rq, sc,
-                                                       RS, M)
+                                                       RS, M, cache, True)
             p0 = Rc[0, 0] * m0 + Rc[0, 1] * m1 + Rc[0, 2] * m2 + cam[14]
             p1 = Rc[1, 0] * m0 + Rc[1, 1] * m1 + Rc[1, 2] * m2 + cam[15]
             z = Rc[2, 0] * m0 + Rc[2, 1] * m1 + Rc[2, 2] * m2 + cam[16]
@@ -318,8 +335,9 @@ class _BindProject(torch.autograd.Function):
         g = args[1].shape[0]
         m2d, con, dep = np.empty((g, 2)), np.empty((g, 3)), np.empty(g)
         vis = np.empty(g, np.bool_)
-        _forward(*args, m2d, con, dep, vis)
-        ctx.args, ctx.vis = args, vis
+        cache = np.empty((g, 8))
+        _forward(*args, m2d, con, dep, vis, cache)
+        ctx.args, ctx.vis, ctx.cache = args, vis, cache
         ctx.dtypes = (positions.dtype, bary_logits.dtype)
         out_dt = bary_logits.dtype
         visible = torch.from_numpy(vis)
@@ -335,7 +353,7 @@ class _BindProject(torch.autograd.Function):
         gm = f64(g_m2d) if g_m2d is not None else np.zeros((g, 2))
         gc = f64(g_con) if g_con is not None else np.zeros((g, 3))
         g_corners, g_bl, g_ls, g_rot = np.empty((g, 4, 3)), np.empty((g, 4)), np.empty((g, 3)), np.empty((g, 4))
-        _backward(*args, vis, gm, gc, g_corners, g_bl, g_ls, g_rot)
+        _backward(*args, vis, gm, gc, g_corners, g_bl, g_ls, g_rot, ctx.cache)
         gx = np.zeros_like(args[0])
         _scatter_vertices(args[1], g_corners, gx)
         pdt, dt = ctx.dtypes

@@ -47,7 +47,8 @@ from stages.render.rasterize import rasterize
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 
-RASTERIZERS = {"fast": rasterize, "tiled": _torch_ref.rasterize_tiled, "dense": _torch_ref.rasterize_dense}
+RASTERIZERS = {"fast": rasterize, "tiled": _torch_ref.rasterize_tiled, "dense": _torch_ref.rasterize_dense,
+               "tiled_lean": _torch_ref.rasterize_tiled_lean}  # tiled_lean: torch maths on the numba tile lists
 
 
 def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
