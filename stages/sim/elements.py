@@ -160,7 +160,8 @@ def _rotation_svd(F):
 def snh_kernel(x, tets, dm_inv, vol, mu, lam, want, project):
     """Stable Neo-Hookean per tet (materials.stable_neohookean, μ' = 4μ/3, λ' = λ + 5μ/6):
     energies V Ψ (m,), gradients (m, 12) and Hessians (m, 12, 12) w.r.t. x_e, projected to PSD
-    when ``project``. ``want``: ENERGY, GRADIENT or HESSIAN. x (n, 3), tets (m, 4), dm_inv (m, 3, 3)."""
+    when ``project`` (1/True: eigenvalues clamped at 0; 2: replaced by their absolute values).
+    ``want``: ENERGY, GRADIENT or HESSIAN. x (n, 3), tets (m, 4), dm_inv (m, 3, 3)."""
     m = tets.shape[0]
     energy = np.empty(m)
     grad = np.empty((m if want >= 1 else 0, 12))
@@ -274,7 +275,9 @@ def snh_kernel(x, tets, dm_inv, vol, mu, lam, want, project):
         for k in range(9):
             lk = lams9[k]
             if project and lk <= 0.0:
-                continue
+                if project != 2:
+                    continue
+                lk = -lk  # project == 2: absolute-value projection (Chen et al. 2024)
             # w = B vec(Q_k): w[(a,i)] = Σ_j Q_k[i, j] G[a, j]
             for a in range(4):
                 for i in range(3):
@@ -302,15 +305,16 @@ def _element_energy(material):
     return f
 
 
-def _project_psd(h):
-    """Clamp the eigenvalues of a symmetric matrix at 0."""
+def _project_psd(h, how=True):
+    """Clamp the eigenvalues of a symmetric matrix at 0 (how="abs": take their absolute values)."""
     w, q = jnp.linalg.eigh(0.5 * (h + h.T))
-    return (q * jnp.maximum(w, 0.0)) @ q.T
+    return (q * (jnp.abs(w) if how == "abs" else jnp.maximum(w, 0.0))) @ q.T
 
 
 def element_terms_jax(x, tets, dm_inv, vol, mu, lam, material: str, project: bool = True):
     """JAX twin of :func:`snh_kernel` for any material: (energies (m,), gradients (m, 12),
-    Hessians (m, 12, 12)); the Hessian is Bᵀ proj(∂²Ψ/∂F²) B V with proj an eigenvalue clamp."""
+    Hessians (m, 12, 12)); the Hessian is Bᵀ proj(∂²Ψ/∂F²) B V with proj an eigenvalue clamp
+    (project=True), the absolute value of the eigenvalues (project="abs") or none (False)."""
     return _element_terms_jit(jnp.asarray(x), jnp.asarray(tets), jnp.asarray(dm_inv), jnp.asarray(vol),
                               jnp.asarray(mu), jnp.asarray(lam), material, project)
 
@@ -327,7 +331,7 @@ def _element_terms_impl(x, tets, dm_inv, vol, mu, lam, material, project):
         F = xe1.T @ g1
         hf = jax.hessian(psi)(F, m1, l1).reshape(9, 9)  # row-major vec(F)
         if project:
-            hf = _project_psd(hf)
+            hf = _project_psd(hf, project)
         # B (9, 12): ∂F_ij/∂x_{a,k} = δ_ik G_aj
         B = jnp.einsum("ik,aj->ijak", jnp.eye(3), g1).reshape(9, 12)
         return v * B.T @ hf @ B
@@ -358,8 +362,9 @@ def element_terms(x, tets, dm_inv, vol, mu, lam, material: str, want: int = HESS
     if backend == "numba" and material != "stable_neohookean":
         raise ValueError(f"the numba kernel covers stable_neohookean only, not {material!r}")
     if material == "stable_neohookean" and backend in ("auto", "numba"):
+        code = 2 if isinstance(project, str) and project == "abs" else int(bool(project))
         return snh_kernel(np.ascontiguousarray(x, np.float64), tets, dm_inv, vol, np.asarray(mu, np.float64),
-                          np.asarray(lam, np.float64), want, project)
+                          np.asarray(lam, np.float64), want, code)
     if want < HESSIAN:
         e, g = _element_eg_jit(jnp.asarray(x), jnp.asarray(tets), jnp.asarray(dm_inv), jnp.asarray(vol),
                                jnp.asarray(mu), jnp.asarray(lam), material)

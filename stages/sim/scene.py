@@ -3,7 +3,8 @@
 Step (paper Eq. 1):  x_t = argmin_x Φ_t(x),  Φ_t = ½/Δt² ‖x − y_t‖²_M + Σ_e V_e Ψ(F_e; θ_t)
                      − (M g + f_t)·x + Σ_h ½ k_h ‖x_h − x̄_h,t‖² + contact,   y_t = 2x_{t−1} − x_{t−2}.
 Newton: H Δx = −∇Φ with the exact Hessian while it is positive definite, else with element Hessians
-projected to PSD (analytic eigensystem, elements.py) — SNH is indefinite near rest —,
+projected to PSD by the absolute value of their eigenvalues (analytic eigensystem, elements.py) —
+SNH is indefinite near rest and under compression —,
 sparse assembly on a fixed pattern and a sparse direct solve (linsolve.py); backtracking line
 search on Φ; converged when ‖∇Φ‖ ≤ rtol · (‖∇Φ(x_init)‖ + ‖M g‖ + ‖f‖).
 
@@ -247,7 +248,8 @@ def _vertex_terms(scene: Scene, inputs: FrameInputs, x, y, x_prev, want: int, pr
             hc = np.asarray(hc)
             if project:
                 w, q = np.linalg.eigh(0.5 * (hc + hc.transpose(0, 2, 1)))
-                hc = (q * np.maximum(w, 0.0)[:, None, :]) @ q.transpose(0, 2, 1)
+                w = np.abs(w) if isinstance(project, str) and project == "abs" else np.maximum(w, 0.0)
+                hc = (q * w[:, None, :]) @ q.transpose(0, 2, 1)
             blocks += hc
     return energy, grad, blocks
 
@@ -300,7 +302,7 @@ def hessian(scene: Scene, inputs: FrameInputs, x, x_prev, young, poisson, projec
 
 # =========================================================================== Newton
 def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_init=None,
-         solver: str = "auto", *, rtol: float = 1e-8, xtol: float = 1e-12, max_iterations: int = 50,
+         solver: str = "auto", *, rtol: float = 1e-8, xtol: float = 1e-12, max_iterations: int = 100,
          frame: int | None = None,
          kernels: str = "auto", hessian_mode: str = "auto", timings: dict | None = None
          ) -> tuple[np.ndarray, dict]:
@@ -311,9 +313,16 @@ def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_i
 
     young, poisson (R,) per region; x_prev = x_{t−1}, x_prev2 = x_{t−2} (n, 3); x_init the Newton start
     (default y). Raises SimulationError when Newton does not converge in ``max_iterations``.
-    hessian_mode: "projected" (element Hessians clamped to PSD), "exact", or "auto" (exact while the
-    Cholesky factorisation succeeds — with splu: while the step is a descent direction —, else
-    projected until a projected Newton step is accepted in full, then exact again).
+    hessian_mode: "projected" (element eigenvalues clamped at 0), "abs" (element eigenvalues replaced
+    by their absolute values, Chen et al. 2024), "exact", or "auto" (exact while the Cholesky
+    factorisation succeeds — with splu: while the step is a descent direction —, else "abs" until
+    an abs-projected Newton step is accepted in full, then exact again).  Clamping makes the
+    projected Hessian nearly singular along the buckling modes of compressed elements, and projected
+    Newton then converges linearly; |λ| keeps the curvature's magnitude, and a full |λ| step that
+    lowers Φ is doubled (up to 64×) while Φ keeps falling.  On a 2738-vertex dinosaur turning about
+    its clamped feet: 350 instead of 484 iterations over two sequences, worst frame 17 instead of 46
+    (not every frame gains: one 5K-vertex dinosaur frame takes 59 with |λ|, 21 with clamping).
+    info["fallback"] counts the projected iterations of "auto".
     ``timings`` (optional dict) accumulates seconds spent in "elements", "assembly", "solve", "vertex".
     """
     import time
@@ -342,11 +351,13 @@ def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_i
     history: list[float] = []
     size = float(np.linalg.norm(scene.rest.max(0) - scene.rest.min(0)))
     e_x = None
-    if hessian_mode not in ("auto", "projected", "exact"):
-        raise ValueError(f"hessian_mode must be auto, projected or exact, not {hessian_mode!r}")
+    if hessian_mode not in ("auto", "projected", "exact", "abs"):
+        raise ValueError(f"hessian_mode must be auto, projected, abs or exact, not {hessian_mode!r}")
     # "auto": the exact Hessian while it gives a descent direction (CHOLMOD: while the Cholesky
-    # factorisation accepts it), else the PSD-projected one until a projected step is taken in full
-    exact = hessian_mode in ("exact", "auto")
+    # factorisation accepts it), else the |λ|-projected one until a projected step is taken in full
+    fallback = "abs"
+    mode = "exact" if hessian_mode in ("exact", "auto") else hessian_mode  # the Hessian of the next step
+    n_fallback = 0
     for it in range(max_iterations + 1):
         t0 = time.perf_counter()
         ee, ge, _ = _elastic(scene, x, mu, lam, GRADIENT, True, kernels)
@@ -365,43 +376,53 @@ def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_i
         tm["vertex"] += t2 - t1
         if residual <= rtol or gnorm == 0.0:
             history.append(residual)
-            return x, {"iterations": it, "residual": residual, "history": history}
+            return x, {"iterations": it, "residual": residual, "history": history, "fallback": n_fallback}
         if it == max_iterations:
             break
-        t0 = time.perf_counter()  # Hessians only where a Newton step follows
-        _, _, he = _elastic(scene, x, mu, lam, HESSIAN, not exact, kernels)
-        t1 = time.perf_counter()
-        _, _, hv = _vertex_terms(scene, inputs, x, y, x_prev, HESSIAN, not exact)
-        t2 = time.perf_counter()
-        tm["elements"] += t1 - t0
-        tm["vertex"] += t2 - t1
-        data = cache.pattern.assemble(he, hv)
-        t3 = time.perf_counter()
+
+        def assemble(how):  # the Hessian's CSR data (how: "exact" | "projected" | "abs")
+            t0 = time.perf_counter()
+            proj = {"exact": False, "projected": True, "abs": "abs"}[how]
+            _, _, he = _elastic(scene, x, mu, lam, HESSIAN, proj, kernels)
+            t1 = time.perf_counter()
+            _, _, hv = _vertex_terms(scene, inputs, x, y, x_prev, HESSIAN, proj)
+            t2 = time.perf_counter()
+            data = cache.pattern.assemble(he, hv)
+            t3 = time.perf_counter()
+            tm["elements"] += t1 - t0
+            tm["vertex"] += t2 - t1
+            tm["assembly"] += t3 - t2
+            return data
+
+        def factor(data):
+            t0 = time.perf_counter()
+            try:
+                lin.factor(data)
+            finally:
+                tm["solve"] += time.perf_counter() - t0
+
+        used = mode
+        data = assemble(mode)
         try:
-            lin.factor(data)
+            factor(data)
         except NotPositiveDefinite:
             if hessian_mode == "exact":
                 lin = cache.solver("splu")
-                lin.factor(data)
-            else:
-                exact = False
-                t5 = time.perf_counter()
-                _, _, he = _elastic(scene, x, mu, lam, HESSIAN, True, kernels)
-                _, _, hv = _vertex_terms(scene, inputs, x, y, x_prev, HESSIAN, True)
-                data = cache.pattern.assemble(he, hv)
-                t3 += time.perf_counter() - t5
-                lin.factor(data)
+                factor(data)
+            else:  # indefinite: this and the next steps with the projected Hessian
+                used = mode = fallback
+                factor(assemble(mode))
+        t3 = time.perf_counter()
         dx = -lin.solve(grad)
-        if exact and hessian_mode == "auto" and lin.kind != "cholmod" and not float(grad @ dx) < 0.0:
+        tm["solve"] += time.perf_counter() - t3
+        if used == "exact" and hessian_mode == "auto" and lin.kind != "cholmod" and not float(grad @ dx) < 0.0:
             # LU does not tell an indefinite matrix; a non-descent direction does: project from here on
-            exact = False
-            _, _, he = _elastic(scene, x, mu, lam, HESSIAN, True, kernels)
-            _, _, hv = _vertex_terms(scene, inputs, x, y, x_prev, HESSIAN, True)
-            lin.factor(cache.pattern.assemble(he, hv))
+            used = mode = fallback
+            factor(assemble(mode))
+            t3 = time.perf_counter()
             dx = -lin.solve(grad)
-        t4 = time.perf_counter()
-        tm["assembly"] += t3 - t2
-        tm["solve"] += t4 - t3
+            tm["solve"] += time.perf_counter() - t3
+        n_fallback += used != "exact" and hessian_mode == "auto"
         slope = float(grad @ dx)
         if slope >= 0.0:  # cannot happen for a positive definite H; guard against round-off
             dx, slope = -grad, -gnorm ** 2
@@ -419,14 +440,25 @@ def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_i
         if alpha < 1e-10:  # no decrease measurable: near round-off, take the Newton step
             alpha = 1.0
             x_new = x + dx
+        elif alpha == 1.0 and used != "exact" and hessian_mode == "auto":
+            # a full projected step that the energy accepts can be too short along the directions whose
+            # curvature the projection flipped: go on doubling it while the energy keeps falling
+            e_best = e_new
+            a2 = 2.0
+            while a2 <= 64.0:
+                e2 = energy_at(x + a2 * dx)
+                if not (np.isfinite(e2) and e2 < e_best):
+                    break
+                e_best, x_new = e2, x + a2 * dx
+                a2 *= 2.0
         x = x_new
         history.append(residual)
-        if hessian_mode == "auto" and not exact and alpha == 1.0:
-            exact = True  # a full projected step was taken: try the exact Hessian again (quadratic basin)
+        if hessian_mode == "auto" and used != "exact" and alpha == 1.0:
+            mode = "exact"  # a full projected step was taken: try the exact Hessian again (quadratic basin)
         if alpha == 1.0 and float(np.abs(dx).max()) <= xtol * size:
             # the full Newton step moved no vertex by more than xtol × the object size: x is resolved
             # to round-off (stiff handles can keep ‖∇Φ‖ above rtol by cancellation alone)
-            return x, {"iterations": it + 1, "residual": residual, "history": history}
+            return x, {"iterations": it + 1, "residual": residual, "history": history, "fallback": n_fallback}
     raise SimulationError(f"Newton did not converge at {where} (residual {residual:.1e} after "
                           f"{max_iterations} iterations).")
 
