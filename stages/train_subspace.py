@@ -1,9 +1,16 @@
 """Stage ``train-subspace``: fit x = φ(z) to the snapshots and its reduced-energy cubature.
 
 Reads WS/mesh.h5 and WS/snapshots.h5, splits the snapshots into training and validation
-sets by sequence, fits a mass-weighted PCA or the Fulton et al. 2019 autoencoder
-(stages.subspace.train), fits the optimised cubature of the reduced elastic energy
-(stages.subspace.cubature) and writes WS/subspace.h5.
+sets by sequence, fits a mass-weighted PCA, the Fulton et al. 2019 autoencoder or builds the
+data-free LBS basis (stages.subspace.train), fits the optimised cubature of the reduced elastic
+energy (stages.subspace.cubature) and writes WS/subspace.h5.
+
+LBS (--kind lbs): k = ceil(r/12) handles at farthest-point samples of the rest vertices (the first
+drawn with --seed), harmonic skinning weights, 12 affine modes per handle, mass-orthonormalised.
+When the span is wider than r, the r kept directions are the leading mass-weighted PCA directions
+of the training displacements projected onto the span (the snapshots choose directions, they do not
+shape the span).  The summary and extra report the span's dimension, the handles and the errors of
+both the r-dim basis and the whole span on the snapshots.
 """
 from __future__ import annotations
 
@@ -27,8 +34,9 @@ class TrainSubspaceConfig:
     """Capture folder, read for the material model only (default: the one generate-data used)."""
     dim: int = 30
     """Latent dimension r of the subspace."""
-    kind: Literal["autoencoder", "pca"] = "autoencoder"
-    """autoencoder (Fulton et al. 2019: PCA outer layers, 2×200 hidden) or pca (linear baseline)."""
+    kind: Literal["autoencoder", "pca", "lbs"] = "autoencoder"
+    """autoencoder (Fulton et al. 2019: PCA outer layers, 2×200 hidden), pca (linear baseline) or lbs
+    (linear-blend-skinning modes: ceil(dim/12) handles, harmonic weights; snapshots pick dim directions)."""
     epochs: int = 300
     """Training epochs of the autoencoder (passes over the training snapshots)."""
     learning_rate: float = 1e-3
@@ -48,7 +56,7 @@ class TrainSubspaceConfig:
     material: str = ""
     """Material model for the cubature (default: the capture's)."""
     seed: int = 0
-    """Seed of the split, the initial weights, the batches and the cubature candidates."""
+    """Seed of the split, the initial weights, the batches, the first LBS handle and the cubature candidates."""
 
 
 def _split(snap: SnapshotsArtefact, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray, str]:
@@ -96,8 +104,8 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
     ws = Path(config.workspace)
     mesh_path, snap_path = ws / KIND_FILES["mesh"], ws / KIND_FILES["snapshots"]
     out = ws / KIND_FILES["subspace"]
-    if config.kind not in ("autoencoder", "pca"):
-        raise RslError(f"--kind {config.kind}: use autoencoder or pca.")
+    if config.kind not in ("autoencoder", "pca", "lbs"):
+        raise RslError(f"--kind {config.kind}: use autoencoder, pca or lbs.")
     if config.dim < 1:
         raise RslError(f"--dim {config.dim}: the latent dimension must be at least 1.")
     mesh = MeshArtefact.load(mesh_path)
@@ -112,7 +120,7 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
     tr, va, split_note = _split(snap, config.validation_fraction, config.seed)
     x_tr, x_va = snap.positions[tr], snap.positions[va]
     rank = int(min(len(tr), 3 * n))
-    if config.dim > rank:
+    if config.kind != "lbs" and config.dim > rank:  # the LBS span does not come from the snapshots
         raise RslError(f"{snap_path}: {len(tr)} training snapshots cannot span a {config.dim}-dimensional "
                        "subspace; generate more data or lower --dim.")
     reporter.info(f"{len(tr)} training and {len(va)} validation snapshots ({split_note}); {n} vertices.")
@@ -124,6 +132,15 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
                                      config.seed, config.pca_dim or None, config.learning_rate, config.batch_size,
                                      callback=lambda e, tl, vl: task.advance(1, loss=f"{tl:.2e}",
                                                                              val=f"{vl:.2e}"))
+    elif config.kind == "lbs":
+        k = -(-config.dim // 12)
+        if k > n:
+            raise RslError(f"--dim {config.dim}: needs {k} LBS handles but the mesh has {n} vertices.")
+        with reporter.task(f"LBS r={config.dim} ({k} handles, harmonic weights)", None):
+            try:
+                sub, info = fit_subspace("lbs", rest, masses, x_tr, config.dim, seed=config.seed, tets=mesh.tets)
+            except ValueError as e:
+                raise RslError(f"--dim {config.dim}: {e}; lower --dim.") from e
     else:
         with reporter.task(f"PCA r={config.dim}", None):
             sub, info = fit_subspace("pca", rest, masses, x_tr, config.dim)
@@ -131,6 +148,18 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
         train_err = reconstruction_error(sub, x_tr)
         val_err = reconstruction_error(sub, x_va) if len(va) else float("nan")
     diag = float(np.linalg.norm(rest.max(0) - rest.min(0)))
+    extra_lbs: dict = {}
+    if config.kind == "lbs":
+        from stages.subspace.networks import SubspaceMap
+
+        li = info["lbs"]
+        span = SubspaceMap("lbs", rest, li["span"], masses, np.ones(li["span_dim"]), {})
+        span_tr = reconstruction_error(span, x_tr)
+        span_va = reconstruction_error(span, x_va) if len(va) else float("nan")
+        extra_lbs = {"lbs_handles": int(len(li["handle_ids"])), "lbs_handle_ids": li["handle_ids"].tolist(),
+                     "lbs_span_dim": li["span_dim"], "lbs_selection": li["selection"],
+                     "lbs_span_train_error_m": span_tr, "lbs_span_val_error_m": span_va,
+                     "lbs_span_train_error_rel": span_tr / diag, "lbs_span_val_error_rel": span_va / diag}
 
     # cubature at the snapshots' median material per region
     n_reg = len(mesh.region_names)
@@ -166,7 +195,7 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
         "bbox_diag_m": diag, "train_error_rel": train_err / diag, "val_error_rel": val_err / diag,
         "n_train": int(len(tr)), "n_val": int(len(va)), "split": split_note,
         "history": info["history"][-1:] if info["history"] else [],
-        **extra_cub,
+        **extra_cub, **extra_lbs,
     }
     art = SubspaceArtefact(config.kind, r, sub.to_weights(), float(train_err), float(val_err), extra)
     art.save(out, Provenance.make(config, [mesh_path, snap_path]))
@@ -174,5 +203,10 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
            f"{extra_cub['cubature_error_rel']:.1%}" if extra_cub else "; all tets integrated")
     val = f"validation error {val_err * 1e3:.2f} mm ({val_err / diag:.2%} of the bbox diagonal)" if len(va) \
         else f"training error {train_err * 1e3:.2f} mm ({train_err / diag:.2%} of the bbox diagonal)"
-    reporter.summary(f"{config.kind} subspace r={r}: {val}{cub} → {out}")
+    lbs = ""
+    if extra_lbs:
+        span_e = extra_lbs["lbs_span_val_error_m"] if len(va) else extra_lbs["lbs_span_train_error_m"]
+        lbs = (f"; {extra_lbs['lbs_handles']} LBS handles, kept {extra_lbs['lbs_selection']} (whole span: "
+               f"{span_e * 1e3:.2f} mm, {span_e / diag:.2%})")
+    reporter.summary(f"{config.kind} subspace r={r}: {val}{lbs}{cub} → {out}")
     return out

@@ -1,6 +1,8 @@
 """`rsl train-subspace`: the stage end to end (artefact contents) and its error messages via the real CLI."""
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -10,7 +12,7 @@ from stages.sim.meshgen import box_tets, mesh_artefact
 from stages.sim.scene import FrameInputs, HandleSpec, Scene
 from stages.subspace import ReducedModel
 from stages.train_subspace import TrainSubspaceConfig, run
-from test_subspace_networks import bend_twist
+from test_subspace_networks import bend_twist, half_ref, random_net
 
 
 def _workspace(tmp_path, n_seq=4, per_seq=12, cells=(8, 2, 2)):
@@ -33,6 +35,14 @@ def _workspace(tmp_path, n_seq=4, per_seq=12, cells=(8, 2, 2)):
     return ws, mesh
 
 
+def _scene(mesh) -> Scene:
+    return Scene(rest=mesh.vertices, tets=mesh.tets, dm_inv=mesh.dm_inv, volumes=mesh.rest_volumes,
+                 masses=mesh.vertex_masses, tet_region=mesh.tet_region, n_regions=1, region_names=("body",),
+                 material="stable_neohookean", dt=1 / 30, gravity=np.array([0, 0, -9.81]),
+                 handles=(HandleSpec("clamp", np.nonzero(mesh.vertices[:, 0] < 1e-9)[0], 1e3),), loads=(),
+                 obstacles=(), friction=0.0, contact_stiffness=1e3)
+
+
 def test_stage_writes_a_usable_subspace(tmp_path):
     ws, mesh = _workspace(tmp_path)
     rep = SilentReporter()
@@ -43,11 +53,7 @@ def test_stage_writes_a_usable_subspace(tmp_path):
     assert 0 < len(art.extra["cubature_tets"]) <= 40 and np.all(np.array(art.extra["cubature_weights"]) > 0)
     assert art.extra["cubature_error_rel"] < 0.2
     assert "validation error" in rep.messages[-1] and "bbox diagonal" in rep.messages[-1]
-    scene = Scene(rest=mesh.vertices, tets=mesh.tets, dm_inv=mesh.dm_inv, volumes=mesh.rest_volumes,
-                  masses=mesh.vertex_masses, tet_region=mesh.tet_region, n_regions=1, region_names=("body",),
-                  material="stable_neohookean", dt=1 / 30, gravity=np.array([0, 0, -9.81]),
-                  handles=(HandleSpec("clamp", np.nonzero(mesh.vertices[:, 0] < 1e-9)[0], 1e3),), loads=(),
-                  obstacles=(), friction=0.0, contact_stiffness=1e3)
+    scene = _scene(mesh)
     model = ReducedModel.from_artefacts(art, scene)
     assert len(model.cubature_tets) == len(art.extra["cubature_tets"])
     hid = scene.handles[0].ids
@@ -63,6 +69,27 @@ def test_cli_pca(tmp_path, rsl):
     art = SubspaceArtefact.load(ws / "subspace.h5")
     assert art.subspace_kind == "pca" and art.dim == 4 and "cubature_tets" not in art.extra
     assert "pca subspace r=4" in proc.stdout + proc.stderr
+
+
+def test_cli_lbs(tmp_path, rsl):
+    """--kind lbs: data-free LBS basis (ceil(dim/12) handles), its snapshot errors reported; ReducedModel loads it."""
+    ws, mesh = _workspace(tmp_path)
+    proc = rsl("train-subspace", "-w", ws, "--dim", "12", "--kind", "lbs", "--cubature-tets", "0")
+    assert proc.returncode == 0, proc.stderr
+    art = SubspaceArtefact.load(ws / "subspace.h5")
+    assert art.subspace_kind == "lbs" and art.dim == 12 and art.extra["lbs_handles"] == 1
+    assert 0 < art.val_error_m < 0.05 and np.isfinite(art.extra["val_error_rel"])
+    out = " ".join((proc.stdout + proc.stderr).split())
+    assert "lbs subspace r=12" in out and "LBS handles" in out and "bbox diagonal" in out
+    model = ReducedModel.from_artefacts(art, _scene(mesh))
+    assert model.dim == 12 and np.array_equal(model.decode(np.zeros(12)), mesh.vertices)
+
+
+def test_cli_unknown_kind(tmp_path, rsl):
+    ws, _ = _workspace(tmp_path, n_seq=2, per_seq=4)
+    proc = rsl("train-subspace", "-w", ws, "--kind", "linear")
+    assert proc.returncode != 0 and "use autoencoder, pca or lbs" in " ".join((proc.stdout + proc.stderr).split())
+    assert not (ws / "subspace.h5").exists()
 
 
 @pytest.mark.parametrize("case", ["missing", "mismatch", "too_big"])
@@ -83,3 +110,30 @@ def test_cli_bad_input(tmp_path, rsl, case):
     assert proc.returncode != 0
     assert want in " ".join((proc.stdout + proc.stderr).split())
     assert not (ws / "subspace.h5").exists()
+
+
+def test_named_array_subspace_file_loads_into_the_equinox_network(tmp_path):
+    """A subspace.h5 in the stored layout (named arrays, W (in, out)), written without stages.subspace,
+    loads and maps exactly as the plain-jnp twin of the network says."""
+    v, t = box_tets((4, 2, 2), (0.2, 0.05, 0.05))
+    mesh = mesh_artefact(v, t, 1000.0)
+    r, p, n = 3, 7, len(v)
+    rng = np.random.default_rng(7)
+    weights = dict(random_net(8, r, p, amp=0.2), rest=mesh.vertices, basis=0.05 * rng.normal(size=(n, 3, p)),
+                   masses=mesh.vertex_masses, q_scale=rng.uniform(0.5, 2.0, p))
+    SubspaceArtefact("autoencoder", r, weights, 0.0, 0.0).save(tmp_path / "subspace.h5")
+    model = ReducedModel.from_artefacts(SubspaceArtefact.load(tmp_path / "subspace.h5"), _scene(mesh))
+    net = {k: jnp.asarray(a) for k, a in weights.items() if k.startswith(("enc_", "dec_"))}
+    U, s, x0 = weights["basis"], weights["q_scale"], weights["rest"]
+
+    def phi_ref(z):
+        return x0 + jnp.einsum("nip,p->ni", U, s * half_ref(net, "dec", z))
+
+    z = rng.normal(size=r)
+    x = np.asarray(phi_ref(jnp.asarray(z)))
+    assert np.abs(model.decode(z) - x).max() <= 1e-13 * np.abs(x).max()
+    z_ref = np.asarray(half_ref(net, "enc", jnp.einsum("ni,nip->p", (x - x0) * weights["masses"][:, None], U) / s))
+    assert np.abs(model.encode(x) - z_ref).max() <= 1e-13 * np.abs(z_ref).max()
+    J_ref = np.asarray(jax.jacfwd(phi_ref)(jnp.asarray(z)))
+    assert np.abs(model.jacobian(z) - J_ref).max() <= 1e-13 * np.abs(J_ref).max()
+    assert np.array_equal(model.decode(np.zeros(r)), mesh.vertices)  # φ(0) = x̄

@@ -1,4 +1,4 @@
-"""`rsl train-subspace -w WS`: fit the neural (or PCA) subspace and its cubature (subspace.h5)."""
+"""`rsl train-subspace -w WS`: fit the neural (or PCA, or LBS) subspace and its cubature (subspace.h5)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -14,8 +14,9 @@ ORDER = 60
 
 
 def register(app: typer.Typer) -> None:
-    @app.command("train-subspace", help="Fit x = φ(z) to the snapshots (autoencoder of Fulton et al. 2019 or "
-                                         "PCA) and the optimised cubature of its reduced energy → subspace.h5.")
+    @app.command("train-subspace", help="Fit x = φ(z) to the snapshots (autoencoder of Fulton et al. 2019, "
+                                         "PCA, or linear-blend-skinning modes) and the optimised cubature of "
+                                         "its reduced energy → subspace.h5.")
     def _cmd(
         workspace: Path = workspace_option(),
         dim: int = opt(TrainSubspaceConfig, "dim"),

@@ -1,9 +1,12 @@
 """Neural and linear subspaces x = φ(z), reduced dynamics and the reduced adjoint (JAX, float64).
 
 Modules
-  networks  SubspaceMap: x = x̄ + U q(z) with U the mass-orthonormal PCA basis; q(z) = z (PCA) or the
-            Fulton et al. 2019 autoencoder (2×200 ELU layers with a PCA-initialised linear skip).
-  train     pca_basis, fit_subspace (Adam, optax), reconstruction_error.
+  networks  SubspaceMap: x = x̄ + U q(z) with U mass-orthonormal (PCA of the snapshots, or linear-blend-
+            skinning modes for kind "lbs"); q(z) = z (PCA, LBS) or the
+            Fulton et al. 2019 autoencoder (an equinox Module: 2×200 ELU layers with a PCA-initialised
+            linear skip; stored and used in the jitted solver as named arrays).
+  train     pca_basis, lbs_basis (harmonic skinning weights, 12 affine modes per handle), fit_subspace
+            (Adam via optax on the equinox module), reconstruction_error.
   cubature  optimised cubature of the reduced elastic energy (An et al. 2008, greedy NNLS).
   reduced   ReducedModel: reduced Newton step / simulate and the window adjoint (paper Eq. 3, 10–12).
 
