@@ -7,7 +7,10 @@ Two observation models, each a pure function of simulated positions X (w, n, 3):
   (barycentric on the nearest surface triangle), so dL/dx_t = Σ_i 2 (m_i − p^i) ⊗ b_i.
 * vision (paper Eq. 7): L = Σ_t Σ_c |R(G(x_t), c) − Ĩ_t^c|, the L1 distance between the
   render of the Gaussians bound to the mesh and the masked image Ĩ = I·m + bg·(1 − m);
-  dL/dx_t comes from torch autograd through the rasterizer (stages/render).
+  dL/dx_t comes from torch autograd through the rasterizer (stages/render).  The Gaussians were
+  fitted with the mesh at rest to the images of one frame; :meth:`ImageLoss.rebind` re-binds them
+  to the tets of that frame's simulated configuration (so that rendered there they are exactly the
+  fitted ones), see :func:`locate_in_tets`.
 
 Nothing here reads files or prints.
 """
@@ -160,6 +163,63 @@ class Adam:
         return p - self.lr * mh / (np.sqrt(vh) + eps)
 
 
+# =========================================================================== point location in tets
+def tet_barycentrics(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (P, 4) of points (P, 3) in the tets (P, 4) given per point (rows sum to 1;
+    all ≥ 0 inside the tet, affine extrapolation outside)."""
+    c = vertices[tets]  # (P, 4, 3)
+    D = (c[:, 1:4] - c[:, 0:1]).transpose(0, 2, 1)  # (P, 3, 3) columns x_k − x_0
+    lam = np.linalg.solve(D, (points - c[:, 0])[..., None])[..., 0]
+    return np.concatenate([1.0 - lam.sum(1, keepdims=True), lam], axis=1)
+
+
+def locate_in_tets_brute(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, candidates: int = 16,
+                         widen: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """(tet (P,), barycentric (P, 4)): for each point, among the ``candidates`` tets whose centroids are nearest,
+    the one whose smallest barycentric coordinate is the largest — a tet holding the point when one of them
+    does; when none does (the point is outside the mesh, or in a sliver far from its centroid), the same over
+    the ``candidates · widen`` nearest.  One point and one tet at a time (the slow twin of
+    :func:`locate_in_tets`)."""
+    cent = vertices[tets].mean(1)
+    k1, k2 = min(candidates, len(tets)), min(candidates * widen, len(tets))
+    tet = np.empty(len(points), np.int64)
+    for i, p in enumerate(points):
+        order = np.argsort(np.linalg.norm(cent - p, axis=1), kind="stable")
+        for k in (k1, k2):
+            scores = [tet_barycentrics(p[None], vertices, tets[[j]])[0].min() for j in order[:k]]
+            tet[i] = order[int(np.argmax(scores))]
+            if max(scores) >= -1e-9:
+                break
+    return tet, tet_barycentrics(points, vertices, tets[tet])
+
+
+def locate_in_tets(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, candidates: int = 16,
+                   widen: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`locate_in_tets_brute`, vectorised with a k-d tree of the tet centroids."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, np.float64)
+    c = vertices[tets]  # (M, 4, 3)
+    Dinv = np.linalg.inv((c[:, 1:4] - c[:, 0:1]).transpose(0, 2, 1))  # (M, 3, 3)
+    x0 = c[:, 0]
+    tree = cKDTree(c.mean(1))
+
+    def best(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        _, cand = tree.query(p, k=k)
+        cand = np.asarray(cand, np.int64).reshape(len(p), k)
+        lam = np.einsum("pkij,pkj->pki", Dinv[cand], p[:, None] - x0[cand])
+        b = np.concatenate([1.0 - lam.sum(-1, keepdims=True), lam], axis=-1)  # (P, k, 4)
+        j = np.argmax(b.min(2), axis=1)
+        r = np.arange(len(p))
+        return cand[r, j], b[r, j]
+
+    tet, bary = best(points, min(candidates, len(tets)))
+    far = np.flatnonzero(bary.min(1) < -1e-9)
+    if len(far):
+        tet[far], bary[far] = best(points[far], min(candidates * widen, len(tets)))
+    return tet, bary
+
+
 # =========================================================================== vision
 class ImageLoss:
     """L = Σ_c |R(G(x), c) − Ĩ^c|₁ (sum over pixels and channels, paper Eq. 7) and dL/dx.
@@ -168,6 +228,13 @@ class ImageLoss:
     image → Gaussian centres and covariances → vertex positions through torch autograd.  With
     ``appearance`` the Gaussians' colours and opacities take an Adam step on the same loss at each
     evaluation (paper §4.3: θ and the Gaussian attributes are optimised together).
+
+    The Gaussians are bound to the tets of the mesh *at rest* (``fit-gaussians`` poses the rest mesh in
+    front of one frame's images).  When the object in that frame is not at rest — a synthetic capture's
+    frame 0 is one time step into a gravity sag — :meth:`rebind` moves each Gaussian (centre μ and
+    covariance Σ as fitted, in world space) into the tet of the simulated fit-frame configuration x_f that
+    holds μ, with barycentric β = bary(μ; x_f) and rest covariance F_f⁻¹ Σ F_f⁻ᵀ: rendered at x_f the
+    Gaussians are then exactly the fitted ones, and at x_t they follow the motion from x_f to x_t.
     """
 
     def __init__(self, gaussians, mesh, cameras: list, appearance: bool = False, lr_appearance: float = 2e-3,
@@ -180,6 +247,15 @@ class ImageLoss:
         self.g = BoundGaussians.from_artefact(gaussians, mesh)
         for p in self.g.parameters():
             p.requires_grad_(False)
+        self._tets = np.asarray(mesh.tets, np.int64)
+        self._dm_inv_all = np.asarray(mesh.dm_inv, np.float64)
+        with torch.no_grad():  # the binding as fitted: host tets, barycentrics, world covariances at rest
+            self._fit_host = np.asarray(gaussians.host_tet, np.int64)
+            self._fit_bary = self.g.bary().double().numpy()
+            self._fit_cov = self.g.rest_covariances().double().numpy()
+            rest = np.asarray(mesh.vertices, np.float64)
+            self._fit_means = np.einsum("gk,gkd->gd", self._fit_bary, rest[self._tets[self._fit_host]])
+        self._set_binding(self._fit_host, self._fit_bary, self._fit_cov)
         self.cams = [self.g.camera(c) for c in cameras]
         self.background = self.g.background.detach().numpy().astype(np.float32)  # (3,)
         self.rasterizer = rasterizer
@@ -190,6 +266,28 @@ class ImageLoss:
             for p in ps:
                 p.requires_grad_(True)
             self.opt = torch.optim.Adam(ps, lr=lr_appearance)
+
+    def _set_binding(self, host: np.ndarray, bary: np.ndarray, cov0: np.ndarray) -> None:
+        """Geometry used by :meth:`images`: host tet (G,), barycentric (G, 4), rest covariance (G, 3, 3)."""
+        torch, dt = self.torch, self.g.dtype
+        self.host_tet = np.asarray(host, np.int64)
+        self._host = torch.as_tensor(self._tets[self.host_tet])  # (G, 4) vertex ids
+        self._dm_inv = torch.as_tensor(self._dm_inv_all[self.host_tet], dtype=dt)
+        self._bary = torch.as_tensor(np.asarray(bary, np.float64), dtype=dt)
+        self._cov0 = torch.as_tensor(np.asarray(cov0, np.float64), dtype=dt)
+
+    def rebind(self, x_fit: np.ndarray | None) -> None:
+        """Bind the fitted Gaussians to the tets of configuration x_fit (n, 3) (None: back to the fitted
+        binding at rest); see the class docstring.  Always starts from the fitted binding."""
+        if x_fit is None:
+            self._set_binding(self._fit_host, self._fit_bary, self._fit_cov)
+            return
+        x = np.asarray(x_fit, np.float64)
+        host, bary = locate_in_tets(self._fit_means, x, self._tets)
+        c = x[self._tets[host]]
+        F = (c[:, 1:4] - c[:, 0:1]).transpose(0, 2, 1) @ self._dm_inv_all[host]  # (G, 3, 3) at x_fit
+        Finv = np.linalg.inv(F)
+        self._set_binding(host, bary, Finv @ self._fit_cov @ Finv.transpose(0, 2, 1))
 
     def set_backgrounds(self, backgrounds: list[np.ndarray | None]) -> None:
         """Per camera: None (the Gaussians' background colour) or an (H, W, 3) plate in [0, 1]."""
@@ -202,21 +300,19 @@ class ImageLoss:
         The same image formation as ``BoundGaussians.render`` (the reference the tests hold this to), with
         the position-dependent geometry computed once for all cameras: μ = Σ βₖ xₖ, Σ = F Σ₀ Fᵀ, where the
         barycentric weights β and rest covariances Σ₀ = R S² Rᵀ are fixed (only colours and opacities are
-        ever refined here).
+        ever refined here) — or those of :meth:`rebind`.
         """
         torch = self.torch
         from stages.render.gaussians import RASTERIZERS, sh_to_color
         from stages.render.projection import project_gaussians
 
         g = self.g
-        if not hasattr(self, "_bary"):
-            with torch.no_grad():
-                self._bary = g.bary().detach()  # (G, 4)
-                self._cov0 = g.rest_covariances().detach()  # (G, 3, 3)
-        corners = g._corners(xt)  # (G, 4, 3)
+        x = torch.as_tensor(xt).to(g.dtype)
+        # index_select: its backward is index_add_, much faster on the CPU than advanced indexing's
+        corners = x.index_select(0, self._host.reshape(-1)).reshape(-1, 4, 3)  # (G, 4, 3)
         means = (self._bary[:, :, None] * corners).sum(1)
         ds = (corners[:, 1:4] - corners[:, 0:1]).transpose(1, 2)
-        F = ds @ g.dm_inv
+        F = ds @ self._dm_inv
         covs = F @ self._cov0 @ F.transpose(1, 2)
         opac = g.opacities()
         out = []

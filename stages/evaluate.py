@@ -163,12 +163,18 @@ def _psnr(config, ws, capture, adapt, mesh, reporter) -> tuple[list[float], list
     renderer = ImageLoss(GaussiansArtefact.load(gpath), mesh, [cams.by_name(c) for c in names])
     plates = [None if masks is not None and c in masks else capture.background(c) for c in names]
     renderer.set_backgrounds([None if p is None else p.astype(np.float32) / 255.0 for p in plates])
-    # Gaussians are anchored at their fit frame (as rsl adapt renders them): x_t − (x_fit − rest).
+    # The Gaussians follow the mesh as rsl adapt made them follow it (adapt.h5 extra "gaussian_anchor"):
+    # "rebind" — re-bound to the tets of the adapted fit-frame shape; "offset" (older files) — rendered at
+    # x_t − (x_fit − rest).
     from stages.artefacts import read_provenance
 
     fit_frame = int(read_provenance(gpath).get("config", {}).get("frame", 0) or 0)
     at = np.flatnonzero(adapt.frames == fit_frame)
-    anchor = adapt.positions[at[0]] - mesh.vertices if len(at) else 0.0
+    anchor = 0.0
+    if len(at) and (adapt.extra or {}).get("gaussian_anchor", "offset") == "rebind":
+        renderer.rebind(adapt.positions[at[0]])
+    elif len(at):
+        anchor = adapt.positions[at[0]] - mesh.vertices
     pick = np.unique(np.linspace(0, len(adapt.frames) - 1, min(config.psnr_frames, len(adapt.frames))).round()
                      .astype(int))
     out = []

@@ -229,6 +229,9 @@ def test_image_loss_gradient_through_render_and_adjoint_matches_finite_differenc
     obj, backend = _objective(cap, ws2, "vision")
     obj.rebind = False  # the Gaussians' anchor is held fixed in the gradient (it is refreshed between steps)
     frames, before, p = _window(backend, 20)
+    # the Gaussians re-bound to the fit frame (0) simulated with θ0, as rsl adapt does between steps
+    obj.obs.rebind(obj.anchor_positions(*theta_from_params(p[:1], p[1:], (0.3, 0.49))))
+    assert not np.array_equal(obj.obs.loss_fn.host_tet, gauss.host_tet)
     _, losses, g, _ = obj(frames, p, before)
     X0 = backend.forward(frames, *_theta_w(p, 3), before)
     _, dX = obj.obs.loss(frames, X0)
@@ -261,6 +264,39 @@ def test_appearance_refinement_lowers_the_image_loss_at_fixed_positions(beam):
     assert not np.allclose(loss.g.sh.detach().numpy(), sh0)
     frozen = ImageLoss(_random_gaussians(mesh, 60), mesh, cams)
     assert frozen(mesh.vertices, target)[0] == pytest.approx(frozen(mesh.vertices, target)[0])
+
+
+def test_rebound_gaussians_render_as_fitted_at_the_fit_configuration_and_follow_affine_motion(beam):
+    """ImageLoss.rebind(x_f): rendered at x_f the re-bound Gaussians are the fitted ones (fitted binding
+    rendered at rest), and an affine motion x = A x_f + b moves them exactly as it moves the fitted ones
+    from rest — which the first-order offset x − (x_f − rest) does not."""
+    from stages.adapt_loss import ImageLoss
+
+    cap, ws = beam
+    mesh = MeshArtefact.load(ws / "mesh.h5")
+    cams = CamerasArtefact.load(ws / "cameras.h5").cameras
+    ga = _random_gaussians(mesh, 80, seed=6)
+    ga.log_scales[:] = np.log(0.015 * np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    rest = mesh.vertices
+    size = float(np.ptp(rest, axis=0).max())
+    x_f = rest + 0.04 * size * np.sin(rest[:, [1, 2, 0]] * (6.0 / size))  # non-affine, like a sag
+    fitted = ImageLoss(ga, mesh, cams)
+    loss = ImageLoss(ga, mesh, cams)
+    loss.rebind(x_f)
+    assert not np.array_equal(loss.host_tet, ga.host_tet)
+    ref = fitted.render(rest)[0]
+    assert np.abs(ref - fitted.g.background.numpy()).max() > 0.1  # the Gaussians are in view
+    assert np.allclose(loss.render(x_f)[0], ref, atol=2e-5)
+    c = rest.mean(0)
+    ang = 0.15
+    A = 1.05 * np.array([[np.cos(ang), -np.sin(ang), 0], [np.sin(ang), np.cos(ang), 0], [0, 0, 1]])
+    move = lambda x: (x - c) @ A.T + c + np.array([0.01, -0.005, 0.003]) * size  # noqa: E731
+    want = fitted.render(move(rest))[0]
+    assert np.allclose(loss.render(move(x_f))[0], want, atol=2e-5)
+    offset = fitted.render(move(x_f) - (x_f - rest))[0]
+    assert np.abs(offset - want).max() > 1e-2
+    loss.rebind(None)
+    assert np.allclose(loss.render(rest)[0], ref, atol=0)
 
 
 @pytest.mark.parametrize("sh_coeffs", [1, 4])

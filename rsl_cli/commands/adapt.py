@@ -35,17 +35,20 @@ def register(app: typer.Typer) -> None:
         fit_poisson: bool = opt(AdaptConfig, "fit_poisson", "--fit-poisson/--fixed-poisson"),
         refine: int = opt(AdaptConfig, "refine", "--refine"),
         appearance: bool = opt(AdaptConfig, "appearance", "--appearance/--no-appearance"),
+        gaussian_anchor: str = opt(AdaptConfig, "gaussian_anchor", "--gaussian-anchor"),
         follow: bool = opt(AdaptConfig, "follow", "--follow"),
         follow_timeout: float = opt(AdaptConfig, "follow_timeout", "--follow-timeout"),
         solver: str = opt(AdaptConfig, "solver", "--solver"),
         seed: int = opt(AdaptConfig, "seed", "--seed"),
     ) -> None:
         for name, value, choices in (("--space", space, ("reduced", "full")), ("--mode", mode, ("online", "offline")),
-                                     ("--loss", loss, ("vision", "markers"))):
+                                     ("--loss", loss, ("vision", "markers")),
+                                     ("--gaussian-anchor", gaussian_anchor, ("rebind", "offset"))):
             if value not in choices:
                 raise typer.BadParameter(f"{name} should be one of {', '.join(choices)}, found '{value}'.")
         run(AdaptConfig(capture=capture, workspace=workspace, window=window, space=space, mode=mode, loss=loss,
                         cameras=cameras, frames=frames, iters_per_frame=iters_per_frame, lr=lr, lr_poisson=lr_poisson,
                         beta1=beta1, offline_iters=offline_iters, young_init=young_init, poisson_init=poisson_init,
-                        fit_poisson=fit_poisson, refine=refine, appearance=appearance, follow=follow,
+                        fit_poisson=fit_poisson, refine=refine, appearance=appearance,
+                        gaussian_anchor=gaussian_anchor, follow=follow,
                         follow_timeout=follow_timeout, solver=solver, seed=seed), RichReporter())
