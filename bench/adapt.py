@@ -19,6 +19,11 @@ rsl evaluate in-process):
                      10, 20, 30 with the truth states before the window (where is the minimum, how sharp).
   markers_vs_vision_rebind_steps  the 4×96² vision run of markers_vs_vision_rebind with 1 and 4 Adam steps per
                      frame instead of 2.
+  markers_visibility  the dinosaur of markers_vs_vision_rebind with realistic motion capture: markers written
+                     only where at least 2 of the 4 cameras (96²) see them (rsl synth --marker-visibility 2:
+                     occlusion by the object itself, from the renderer's depth buffer), without and with 2 mm
+                     noise, adapted online as there (markers, full, w = 3, from E_true / 4); reports the fraction
+                     of marker observations lost, and plots them beside that case's markers and vision runs.
   regions_nu         two regions, ν fitted: more frames (80), more Adam steps per frame (4), a smaller ν
                      learning rate (0.01), and a wrong ν start (0.40).
   ablation           window w ∈ {1, 3, 5, 10} (markers, full) and subspace dimension r ∈ {4, 8, 16}
@@ -82,14 +87,14 @@ LOG = Log()
 # =========================================================================== building blocks
 def make_capture(work: Path, name: str, mesh: Path, scenario: str, frames: int, cameras: int = 1,
                  resolution: int = 32, young: float = 1e5, young_schedule: str = "", region: str = "",
-                 markers: int = 40, marker_noise: float = 0.0) -> tuple[Path, Path]:
+                 markers: int = 40, marker_noise: float = 0.0, marker_visibility: int = 0) -> tuple[Path, Path]:
     """`rsl synth` capture + workspace (mesh.h5 from truth/object.mesh, cameras.h5 from cameras.json)."""
     cap, ws = work / name / "cap", work / name / "ws"
     if not (cap / "capture.toml").exists():
         synth.run(synth.SynthConfig(mesh=mesh, out=cap, scenario=scenario, cameras=cameras, frames=frames,
                                     resolution=resolution, young=young, young_schedule=young_schedule,
                                     region=region, markers=markers, marker_noise=marker_noise,
-                                    calib_views=0, seed=0), LOG)
+                                    marker_visibility=marker_visibility, calib_views=0, seed=0), LOG)
         toml = cap / "capture.toml"
         toml.write_text(toml.read_text().replace('mesh = "object.obj"', 'mesh = "truth/object.mesh"'))
     if not (ws / "mesh.h5").exists():
@@ -500,6 +505,77 @@ def case_markers_vs_vision_rebind_steps(work: Path, quick: bool) -> list[dict]:
     return rows
 
 
+def case_markers_visibility(work: Path, quick: bool) -> list[dict]:
+    """Markers with occlusion gaps (rsl synth --marker-visibility 2: a marker is written at a frame only when
+    at least 2 of the 4 cameras at 96² see it; markers not seen at frame 0 are left out) on the dinosaur push of
+    markers_vs_vision_rebind (same simulation, same 40 marker positions, same seed), without and with 2 mm noise;
+    adapted online as there.  The plot adds that case's all-visible markers and 4×96² vision runs from their
+    adapt.h5 / evaluation.json in the work folder, when present."""
+    from stages.capture import read_markers
+
+    def last_half(ev: dict) -> float:
+        v = np.asarray(ev["vertex_error_per_frame_m"])
+        return float(v[len(v) // 2:].mean())
+
+    rows, series, verr = [], {}, {}
+    need = 2
+    for mn in ((0.0,) if quick else (0.0, 0.002)):
+        name = f"dino_vis{need}_mn{int(round(mn * 1000))}mm"
+        cap, ws = make_capture(work, name, DINO, "push", frames=40, cameras=4, resolution=96, young=1e5,
+                               markers=40, marker_noise=mn, marker_visibility=need)
+        P = read_markers(cap / "markers.csv")
+        seen = np.isfinite(P[..., 0])
+        total = P.shape[0] * 40  # observations of the 40 markers placed
+        art, ev = run_adapt(cap, ws, work / name / "markers", space="full", loss="markers", window=3,
+                            young_init=2.5e4)
+        lab = f"markers σ={mn * 1000:g} mm, seen by ≥{need} of 4 cameras"
+        series[lab], verr[lab] = (art.frames, art.young[:, 0]), ev["vertex_error_per_frame_m"]
+        rows.append(case_row(f"dinosaur push, {lab}", art, ev, marker_noise_m=mn, marker_visibility=need,
+                             markers_placed=40, markers_kept=int(P.shape[1]),
+                             observed_fraction=float(seen.sum() / total),
+                             observed_fraction_of_kept=float(seen.mean()),
+                             frames_without_markers=int(np.sum(~seen.any(axis=1))),
+                             markers_per_frame_min=int(seen.sum(axis=1).min()),
+                             vertex_error_last_half_m=last_half(ev)))
+    for lab, sub in (("markers σ=0 mm, all seen (rebind case)", "dino_mn0mm/markers_r"),
+                     ("markers σ=2 mm, all seen (rebind case)", "dino_mn2mm/markers_r"),
+                     ("vision 4×96², 2000 G, rebind (rebind case)", "dino_4cam96/vision_g2000_rebind")):
+        d = work / sub
+        if (d / "adapt.h5").exists() and (d / "evaluation.json").exists():
+            a = AdaptArtefact.load(d / "adapt.h5")
+            series[lab] = (a.frames, a.young[:, 0])
+            verr[lab] = json.loads((d / "evaluation.json").read_text())["vertex_error_per_frame_m"]
+    plot_visibility(RESULTS / "adapt_markers_visibility.png", series, verr)
+    return rows
+
+
+def plot_visibility(path: Path, series: dict, verr: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    for lab, (fr, y) in series.items():
+        ls = "-" if "seen by" in lab else ":"
+        ax[0].plot(fr, y / 1e5, ls, label=lab)
+        ax[1].plot(np.arange(len(verr[lab])), np.asarray(verr[lab]) * 1e3, ls, label=lab)
+    ax[0].axhline(1.0, color="k", lw=0.8)
+    ax[0].set_ylim(0.2, 1.4)
+    ax[0].set_xlabel("frame")
+    ax[0].set_ylabel("E / E_true")
+    ax[0].set_title("E(t), started at E_true / 4")
+    ax[1].set_yscale("log")
+    ax[1].set_xlabel("frame")
+    ax[1].set_ylabel("surface error vs truth (mm)")
+    ax[1].set_title("symmetric surface distance")
+    for a in ax:
+        a.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def plot_rebind(path: Path, series: dict, verr: dict, sweeps: dict) -> None:
     """E(t), surface error per frame and the normalised window loss L(E)/L(E_true) at the window ending at 20."""
     import matplotlib
@@ -660,6 +736,7 @@ CASES = {"refine": case_refine, "step": case_step, "markers_vs_vision": case_mar
          "markers_vs_vision_noisy": case_markers_vs_vision_noisy, "regions_nu": case_regions_nu,
          "markers_vs_vision_rebind": case_markers_vs_vision_rebind,
          "markers_vs_vision_rebind_steps": case_markers_vs_vision_rebind_steps,
+         "markers_visibility": case_markers_visibility,
          "ablation_w9": case_ablation_w9, "ablation_r": case_ablation_r, "ablation_c": case_ablation_c}
 
 
@@ -800,6 +877,28 @@ def _results_paragraph(rows: list[dict]) -> list[str]:
                            f"{lab}: " + " / ".join(fmt(s_[k]["argmin_E_over_true"]) for k in ("10", "20", "30"))
                            + f" (L(0.9 E_true) / L(E_true) at frame 20: {_ratio(s_)})"
                            for lab, s_ in sw) + ".")
+    vis = [r for r in rows if r.get("case") == "markers_visibility"]
+    if vis:
+        def _vis(r: dict) -> str:
+            lab = r["name"].split("push, ", 1)[1]
+            if r.get("failed"):
+                return f"{lab}: failed ({r['failed'].rstrip('.')})"
+            return (f"{lab}: {r['markers_kept']} of {r['markers_placed']} markers seen at frame 0, "
+                    f"{fmt(100 * r['observed_fraction'])} % of the {r['markers_placed']} markers' observations "
+                    f"written ({fmt(100 * (1 - r['observed_fraction']))} % lost to occlusion), "
+                    f"{fmt(100 * r['observed_fraction_of_kept'])} % of the kept markers' observations, at least "
+                    f"{r['markers_per_frame_min']} markers per frame; E error median "
+                    f"{fmt(r['young_rel_error_median'])}, final {fmt(r['young_rel_error_final'])}; surface error "
+                    f"mean {fmt(r['vertex_error_mean_m'] * 1e3)} mm, second half "
+                    f"{fmt(r['vertex_error_last_half_m'] * 1e3)} mm; {fmt(r['total_s'])} s/frame")
+        out.append("- **Markers with occlusion gaps vs vision** (the dinosaur push of the 'after the anchor fix' bullet, same simulation "
+                   "and the same 40 marker positions; `rsl synth --marker-visibility 2`: at each frame a marker is "
+                   "written only when at least 2 of the 4 cameras at 96² see it — inside the image and within 1.5 "
+                   "pixel footprints of the depth the renderer sees at its pixel — and a marker not seen at frame 0, "
+                   "where rsl adapt binds it, is left out; noise added after the visibility test; markers loss over "
+                   "the observed (frame, marker) pairs only; online, full space, w = 3, from E_true / 4): "
+                   + "; ".join(_vis(r) for r in vis) + ". Plot: adapt_markers_visibility.png (dotted: the "
+                   "all-visible markers and the 4×96² vision run of the 'after the anchor fix' bullet).")
     for rg in (r for r in rows if r["name"].startswith("two regions") and r.get("case") == "regions"):
         out.append(f"- **Two regions** (E 1e5 and 3e5 Pa, {rg['name'].split(', ')[-1]}): median error over the last "
                    f"8 frames per region {fmt(rg.get('young_rel_error_last8_per_region'))} (target < 0.10). "
@@ -929,9 +1028,25 @@ def _results_paragraph(rows: list[dict]) -> list[str]:
             "frame-0 simulation, read 0.44 s/frame with rebind vs 0.53 s with the offset anchor in this run — "
             "the shared machine's noise is larger than the cost). The PSNR column is computed by `rsl "
             "evaluate`, which still places the Gaussians with the "
-            "offset anchor. Occlusion gaps of real markers are not modelled: stages/capture.py's markers.csv "
-            "reader requires every frame to list every marker with finite values, so a missing marker cannot "
-            "be written. (3) The reduced-space "
+            "offset anchor. Realistic markers (the 'occlusion gaps' bullet, case markers_visibility): "
+            "markers.csv may now have gaps (a marker no camera sees; the markers loss sums over the observed "
+            "pairs only), and `rsl synth --marker-visibility 2` writes a marker only where at least 2 of the 4 "
+            "cameras at 96² see it. On the dinosaur this loses most observations: 24 of the 40 markers are not "
+            "seen by 2 cameras at frame 0 (belly, inner legs; 11 are seen by none) and are left out, and the "
+            "16 kept ones miss 12 % of their frames (35 % of the 40 markers' observations written, at least 12 "
+            "markers per frame). The depth-buffer test is somewhat stricter than exact ray casting at the same "
+            "1.5-pixel tolerance (a diagnostic, not in the bench: 16 vs 19 markers seen by ≥ 2 cameras at "
+            "frame 0, 19 vs 22 at frame 20; the disagreements are surfaces seen at grazing angles, where the "
+            "nearest sample of a pixel lies in front of the marker), so the loss is, if anything, "
+            "overstated. Noise-free, the 16 occluded markers do as well as the 40 visible ones (E median 1.9 "
+            "%, final 1.8 %; surface 0.083 vs 0.081 mm mean, 0.048 mm second half): occlusion alone does not "
+            "hurt here, and vision (1.5 %, 0.5 %; 0.19 / 0.14 mm) still does not beat ideal markers on the "
+            "surface, only on E. With 2 mm noise as well — the realistic case — markers get worse (E median "
+            "4.4 % vs 3.6 % all visible, final 0.7 %; surface 0.34 mm mean, 0.31 mm second half vs 0.23 / 0.21 "
+            "mm), and vision beats them on the surface error (0.19 / 0.14 mm, about half) and on the E median "
+            "(1.5 vs 4.4 %); the final E errors are close (0.5 vs 0.7 %, a single frame of an estimate that "
+            "swings by up to ±10 % from frame to frame with noisy markers, see the plot). One run each, one seed "
+            "of marker positions and noise. (3) The reduced-space "
             "time per frame is dominated by rendering (4 cameras × 3 window frames, forward + backward on the "
             "CPU rasterizer); the physics alone is 0.07 s/frame, ~38× faster than full space."]
     if abl_a or abl_c:

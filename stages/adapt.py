@@ -38,8 +38,8 @@ from typing import Callable, Literal, Sequence
 
 import numpy as np
 
-from stages.adapt_loss import (Adam, MarkerBinding, bind_markers, chain_params, params_from_theta,
-                               theta_from_params)
+from stages.adapt_loss import (Adam, MarkerBinding, bind_markers, chain_params, marker_residuals,
+                               params_from_theta, theta_from_params)
 from stages.artefacts import KIND_FILES, AdaptArtefact, MeshArtefact, Provenance
 from stages.capture import IMAGE_SUFFIXES, Capture, CaptureError, load_capture, read_image
 from stages.errors import RslError
@@ -198,7 +198,10 @@ class _Markers:
         return P
 
     def available(self) -> int:
-        """Frames observed so far (markers.csv is re-read: it may grow in --follow mode)."""
+        """Frames observed so far (markers.csv is re-read: it may grow in --follow mode).  Since a marker may
+        be missing from a frame (a gap), a writer in --follow mode should add each frame's rows at once
+        (e.g. write a new file and rename it over markers.csv): the rows of a frame read while still being
+        written count as gaps."""
         if self.capture.markers_path.exists():
             try:
                 self.P = self._read()
@@ -207,9 +210,10 @@ class _Markers:
         return len(self.P)
 
     def loss(self, frames: Sequence[int], X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per-frame losses (w,) and dL/dX (w, n, 3) for X on the mesh (n, 3) per frame."""
+        """Per-frame losses (w,) and dL/dX (w, n, 3) for X on the mesh (n, 3) per frame; only the observed
+        markers count (a gap, NaN in markers.csv's array, adds nothing; a frame seeing none gives 0)."""
         P = self.P[list(frames)]
-        r = self.binding.positions(X[:, :self.n]) - P
+        r = marker_residuals(self.binding, X[:, :self.n], P)
         grad = np.zeros_like(X)
         grad[:, :self.n] = self.binding.scatter(2.0 * r, self.n)
         return np.sum(r * r, axis=(1, 2)), grad

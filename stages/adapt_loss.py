@@ -2,9 +2,10 @@
 
 Two observation models, each a pure function of simulated positions X (w, n, 3):
 
-* markers (paper Eq. 4, windowed): L = Σ_t Σ_i ‖m_i(x_t) − p_t^i‖², with each marker
-  bound to the surface point nearest its frame-0 position, m_i(x) = Σ_k b_ik x[f_ik]
-  (barycentric on the nearest surface triangle), so dL/dx_t = Σ_i 2 (m_i − p^i) ⊗ b_i.
+* markers (paper Eq. 4, windowed): L = Σ_t Σ_i ‖m_i(x_t) − p_t^i‖² over the observed (t, i) only (a
+  motion-capture gap, NaN in p, adds nothing), with each marker bound to the surface point nearest its
+  frame-0 position, m_i(x) = Σ_k b_ik x[f_ik] (barycentric on the nearest surface triangle), so
+  dL/dx_t = Σ_{i observed at t} 2 (m_i − p^i) ⊗ b_i.
 * vision (paper Eq. 7): L = Σ_t Σ_c |R(G(x_t), c) − Ĩ_t^c|, the L1 distance between the
   render of the Gaussians bound to the mesh and the masked image Ĩ = I·m + bg·(1 − m);
   dL/dx_t comes from torch autograd through the rasterizer (stages/render).  The Gaussians were
@@ -109,9 +110,17 @@ def bind_markers(vertices: np.ndarray, faces: np.ndarray, markers0: np.ndarray,
     return MarkerBinding(faces[fid].astype(np.int64), np.concatenate(barys), np.concatenate(dists))
 
 
+def marker_residuals(binding: MarkerBinding, X: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """r_t^i = m_i(x_t) − p_t^i (w, M, 3) where marker i is observed at frame t (P finite), 0 at a gap
+    (a NaN in P: the marker was not seen)."""
+    observed = np.all(np.isfinite(P), axis=-1, keepdims=True)
+    return np.where(observed, binding.positions(X) - np.where(observed, P, 0.0), 0.0)
+
+
 def marker_loss(binding: MarkerBinding, X: np.ndarray, P: np.ndarray) -> tuple[float, np.ndarray]:
-    """L = Σ_t Σ_i ‖m_i(x_t) − p_t^i‖² and dL/dX, for X (w, n, 3) and observed markers P (w, M, 3)."""
-    r = binding.positions(X) - P  # (w, M, 3)
+    """L = Σ_t Σ_{i observed at t} ‖m_i(x_t) − p_t^i‖² and dL/dX, for X (w, n, 3) and markers P (w, M, 3), NaN
+    at a gap; a frame with no observed marker adds 0 to L and to dL/dX."""
+    r = marker_residuals(binding, X, P)
     return float(np.sum(r * r)), binding.scatter(2.0 * r, X.shape[1])
 
 

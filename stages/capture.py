@@ -518,7 +518,7 @@ class Capture:
         return next(iter(counts.values())) if counts else 0
 
     def markers(self) -> np.ndarray | None:
-        """markers.csv as (T, M, 3) metres, or None when absent."""
+        """markers.csv as (T, M, 3) metres (NaN where a marker was not observed: a gap), or None when absent."""
         if not self.markers_path.exists():
             return None
         return read_markers(self.markers_path)
@@ -690,7 +690,16 @@ class FrameSource:
 
 # =========================================================================== markers and truth
 def read_markers(path: str | Path) -> np.ndarray:
-    """markers.csv (header frame,marker,x,y,z) -> (T, M, 3); every frame must list every marker."""
+    """markers.csv (header frame,marker,x,y,z, metres) -> (T, M, 3), NaN where a marker was not observed.
+
+    A (frame, marker) pair with no row, or a row whose x, y and z are all empty, is a gap (a marker no
+    camera saw): NaN in the returned array.  Markers are the distinct marker ids in increasing order;
+    frames must run 0..T−1 (each frame with at least one row, empty coordinates allowed).  Rejected,
+    each with one sentence naming the file: a header other than frame,marker,x,y,z; a row that is not
+    numbers, or writes a non-finite value (nan, inf) or only some of x, y, z; a repeated (frame, marker)
+    row; frames not 0..T−1; a marker that is never observed; a marker not observed at frame 0 (rsl adapt
+    binds every marker to the surface point nearest its frame-0 position).
+    """
     path = Path(path)
     rows: list[tuple[int, int, float, float, float]] = []
     with open(path, newline="") as f:
@@ -701,13 +710,22 @@ def read_markers(path: str | Path) -> np.ndarray:
         for ln, row in enumerate(reader, start=2):
             if not row:
                 continue
-            try:
-                fr, mk = int(row[0]), int(row[1])
-                xyz = [float(v) for v in row[2:5]]
-            except (ValueError, IndexError):
-                raise CaptureError(f"{path}: line {ln} is not 'frame,marker,x,y,z' numbers: {row}.") from None
-            if len(row) != 5 or not all(math.isfinite(v) for v in xyz):
-                raise CaptureError(f"{path}: line {ln} should hold 5 finite values, found {row}.")
+            if len(row) == 5 and all(not v.strip() for v in row[2:5]):
+                xyz = [math.nan] * 3  # an explicit gap
+                try:
+                    fr, mk = int(row[0]), int(row[1])
+                except ValueError:
+                    raise CaptureError(f"{path}: line {ln} is not 'frame,marker,x,y,z' numbers: {row}.") from None
+            else:
+                try:
+                    fr, mk = int(row[0]), int(row[1])
+                    xyz = [float(v) for v in row[2:5]]
+                except (ValueError, IndexError):
+                    raise CaptureError(f"{path}: line {ln} is not 'frame,marker,x,y,z' numbers "
+                                       f"(a gap leaves x, y and z all empty): {row}.") from None
+                if len(row) != 5 or not all(math.isfinite(v) for v in xyz):
+                    raise CaptureError(f"{path}: line {ln} should hold 5 finite values (or a gap: x, y and z all "
+                                       f"empty), found {row}.")
             rows.append((fr, mk, *xyz))
     if not rows:
         raise CaptureError(f"{path}: holds no marker rows.")
@@ -715,23 +733,43 @@ def read_markers(path: str | Path) -> np.ndarray:
     frames = np.unique(arr[:, 0]).astype(int)
     markers = np.unique(arr[:, 1]).astype(int)
     if not np.array_equal(frames, np.arange(len(frames))):
-        raise CaptureError(f"{path}: frames should run 0..T-1 without gaps.")
-    if len(arr) != len(frames) * len(markers):
-        raise CaptureError(f"{path}: every frame should list all {len(markers)} markers.")
-    out = np.zeros((len(frames), len(markers), 3))
+        raise CaptureError(f"{path}: frames should run 0..T-1 without gaps (a frame where no marker is seen "
+                           f"needs one row with x, y and z empty).")
+    out = np.full((len(frames), len(markers), 3), np.nan)
+    seen = np.zeros((len(frames), len(markers)), bool)
     mindex = {m: i for i, m in enumerate(markers)}
     for fr, mk, x, y, z in arr:
-        out[int(fr), mindex[int(mk)]] = (x, y, z)
+        t, m = int(fr), mindex[int(mk)]
+        if seen[t, m]:
+            raise CaptureError(f"{path}: marker {int(mk)} is listed twice at frame {t}.")
+        seen[t, m] = True
+        out[t, m] = (x, y, z)
+    observed = np.isfinite(out[..., 0])
+    never = markers[~observed.any(axis=0)]
+    if len(never):
+        raise CaptureError(f"{path}: marker(s) {', '.join(map(str, never[:10]))} are never observed.")
+    late = markers[~observed[0]]
+    if len(late):
+        raise CaptureError(f"{path}: marker(s) {', '.join(map(str, late[:10]))} are not observed at frame 0; every "
+                           f"marker must be seen at frame 0, where rsl adapt binds it to the surface.")
     return out
 
 
 def write_markers(path: str | Path, markers: np.ndarray) -> None:
-    """(T, M, 3) -> markers.csv."""
+    """(T, M, 3) -> markers.csv; an entry with a NaN (a gap) is left out, and a frame with no observed marker
+    is written as one row of the first observed marker with x, y and z empty, so that the file still holds
+    frames 0..T−1."""
+    markers = np.asarray(markers, float)
+    anywhere = np.flatnonzero(np.all(np.isfinite(markers), axis=-1).any(axis=0))
+    placeholder = int(anywhere[0]) if len(anywhere) else 0
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["frame", "marker", "x", "y", "z"])
         for t in range(markers.shape[0]):
-            for m in range(markers.shape[1]):
+            seen = np.all(np.isfinite(markers[t]), axis=-1)
+            if not seen.any():
+                w.writerow([t, placeholder, "", "", ""])
+            for m in np.flatnonzero(seen):
                 w.writerow([t, m, *(f"{v:.9g}" for v in markers[t, m])])
 
 

@@ -73,6 +73,11 @@ class SynthConfig:
     marker_noise: float = 0.0
     """Standard deviation (m) of Gaussian noise added to the marker positions in markers.csv (each frame, each
     axis, independently; seeded), e.g. 0.002 for motion-capture markers wobbling on soft skin."""
+    marker_visibility: int = 0
+    """Occlusion of the markers: at each frame a marker is written to markers.csv only when at least this many
+    of the cameras see it (inside the image, not hidden by the object itself: its depth within 1.5 pixel
+    footprints of the rendered depth at its pixel); the others are gaps.  A marker not seen at frame 0, where
+    rsl adapt binds it, is left out altogether.  0 = off: every marker at every frame."""
     seed: int = 0
     """Seed of every random choice (markers, texture, board poses, backgrounds, noise)."""
     size: float = 0.2
@@ -441,8 +446,12 @@ def _check_config(c: SynthConfig) -> None:
         raise RslError("--young, --fps and --density should be positive.")
     if not c.amplitude > 0:
         raise RslError(f"--amplitude should be positive, found {c.amplitude}.")
-    if c.markers < 0 or c.calib_views < 0 or c.noise < 0 or c.marker_noise < 0:
-        raise RslError("--markers, --calib-views, --noise and --marker-noise should not be negative.")
+    if c.markers < 0 or c.calib_views < 0 or c.noise < 0 or c.marker_noise < 0 or c.marker_visibility < 0:
+        raise RslError("--markers, --calib-views, --noise, --marker-noise and --marker-visibility should not be "
+                       "negative.")
+    if c.marker_visibility > c.cameras:
+        raise RslError(f"--marker-visibility {c.marker_visibility} asks for more cameras than --cameras "
+                       f"{c.cameras}.")
 
 
 def _check_out(out: Path, overwrite: bool) -> None:
@@ -551,6 +560,17 @@ def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
     return out
 
 
+def occlude_markers(pts: np.ndarray, seen_by: np.ndarray, need: int) -> np.ndarray:
+    """Marker positions (T, M, 3) with NaN (a gap) where fewer than ``need`` cameras see the marker
+    (``seen_by`` (T, M) counts), and for every frame of a marker not seen at frame 0 (it could not be bound)."""
+    if not np.any(seen_by[0] >= need):
+        raise RslError(f"--marker-visibility {need}: no marker is seen by {need} cameras at frame 0; lower "
+                       f"--marker-visibility or add cameras.")
+    out = np.array(pts, float)
+    out[(seen_by < need) | (seen_by[:1] < need)] = np.nan
+    return out
+
+
 def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, art: MeshArtefact, ctl: Controls,
                    controls_json: dict, X: np.ndarray, young: np.ndarray, poisson: np.ndarray,
                    cams: list[Camera], backgrounds: dict, board: tuple[int, int, float], poses: list,
@@ -558,7 +578,7 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, art: MeshArtefac
     import meshio
 
     from stages.render.mesh_raster import procedural_texture, render_mesh
-    from stages.synth_views import first_corner_pose, render_board
+    from stages.synth_views import first_corner_pose, render_board, visible_points
 
     cols, rows, square = board
     T = X.shape[0]
@@ -578,13 +598,18 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, art: MeshArtefac
     meshio.write(str(root / "truth" / "object.mesh"),
                  meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)], cell_data={"medit:ref": [mesh.tet_region]}),
                  file_format="medit")
+    pts = seen_by = None
     if c.markers:
         fi, bary = sample_surface_points(mesh.vertices, mesh.faces, c.markers, rng)
         tri = mesh.faces[fi]  # (M, 3)
         pts = np.einsum("mk,tmkd->tmd", bary, X[:, tri])
+        true_pts = pts
         if c.marker_noise > 0:  # own stream: the other random choices stay those of the noise-free capture
             pts = pts + np.random.default_rng([c.seed, 11]).normal(0.0, c.marker_noise, pts.shape)
-        write_markers(root / "markers.csv", pts)
+        if c.marker_visibility:  # written after the frames: visibility comes from their depth buffers
+            seen_by = np.zeros(pts.shape[:2], np.int64)
+        else:
+            write_markers(root / "markers.csv", pts)
 
     young_all = young.ravel()
     toml = {
@@ -623,8 +648,10 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, art: MeshArtefac
     with reporter.task("rendering frames", T) as task:
         for f in range(T):
             for cam in cams:
-                rgb, cov, _ = render_mesh(X[f], mesh.faces, mesh.vertices, cam.K, cam.R, cam.t, cam.width,
-                                          cam.height, texture, backgrounds[cam.name], cam.dist, c.supersample)
+                rgb, cov, depth = render_mesh(X[f], mesh.faces, mesh.vertices, cam.K, cam.R, cam.t, cam.width,
+                                              cam.height, texture, backgrounds[cam.name], cam.dist, c.supersample)
+                if seen_by is not None:  # the true (noise-free) marker positions are what the cameras see
+                    seen_by[f] += visible_points(true_pts[f], cam, depth)
                 if c.noise > 0:
                     rgb = rgb + noise_rng.normal(0.0, c.noise, rgb.shape)
                 mask = cov >= 0.5
@@ -636,3 +663,10 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, art: MeshArtefac
     if empty:
         raise RslError(f"camera(s) {', '.join(empty)} see nothing of the object in some frame; the ring does not "
                        f"frame the scene.")
+    if seen_by is not None:
+        write_markers(root / "markers.csv", occlude_markers(pts, seen_by, c.marker_visibility))
+        kept = seen_by[0] >= c.marker_visibility
+        observed = (seen_by >= c.marker_visibility) & kept
+        reporter.info(f"--marker-visibility {c.marker_visibility}: {int(kept.sum())} of {len(kept)} markers seen "
+                      f"at frame 0; {observed.mean():.1%} of the {observed.size} marker observations written "
+                      f"({1 - observed.mean():.1%} lost to occlusion).")

@@ -66,6 +66,59 @@ def _fit_distance(points: np.ndarray, target: np.ndarray, direction: np.ndarray,
     return hi
 
 
+# --------------------------------------------------------------------------- marker visibility
+def visible_points(points: np.ndarray, camera: Camera, depth: np.ndarray, tol_px: float = 1.5) -> np.ndarray:
+    """Which surface points (P, 3) camera ``camera`` sees (P,) bool, given the depth buffer (H, W) (camera z,
+    inf where empty) of the scene rendered by it (render_mesh's third output).
+
+    A point is seen when it lies in front of the camera, projects inside the image (the pixel it falls in
+    exists), and is not behind the surface the pixel sees: z ≤ depth[pixel] + tol, with tol = ``tol_px``
+    pixel footprints at the point's depth (tol_px · z / f_x).  The depth buffer keeps the nearest
+    supersample of each pixel, so a point on a surface slanted away from the camera lies somewhat behind its
+    own pixel's depth: with 1.5 px, surfaces up to about 60–70° from facing the camera count as seen (more
+    oblique ones, like real markers at grazing view, are lost), while a point behind another part of the object
+    nearer than the tolerance is still taken as seen.
+    """
+    uv, z = project_points(np.asarray(points, np.float64), camera.K, camera.R, camera.t, camera.dist)
+    h, w = depth.shape
+    j, i = np.floor(uv[:, 0] + 0.5).astype(np.int64), np.floor(uv[:, 1] + 0.5).astype(np.int64)
+    inside = (z > 0) & (j >= 0) & (j < w) & (i >= 0) & (i < h)
+    d = np.full(len(z), -np.inf)
+    d[inside] = depth[i[inside], j[inside]]
+    tol = tol_px * np.abs(z) / float(camera.K[0, 0])
+    return inside & (z <= d + tol)
+
+
+def visible_points_reference(points: np.ndarray, camera: Camera, x: np.ndarray, faces: np.ndarray,
+                             tol_px: float = 1.5) -> np.ndarray:
+    """The slow obvious twin of :func:`visible_points` for tests: a point is seen when it projects inside the
+    image and no triangle of the mesh (x, faces) crosses the ray from the camera centre to it more than
+    ``tol_px`` pixel footprints (measured in camera z) in front of it (Möller–Trumbore, each point against
+    every triangle)."""
+    uv, z = project_points(np.asarray(points, np.float64), camera.K, camera.R, camera.t, camera.dist)
+    c = camera.center
+    out = np.zeros(len(points), bool)
+    for k, p in enumerate(np.asarray(points, np.float64)):
+        if not (z[k] > 0 and -0.5 <= uv[k, 0] < camera.width - 0.5 and -0.5 <= uv[k, 1] < camera.height - 0.5):
+            continue
+        d = p - c
+        tol = tol_px * z[k] / float(camera.K[0, 0])
+        tri = x[faces]
+        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        q = np.cross(d, e2)
+        a = np.sum(e1 * q, axis=1)
+        ok = np.abs(a) > 1e-15
+        a = np.where(ok, a, 1.0)
+        s_ = c - tri[:, 0]
+        u = np.sum(s_ * q, axis=1) / a
+        r = np.cross(s_, e1)
+        v = (r @ d) / a
+        s = np.sum(e2 * r, axis=1) / a  # the hit is c + s d; s = 1 at the point itself
+        blocked = np.any(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (s > 0) & ((1 - s) * z[k] > tol))
+        out[k] = not blocked
+    return out
+
+
 # --------------------------------------------------------------------------- backgrounds
 def background_plate(width: int, height: int, seed: int) -> np.ndarray:
     """A static textured backdrop (H, W, 3) float in [0, 1]: a vertical two-colour gradient with

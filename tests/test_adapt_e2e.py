@@ -348,6 +348,53 @@ def test_marker_loss_gradient_through_adjoint_matches_finite_differences(beam):
     _check_fd(obj, backend, 6, 4, h=1e-5, rtol=1e-4)
 
 
+def _gappy_capture(cap: Path, root: Path, frac: float = 0.4, empty_frames=(7,), seed: int = 0) -> Path:
+    """A copy of the capture whose markers.csv drops a random fraction of the (frame > 0, marker) observations
+    and every observation of the frames ``empty_frames`` (motion-capture gaps)."""
+    cap2 = root / "cap_gaps"
+    shutil.copytree(cap, cap2)
+    P = read_markers(cap / "markers.csv")
+    rng = np.random.default_rng(seed)
+    gap = rng.uniform(size=P.shape[:2]) < frac
+    gap[0] = False
+    gap[list(empty_frames)] = True
+    P[gap] = np.nan
+    write_markers(cap2 / "markers.csv", P)
+    Q = read_markers(cap2 / "markers.csv")
+    assert np.array_equal(np.isnan(Q[..., 0]), gap) and Q.shape == P.shape
+    return cap2
+
+
+def test_marker_loss_with_gaps_gradient_through_adjoint_matches_finite_differences(beam, tmp_path):
+    """The window covers frame 7, where no marker is seen, and frames with 40 % of the markers missing."""
+    cap, ws = beam
+    cap2 = _gappy_capture(cap, tmp_path)
+    obj, backend = _objective(cap2, ws, "markers")
+    obj.rebind = False
+    full, _ = _objective(cap, ws, "markers")
+    full.rebind = False
+    frames, before, p = _window(backend, 6, 4)
+    losses = obj(frames, p, before, False)[1]
+    assert losses[1] == 0.0 and np.all(losses[[0, 2, 3]] > 0)
+    assert np.all(losses <= full(frames, p, before, False)[1])
+    _check_fd(obj, backend, 6, 4, h=1e-5, rtol=1e-4)
+
+
+def test_online_markers_with_gaps_still_recovers_young(beam, tmp_path):
+    from stages.adapt import AdaptConfig, run
+
+    cap, ws = beam
+    cap2 = _gappy_capture(cap, tmp_path, empty_frames=(7, 8, 20))
+    ws2 = tmp_path / "ws"
+    ws2.mkdir()
+    shutil.copy(ws / "mesh.h5", ws2 / "mesh.h5")
+    art = AdaptArtefact.load(run(AdaptConfig(capture=cap2, workspace=ws2, space="full", loss="markers", window=5,
+                                             young_init=E_TRUE / 4)))
+    assert list(art.frames) == list(range(36)) and np.all(np.isfinite(art.young))
+    assert art.young[0, 0] < 0.5 * E_TRUE
+    assert abs(np.median(art.young[-8:, 0]) - E_TRUE) / E_TRUE < 0.10, art.young[:, 0]
+
+
 # =========================================================================== reduced space
 @pytest.fixture(scope="module")
 def beam_reduced(beam, tmp_path_factory) -> tuple[Path, Path]:

@@ -66,6 +66,42 @@ def test_marker_loss_gradient_matches_finite_differences():
         assert g[idx] == pytest.approx(fd, rel=1e-6, abs=1e-9)
 
 
+def test_marker_loss_with_gaps_sums_observed_markers_and_its_gradient_matches_finite_differences():
+    """Gaps (NaN in P) add nothing: L equals an explicit loop over the observed (t, i), a frame with no observed
+    marker adds nothing, and dL/dX matches central differences in every coordinate (exact for the mask)."""
+    v, f = _cube_surface()
+    rng = np.random.default_rng(3)
+    b = bind_markers(v, f, rng.uniform(-0.2, 1.2, (12, 3)))
+    X = v[None] + 0.05 * rng.standard_normal((4, 8, 3))
+    P = rng.uniform(0, 1, (4, 12, 3))
+    gap = rng.uniform(size=(4, 12)) < 0.4
+    gap[2] = True  # no marker seen at frame 2
+    P[gap] = np.nan
+    P[0, 5, 1] = np.nan  # one NaN coordinate makes the whole entry a gap
+    gap[0, 5] = True
+    L, g = marker_loss(b, X, P)
+    assert np.isfinite(L) and np.all(np.isfinite(g))
+    slow = 0.0
+    for t in range(4):
+        for i in range(12):
+            if not gap[t, i]:
+                m = sum(b.bary[i, k] * X[t, b.faces[i, k]] for k in range(3))
+                slow += float(np.sum((m - P[t, i]) ** 2))
+    assert L == pytest.approx(slow, rel=1e-12)
+    assert L < marker_loss(b, X, np.where(np.isnan(P), 0.3, P))[0]  # the gaps do count once filled in
+    assert np.all(g[2] == 0.0)
+    h = 1e-6
+    for idx in np.ndindex(*X.shape):
+        Xp, Xm = X.copy(), X.copy()
+        Xp[idx] += h
+        Xm[idx] -= h
+        fd = (marker_loss(b, Xp, P)[0] - marker_loss(b, Xm, P)[0]) / (2 * h)
+        assert g[idx] == pytest.approx(fd, rel=1e-6, abs=1e-9), idx
+    # all gaps: zero loss and gradient, no crash
+    L0, g0 = marker_loss(b, X, np.full_like(P, np.nan))
+    assert L0 == 0.0 and not np.any(g0)
+
+
 def test_parameter_maps_round_trip_and_chain_rule():
     rng_ = (0.3, 0.49)
     E, nu = np.array([1e4, 3e5]), np.array([0.31, 0.45])

@@ -74,6 +74,14 @@ def _frames(counts: dict[str, int]) -> Callable[[Path], None]:
     return f
 
 
+def _markers(rows: str, header: str = "frame,marker,x,y,z") -> Callable[[Path], None]:
+    """A markers.csv (with frames for both cameras, which `rsl info` reads first)."""
+    def f(r: Path) -> None:
+        _frames({"a": 2, "b": 2})(r)
+        (r / "markers.csv").write_text(f"{header}\n{rows}")
+    return f
+
+
 def _open_region(r: Path) -> None:
     box = trimesh.creation.box(extents=[0.1, 0.1, 0.1])
     box.update_faces(np.arange(12) < 8)
@@ -143,6 +151,16 @@ CAPTURE_CASES = {
     "region mesh not closed": (_open_region, "tetrahedralize", "region mesh is not closed", "soft.obj"),
     "frames of unequal count per camera": (_frames({"a": 3, "b": 2}), "info",
                                            "cameras hold unequal frame counts (a: 3, b: 2)", "frames"),
+    "markers.csv with a non-finite value": (_markers("0,0,1,2,3\n0,1,1,nan,3\n"), "info",
+                                            "line 3 should hold 5 finite values", "markers.csv"),
+    "markers.csv with frames not 0..T-1": (_markers("0,0,1,2,3\n2,0,1,2,3\n"), "info",
+                                           "frames should run 0..T-1", "markers.csv"),
+    "markers.csv with a marker never observed": (_markers("0,0,1,2,3\n0,1,,,\n1,0,1,2,3\n"), "info",
+                                                 "marker(s) 1 are never observed", "markers.csv"),
+    "markers.csv with a marker missing at frame 0": (_markers("0,0,1,2,3\n1,0,1,2,3\n1,1,1,2,3\n"), "info",
+                                                     "marker(s) 1 are not observed at frame 0", "markers.csv"),
+    "markers.csv with a wrong header": (_markers("0,0,1,2,3\n", header="frame,id,x,y,z"), "info",
+                                        "header should be 'frame,marker,x,y,z'", "markers.csv"),
     "frames with a gap": ((lambda r: (_frames({"a": 2, "b": 2})(r), (r / "frames" / "b" / "000000.png").unlink())),
                           "info", "frame 0 is missing", "frames/b"),
 }

@@ -286,11 +286,55 @@ def test_markers_round_trip_and_errors(tmp_path: Path) -> None:
     with pytest.raises(CaptureError, match="bad.csv: header should be"):
         read_markers(tmp_path / "bad.csv")
     (tmp_path / "bad.csv").write_text("frame,marker,x,y,z\n0,0,1,2,3\n1,0,1,2,3\n1,1,1,2,3\n")
-    with pytest.raises(CaptureError, match="every frame should list all 2 markers"):
+    with pytest.raises(CaptureError, match="bad.csv: marker.s. 1 are not observed at frame 0"):
         read_markers(tmp_path / "bad.csv")
     (tmp_path / "bad.csv").write_text("frame,marker,x,y,z\n0,0,1,2,nan\n")
     with pytest.raises(CaptureError, match="line 2 should hold 5 finite values"):
         read_markers(tmp_path / "bad.csv")
+
+
+def test_markers_with_gaps_round_trip_as_nan(tmp_path: Path) -> None:
+    """A (frame, marker) row that is absent (or has x, y, z all empty) is a gap: NaN; write_markers leaves NaN
+    entries out and keeps a frame that sees no marker as one empty row."""
+    rng = np.random.default_rng(1)
+    m = rng.normal(size=(5, 4, 3))
+    m[1, 2] = np.nan
+    m[3, [0, 3]] = np.nan
+    m[4] = np.nan  # no marker seen at the last frame
+    m[2, 1, 0] = np.nan  # one NaN coordinate: the whole entry is a gap
+    write_markers(tmp_path / "markers.csv", m)
+    text = (tmp_path / "markers.csv").read_text()
+    assert "nan" not in text.lower() and text.splitlines()[-1] == "4,0,,,"
+    assert len(text.strip().splitlines()) == 1 + 20 - 1 - 2 - 1 - 4 + 1
+    got = read_markers(tmp_path / "markers.csv")
+    gap = ~np.all(np.isfinite(m), axis=-1)
+    assert got.shape == (5, 4, 3)
+    np.testing.assert_array_equal(np.isnan(got).all(-1), gap)
+    assert not np.any(np.isnan(got[~gap]))
+    np.testing.assert_allclose(got[~gap], m[~gap], rtol=1e-8)
+    # an explicit gap row reads the same as an absent row; marker ids need not be contiguous
+    (tmp_path / "g.csv").write_text("frame,marker,x,y,z\n0,3,1,2,3\n0,7,4,5,6\n1,3,,,\n1,7,1,1,1\n2,7,2,2,2\n")
+    got = read_markers(tmp_path / "g.csv")
+    assert got.shape == (3, 2, 3)
+    assert np.isnan(got[1, 0]).all() and np.isnan(got[2, 0]).all()
+    np.testing.assert_array_equal(got[:, 1], [[4, 5, 6], [1, 1, 1], [2, 2, 2]])
+
+
+@pytest.mark.parametrize("text, expect", [
+    ("frame,marker,x,y,z\n0,0,1,2,3\n0,1,1,inf,3\n", "line 3 should hold 5 finite values"),
+    ("frame,marker,x,y,z\n0,0,1,2,3\n0,1,1,,3\n", "line 3 is not 'frame,marker,x,y,z' numbers"),
+    ("frame,marker,x,y,z\n0,0,1,2,3\n2,0,1,2,3\n", "frames should run 0..T-1"),
+    ("frame,marker,x,y,z\n0,0,1,2,3\n0,1,,,\n1,0,1,2,3\n1,1,,,\n", "marker(s) 1 are never observed"),
+    ("frame,marker,x,y,z\n0,0,1,2,3\n1,0,1,2,3\n1,5,1,2,3\n", "marker(s) 5 are not observed at frame 0"),
+    ("frame,marker,x,y,z\n0,0,1,2,3\n0,0,1,2,3\n", "marker 0 is listed twice at frame 0"),
+    ("frame,mark,x,y,z\n0,0,1,2,3\n", "header should be"),
+])
+def test_markers_rejections_name_the_file(tmp_path: Path, text: str, expect: str) -> None:
+    (tmp_path / "odd.csv").write_text(text)
+    with pytest.raises(CaptureError) as e:
+        read_markers(tmp_path / "odd.csv")
+    msg = str(e.value)
+    assert msg.startswith(str(tmp_path / "odd.csv") + ": ") and expect in msg and msg.endswith(".")
 
 
 def test_truth_round_trip(capture: Path) -> None:

@@ -274,3 +274,116 @@ def test_marker_noise_perturbs_only_the_markers(box_mesh, tmp_path):
         assert (clean / rel).read_bytes() == (noisy / rel).read_bytes(), rel
     with pytest.raises(RslError, match="--marker-noise"):
         run(SynthConfig(mesh=box_mesh, out=tmp_path / "bad", marker_noise=-1.0))
+
+
+def _sphere_views():
+    """A unit-ish sphere (radius 0.05 m) and two cameras on opposite sides of it (+x and −x), 64 px."""
+    import trimesh
+
+    from stages.artefacts import Camera
+    from stages.render.mesh_raster import look_at, render_mesh
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    x, faces = np.asarray(s.vertices), np.asarray(s.faces)
+    f = 32 / np.tan(np.radians(25))
+    K = np.array([[f, 0, 31.5], [0, f, 31.5], [0, 0, 1.0]])
+    cams, depths = [], []
+    for k, eye in enumerate(([0.3, 0.02, 0.01], [-0.3, -0.01, 0.02])):
+        R, t = look_at(np.array(eye), np.zeros(3), np.array([0, 0, 1.0]))
+        cam = Camera(f"c{k}", K, np.zeros(5), R, t, 64, 64, 0.0)
+        cams.append(cam)
+        depths.append(render_mesh(x, faces, x, K, R, t, 64, 64, lambda p: np.ones_like(p), None, None, 2)[2])
+    return x, faces, cams, depths
+
+
+def test_visible_points_sees_the_near_side_of_a_sphere_and_agrees_with_ray_casting():
+    """A point on the far side of a convex object is hidden from a camera and seen from the opposite one; the
+    depth-buffer test agrees with ray casting against every triangle away from the silhouette."""
+    from stages.synth_views import visible_points, visible_points_reference
+
+    x, faces, cams, depths = _sphere_views()
+    far_side = np.array([[-1.0, 0.0, 0.0], [-1.0, 0.0, 1.0]])  # the −x side, on the sphere (radius 0.05)
+    far_side = far_side / np.linalg.norm(far_side, axis=1, keepdims=True) * 0.0499
+    assert not visible_points(far_side, cams[0], depths[0]).any()
+    assert visible_points(far_side, cams[1], depths[1]).all()
+    assert not visible_points_reference(far_side, cams[0], x, faces).any()
+    # surface points: barycentres of random triangles
+    rng = np.random.default_rng(0)
+    fi = rng.choice(len(faces), 120, replace=False)
+    pts = x[faces[fi]].mean(1)
+    for cam, depth in zip(cams, depths):
+        fast = visible_points(pts, cam, depth)
+        slow = visible_points_reference(pts, cam, x, faces)
+        view = cam.center - pts
+        cos = np.sum(view * pts, 1) / np.linalg.norm(view, axis=1) / np.linalg.norm(pts, axis=1)
+        # away from the silhouette (beyond 60° from facing the camera the nearest sample of a pixel lies more
+        # than the tolerance in front of a point on this coarse 22-px-wide sphere: seen by the ray, not the buffer)
+        clear = np.abs(cos) > 0.5
+        assert clear.sum() > 40 and 0.25 < fast.mean() < 0.6
+        np.testing.assert_array_equal(fast[clear], slow[clear])
+        np.testing.assert_array_equal(fast[clear], cos[clear] > 0)
+    # outside the image: not seen
+    assert not visible_points(np.array([[0.0, 0.5, 0.0]]), cams[0], depths[0]).any()
+
+
+def test_occlude_markers_keeps_markers_seen_by_enough_cameras():
+    from stages.synth import occlude_markers
+
+    x, faces, cams, depths = _sphere_views()
+    pts = np.array([[0.0499, 0, 0], [-0.0499, 0, 0]])[None]  # near side of camera 0, far side of camera 0
+    seen = np.stack([visible_points_counts(pts[0], cams, depths)])
+    assert seen.tolist() == [[1, 1]]
+    one = occlude_markers(pts, np.stack([visible_points_counts(pts[0], cams[:1], depths[:1])]), 1)
+    assert np.isfinite(one[0, 0]).all() and np.isnan(one[0, 1]).all()  # a single camera: the far marker dropped
+    both = occlude_markers(pts, seen, 1)
+    np.testing.assert_array_equal(both, pts)  # seen from the other side: kept
+    with pytest.raises(RslError, match="no marker is seen by 2 cameras at frame 0"):
+        occlude_markers(pts, seen, 2)
+    T = np.tile(pts, (3, 1, 1))
+    counts = np.array([[1, 1], [1, 0], [0, 1]])
+    got = occlude_markers(T, counts, 1)
+    assert np.isnan(got[1, 1]).all() and np.isnan(got[2, 0]).all() and np.isfinite(got[[0, 1], 0]).all()
+    counts[0, 1] = 0  # marker 1 not seen at frame 0: left out at every frame
+    assert np.isnan(occlude_markers(T, counts, 1)[:, 1]).all()
+
+
+def visible_points_counts(points, cams, depths):
+    from stages.synth_views import visible_points
+
+    return sum(visible_points(points, c, d).astype(int) for c, d in zip(cams, depths))
+
+
+def test_marker_visibility_leaves_gaps_and_zero_leaves_the_capture_unchanged(box_mesh, tmp_path):
+    """--marker-visibility 0 writes the capture of before (markers.csv byte for byte); with 1 camera and N = 1
+    the markers it does not see are gaps, and the ones written are the positions of N = 0."""
+    base = dict(mesh=box_mesh, scenario="push", cameras=1, frames=3, resolution=32, markers=40,
+                calib_views=0, seed=4)
+    ref = run(SynthConfig(out=tmp_path / "ref", **base))
+    zero = tmp_path / "zero"
+    proc = run_rsl("synth", box_mesh, zero, "--scenario", "push", "--cameras", "1", "--frames", "3",
+                   "--resolution", "32", "--markers", "40", "--calib-views", "0", "--seed", "4",
+                   "--marker-visibility", "0")
+    assert proc.returncode == 0, proc.stderr
+    for rel in ("markers.csv", "frames/cam0/000002.png", "truth/surface.npz"):
+        assert (ref / rel).read_bytes() == (zero / rel).read_bytes(), rel
+    vis = tmp_path / "vis"
+    proc = run_rsl("synth", box_mesh, vis, "--scenario", "push", "--cameras", "1", "--frames", "3",
+                   "--resolution", "32", "--markers", "40", "--calib-views", "0", "--seed", "4",
+                   "--marker-visibility", "1")
+    assert proc.returncode == 0, proc.stderr
+    assert "lost to occlusion" in " ".join(proc.stderr.split())
+    for rel in ("frames/cam0/000002.png", "truth/surface.npz"):
+        assert (ref / rel).read_bytes() == (vis / rel).read_bytes(), rel
+    import csv
+
+    all_m = load_capture(ref).markers()
+    with open(vis / "markers.csv") as f:
+        rows = [r for r in csv.DictReader(f)]
+    ids = sorted({int(r["marker"]) for r in rows})
+    got = load_capture(vis).markers()
+    assert got.shape == (3, len(ids), 3) and 5 < len(ids) < 40  # a box seen by one camera: some faces hidden
+    seen = np.isfinite(got[..., 0])
+    np.testing.assert_allclose(got[seen], all_m[:, ids][seen], rtol=1e-8)
+    assert seen[0].all()
+    with pytest.raises(RslError, match="--marker-visibility 2 asks for more cameras than --cameras 1"):
+        run(SynthConfig(out=tmp_path / "bad", marker_visibility=2, **base))
