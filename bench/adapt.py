@@ -478,7 +478,8 @@ def case_markers_vs_vision_rebind(work: Path, quick: bool) -> list[dict]:
         series[lab], verr[lab] = (art.frames, art.young[:, 0]), ev["vertex_error_per_frame_m"]
         rows.append(case_row(label, art, ev, cameras=4, gaussians=n_g, gaussian_anchor=anchor,
                              appearance=appearance, vertex_error_last_half_m=last_half(ev), **extra))
-    plot_rebind(RESULTS / "adapt_markers_vs_vision_rebind.png", series, verr, sweeps)
+    plot_e_and_surface(RESULTS / "adapt_markers_vs_vision_rebind.png", series, verr,
+                       lambda lab: "--" if "offset" in lab else "-", sweeps)
     return rows
 
 
@@ -545,19 +546,22 @@ def case_markers_visibility(work: Path, quick: bool) -> list[dict]:
             a = AdaptArtefact.load(d / "adapt.h5")
             series[lab] = (a.frames, a.young[:, 0])
             verr[lab] = json.loads((d / "evaluation.json").read_text())["vertex_error_per_frame_m"]
-    plot_visibility(RESULTS / "adapt_markers_visibility.png", series, verr)
+    plot_e_and_surface(RESULTS / "adapt_markers_visibility.png", series, verr,
+                       lambda lab: "-" if "seen by" in lab else ":")
     return rows
 
 
-def plot_visibility(path: Path, series: dict, verr: dict) -> None:
+def plot_e_and_surface(path: Path, series: dict, verr: dict, line_style, sweeps: dict | None = None) -> None:
+    """E(t) and the surface error per frame (``line_style(label)`` gives each series' matplotlib style), plus
+    with ``sweeps`` the normalised window loss L(E)/L(E_true) at the window ending at frame 20."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    fig, ax = plt.subplots(1, 3 if sweeps else 2, figsize=(15 if sweeps else 11, 4))
     for lab, (fr, y) in series.items():
-        ls = "-" if "seen by" in lab else ":"
+        ls = line_style(lab)
         ax[0].plot(fr, y / 1e5, ls, label=lab)
         ax[1].plot(np.arange(len(verr[lab])), np.asarray(verr[lab]) * 1e3, ls, label=lab)
     ax[0].axhline(1.0, color="k", lw=0.8)
@@ -569,42 +573,15 @@ def plot_visibility(path: Path, series: dict, verr: dict) -> None:
     ax[1].set_xlabel("frame")
     ax[1].set_ylabel("surface error vs truth (mm)")
     ax[1].set_title("symmetric surface distance")
-    for a in ax:
-        a.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-
-
-def plot_rebind(path: Path, series: dict, verr: dict, sweeps: dict) -> None:
-    """E(t), surface error per frame and the normalised window loss L(E)/L(E_true) at the window ending at 20."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(1, 3, figsize=(15, 4))
-    for lab, (fr, y) in series.items():
-        ls = "--" if "offset" in lab else "-"
-        ax[0].plot(fr, y / 1e5, ls, label=lab)
-        ax[1].plot(np.arange(len(verr[lab])), np.asarray(verr[lab]) * 1e3, ls, label=lab)
-    ax[0].axhline(1.0, color="k", lw=0.8)
-    ax[0].set_ylim(0.2, 1.4)
-    ax[0].set_xlabel("frame")
-    ax[0].set_ylabel("E / E_true")
-    ax[0].set_title("E(t), started at E_true / 4")
-    ax[1].set_yscale("log")
-    ax[1].set_xlabel("frame")
-    ax[1].set_ylabel("surface error vs truth (mm)")
-    ax[1].set_title("symmetric surface distance")
-    for lab, sw in sweeps.items():
+    for lab, sw in (sweeps or {}).items():
         L = np.asarray(sw["20"]["loss"])
         i1 = sw["factors"].index(1.0)
         ax[2].plot(sw["factors"], L / L[i1] if L[i1] > 1e-12 else L / L.max(), "o-", label=lab)
-    ax[2].axvline(1.0, color="k", lw=0.8)
-    ax[2].set_xlabel("E / E_true")
-    ax[2].set_ylabel("L(E) / L(E_true)  (markers σ=0: / max)")
-    ax[2].set_title("window loss, frames 18–20")
+    if sweeps:
+        ax[2].axvline(1.0, color="k", lw=0.8)
+        ax[2].set_xlabel("E / E_true")
+        ax[2].set_ylabel("L(E) / L(E_true)  (markers σ=0: / max)")
+        ax[2].set_title("window loss, frames 18–20")
     for a in ax:
         a.legend(fontsize=7)
     fig.tight_layout()
