@@ -171,12 +171,7 @@ def read_surface(path: Path, reporter: Reporter) -> tuple[np.ndarray, np.ndarray
     """A closed triangle surface -> (vertices (n,3), faces (k,3) outward); small holes are filled."""
     import trimesh
 
-    try:
-        mesh = trimesh.load(str(path), force="mesh", process=True)
-    except Exception as e:
-        raise CaptureError(f"{path}: cannot read the surface mesh ({type(e).__name__}: {e}).") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise CaptureError(f"{path}: holds no triangles.")
+    mesh = _load_triangles(path, "surface mesh")
     if not np.all(np.isfinite(mesh.vertices)):
         raise CaptureError(f"{path}: holds NaN or infinite vertex coordinates.")
     if not mesh.is_watertight:
@@ -197,6 +192,20 @@ def read_surface(path: Path, reporter: Reporter) -> tuple[np.ndarray, np.ndarray
     return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
 
 
+def _load_triangles(path: Path, what: str):
+    """trimesh.load of a triangle mesh with at least one face; ``what`` ("surface mesh", "region mesh")
+    names it in the error."""
+    import trimesh
+
+    try:
+        mesh = trimesh.load(str(path), force="mesh", process=True)
+    except Exception as e:
+        raise CaptureError(f"{path}: cannot read the {what} ({type(e).__name__}: {e}).") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise CaptureError(f"{path}: the {what} holds no triangles.")
+    return mesh
+
+
 def _open_edges(mesh) -> int:
     import trimesh
 
@@ -209,12 +218,7 @@ def _closed_surface(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """A region mesh: must be closed; returned outward-oriented."""
     import trimesh
 
-    try:
-        mesh = trimesh.load(str(path), force="mesh", process=True)
-    except Exception as e:
-        raise CaptureError(f"{path}: cannot read the region mesh ({type(e).__name__}: {e}).") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise CaptureError(f"{path}: region mesh holds no triangles.")
+    mesh = _load_triangles(path, "region mesh")
     if not mesh.is_watertight:
         raise CaptureError(f"{path}: region mesh is not closed ({_open_edges(mesh)} open edges); a region "
                            f"must be a watertight surface.")
