@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.sim.mesh import deformation_gradients, shape_matrices
+
 
 # =========================================================================== markers
 @dataclass(frozen=True)
@@ -176,9 +178,7 @@ class Adam:
 def tet_barycentrics(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Barycentric coordinates (P, 4) of points (P, 3) in the tets (P, 4) given per point (rows sum to 1;
     all ≥ 0 inside the tet, affine extrapolation outside)."""
-    c = vertices[tets]  # (P, 4, 3)
-    D = (c[:, 1:4] - c[:, 0:1]).transpose(0, 2, 1)  # (P, 3, 3) columns x_k − x_0
-    lam = np.linalg.solve(D, (points - c[:, 0])[..., None])[..., 0]
+    lam = np.linalg.solve(shape_matrices(vertices, tets), (points - vertices[tets[:, 0]])[..., None])[..., 0]
     return np.concatenate([1.0 - lam.sum(1, keepdims=True), lam], axis=1)
 
 
@@ -209,7 +209,7 @@ def locate_in_tets(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, c
 
     points = np.asarray(points, np.float64)
     c = vertices[tets]  # (M, 4, 3)
-    Dinv = np.linalg.inv((c[:, 1:4] - c[:, 0:1]).transpose(0, 2, 1))  # (M, 3, 3)
+    Dinv = np.linalg.inv(shape_matrices(vertices, tets))  # (M, 3, 3)
     x0 = c[:, 0]
     tree = cKDTree(c.mean(1))
 
@@ -293,8 +293,7 @@ class ImageLoss:
             return
         x = np.asarray(x_fit, np.float64)
         host, bary = locate_in_tets(self._fit_means, x, self._tets)
-        c = x[self._tets[host]]
-        F = (c[:, 1:4] - c[:, 0:1]).transpose(0, 2, 1) @ self._dm_inv_all[host]  # (G, 3, 3) at x_fit
+        F = deformation_gradients(x, self._tets[host], self._dm_inv_all[host])  # (G, 3, 3) at x_fit
         Finv = np.linalg.inv(F)
         self._set_binding(host, bary, Finv @ self._fit_cov @ Finv.transpose(0, 2, 1))
 

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from stages.sim.materials import energy_density, lame
+from stages.sim.mesh import deformation_gradients
 from stages.sim.potential import contact_energy, obstacle_distance, scene_data
 
 jax.config.update("jax_enable_x64", True)
@@ -80,13 +81,6 @@ def von_mises(sigma: np.ndarray) -> np.ndarray:
     return np.sqrt(1.5 * np.sum(s * s, axis=(-2, -1)))
 
 
-def deformation_gradients(x: np.ndarray, tets: np.ndarray, dm_inv: np.ndarray) -> np.ndarray:
-    """F = D_s D_m⁻¹ per tet, (m, 3, 3); x (n, 3) m, tets (m, 4), dm_inv (m, 3, 3)."""
-    p = np.asarray(x, np.float64)[tets]
-    ds = (p[:, 1:4] - p[:, 0:1]).transpose(0, 2, 1)  # columns x_i − x_0
-    return ds @ dm_inv
-
-
 def tet_stress(x: np.ndarray, tets: np.ndarray, dm_inv: np.ndarray, mu: np.ndarray, lam: np.ndarray,
                model: str = "stable_neohookean") -> dict[str, np.ndarray]:
     """Stress state of every tet at positions x (n, 3) m.
@@ -94,7 +88,7 @@ def tet_stress(x: np.ndarray, tets: np.ndarray, dm_inv: np.ndarray, mu: np.ndarr
     Returns ``F`` (m,3,3), ``J`` (m,), ``P`` (m,3,3) Pa, ``sigma`` (m,3,3) Pa and
     ``von_mises`` (m,) Pa.  μ, λ: (m,) Pa per tet.
     """
-    F = deformation_gradients(x, tets, dm_inv)
+    F = deformation_gradients(np.asarray(x, np.float64), tets, dm_inv)
     P = first_piola(F, mu, lam, model)
     sigma = cauchy_stress(F, P)
     return {"F": F, "J": np.linalg.det(F), "P": P, "sigma": sigma, "von_mises": von_mises(sigma)}
@@ -147,10 +141,7 @@ def nodal_forces(P: np.ndarray, tets: np.ndarray, dm_inv: np.ndarray, volumes: n
 def elastic_energy(x, tets, dm_inv, volumes, mu, lam, model: str = "stable_neohookean"):
     """Σ_e V_e Ψ(F_e) in JAX (J), the potential whose negative gradient :func:`nodal_forces` assembles."""
     psi = jax.vmap(energy_density(model))
-    p = x[tets]
-    ds = jnp.swapaxes(p[:, 1:4] - p[:, 0:1], 1, 2)
-    F = ds @ dm_inv
-    return jnp.sum(volumes * psi(F, mu, lam))
+    return jnp.sum(volumes * psi(deformation_gradients(x, tets, dm_inv), mu, lam))
 
 
 def force_sum(forces: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, float]:
