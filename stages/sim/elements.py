@@ -362,7 +362,7 @@ def element_terms(x, tets, dm_inv, vol, mu, lam, material: str, want: int = HESS
     if backend == "numba" and material != "stable_neohookean":
         raise ValueError(f"the numba kernel covers stable_neohookean only, not {material!r}")
     if material == "stable_neohookean" and backend in ("auto", "numba"):
-        code = 2 if isinstance(project, str) and project == "abs" else int(bool(project))
+        code = 2 if project == "abs" else int(bool(project))
         return snh_kernel(np.ascontiguousarray(x, np.float64), tets, dm_inv, vol, np.asarray(mu, np.float64),
                           np.asarray(lam, np.float64), want, code)
     if want < HESSIAN:

@@ -248,7 +248,7 @@ def _vertex_terms(scene: Scene, inputs: FrameInputs, x, y, x_prev, want: int, pr
             hc = np.asarray(hc)
             if project:
                 w, q = np.linalg.eigh(0.5 * (hc + hc.transpose(0, 2, 1)))
-                w = np.abs(w) if isinstance(project, str) and project == "abs" else np.maximum(w, 0.0)
+                w = np.abs(w) if project == "abs" else np.maximum(w, 0.0)
                 hc = (q * w[:, None, :]) @ q.transpose(0, 2, 1)
             blocks += hc
     return energy, grad, blocks
