@@ -40,7 +40,7 @@ def _register_commands() -> None:
         mod = importlib.import_module(f"rsl_cli.commands.{info.name}")
         if hasattr(mod, "register"):
             mods.append(mod)
-    for mod in sorted(mods, key=lambda m: getattr(m, "ORDER", 100)):
+    for mod in sorted(mods, key=lambda m: getattr(m, "ORDER", getattr(m.register, "order", 100))):
         mod.register(app)
 
 
@@ -58,8 +58,8 @@ def main() -> None:
     except RslError as e:
         error(str(e))
         sys.exit(1)
-    except KeyboardInterrupt:
-        error("interrupted.")
+    except KeyboardInterrupt as e:  # a stage may say what it kept (stages.errors.Interrupted)
+        error(f"interrupted; {e}" if str(e) else "interrupted.")
         sys.exit(130)
     except SystemExit:
         raise

@@ -8,6 +8,7 @@ from typing import Iterator
 from rich.console import Console
 from rich.progress import (BarColumn, MofNCompleteColumn, Progress, ProgressColumn, SpinnerColumn,
                            TextColumn, TimeElapsedColumn, TimeRemainingColumn)
+from rich.markup import escape
 from rich.text import Text
 
 console = Console(stderr=True, highlight=False)
@@ -52,7 +53,7 @@ class RichReporter:
         if state["quiet"] or not console.is_terminal and not state["verbose"]:
             # Not a terminal (a log, CI): no bar redraws; one line at start.
             if not state["quiet"]:
-                console.print(f"[dim]{description} …[/]")
+                console.print(f"[dim]{escape(description)} …[/]")
             yield _NullTask()
             return
         columns = [SpinnerColumn(), TextColumn("[bold]{task.description}"), BarColumn(),
@@ -64,19 +65,21 @@ class RichReporter:
 
     def info(self, message: str) -> None:
         if not state["quiet"]:
-            console.print(message)
+            console.print(escape(str(message)))
 
     def warn(self, message: str) -> None:
-        console.print(f"[yellow]warning:[/] {message}")
+        console.print(f"[yellow]warning:[/] {escape(str(message))}")
 
     def summary(self, message: str) -> None:
-        console.print(f"[green]✓[/] {message}")
+        console.print(f"[green]✓[/] {escape(str(message))}")
 
 
 def error(message: str) -> None:
-    console.print(f"[bold red]error:[/] {message}", soft_wrap=True)
+    """One red sentence; the message is user text (paths, values) and is printed escaped, never as markup."""
+    console.print(f"[bold red]error:[/] {escape(str(message))}", soft_wrap=True)
 
 
-def out(message: str) -> None:
-    """Results meant for stdout (e.g. `rsl info`)."""
-    Console(highlight=False, soft_wrap=True).print(message)
+def out(message: str, markup: bool = True) -> None:
+    """Results meant for stdout (e.g. `rsl info`); user text inside ``message`` must be escaped
+    (rich.markup.escape) by the caller, or the whole line printed with ``markup=False``."""
+    Console(highlight=False, soft_wrap=True).print(message, markup=markup)

@@ -40,10 +40,16 @@ import numpy as np
 
 from stages.adapt_loss import (Adam, MarkerBinding, bind_markers, chain_params, marker_residuals,
                                params_from_theta, theta_from_params)
-from stages.artefacts import KIND_FILES, AdaptArtefact, MeshArtefact, Provenance
-from stages.capture import IMAGE_SUFFIXES, Capture, CaptureError, load_capture, read_image
-from stages.errors import RslError
+from stages.artefacts import (KIND_FILES, AdaptArtefact, MeshArtefact, Provenance, check_mesh_source,
+                              check_same_mesh)
+from stages.capture import (IMAGE_SUFFIXES, Capture, CaptureError, check_obstacles_clear, load_capture,
+                            read_image)
+from stages.errors import Interrupted, RslError
 from stages.progress import Reporter, SilentReporter
+from stages.sim.meshgen import refine_tets  # noqa: F401  (re-exported: stages.adapt.refine_tets)
+from stages.workspace import prepare_workspace
+
+PARTIAL_ADAPT = "adapt.partial.h5"  # an interrupted or failed run; adapt.h5 only ever holds a complete one
 
 
 @dataclass(frozen=True)
@@ -93,10 +99,17 @@ class AdaptConfig:
     """Process frames as they appear in the capture folder; Ctrl-C ends with everything saved."""
     follow_timeout: float = 0.0
     """With --follow: stop after this many seconds without a new frame (0: wait until Ctrl-C)."""
-    solver: str = "auto"
+    solver: Literal["auto", "cholmod", "splu"] = "auto"
     """Linear solver of the full-space Newton steps (passed to stages.sim)."""
     seed: int = 0
     """Seed of every random choice (none at present; kept for reruns)."""
+    estimator: Literal["adam", "gn"] = "adam"
+    """adam: a few Adam steps on the window loss per frame; gn: Gauss–Newton / Levenberg–Marquardt on the window
+    residuals with an arrival-cost prior and process noise (a moving-horizon filter), reporting E ± σ."""
+    process_noise: float = 0.02
+    """gn: σ of the random walk of log E (and of the ν parameter) per frame — how fast the material may change."""
+    state_correction: bool = True
+    """gn, reduced space, markers: also estimate the window's two starting states (z's, with their own prior)."""
 
 
 # =========================================================================== backends
@@ -124,8 +137,11 @@ class _FullSpace:
         """States (w, n, 3) of ``frames`` from ``before`` = [x_{t0−2}, x_{t0−1}]; young/poisson (w, R)."""
         from stages.sim.scene import simulate
 
-        return np.asarray(simulate(self.scene, [self.inputs(t) for t in frames], young, poisson,
-                                   x_prev=before[1], x_prev2=before[0], solver=self.solver))
+        states = np.asarray(simulate(self.scene, [self.inputs(t) for t in frames], young, poisson,
+                                     x_prev=before[1], x_prev2=before[0], solver=self.solver))
+        if getattr(self, "guard", None) is not None:
+            self.guard(frames, states, young)
+        return states
 
     def backward(self, frames: Sequence[int], young: np.ndarray, poisson: np.ndarray, states: np.ndarray,
                  before: np.ndarray, dL_dX: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -133,6 +149,54 @@ class _FullSpace:
         from stages.sim.scene import window_adjoint
 
         g = window_adjoint(self.scene, [self.inputs(t) for t in frames], young, poisson, states, before, dL_dX)
+        return np.asarray(g["young"]), np.asarray(g["poisson"])
+
+    def sensitivity(self, frames, young, poisson, states, before, d_young, d_poisson, d_before=None):
+        """dX/dp (k, w, n, 3) along k directions (stages.sim.sensitivity)."""
+        from stages.sim.sensitivity import window_sensitivity
+
+        return window_sensitivity(self.scene, [self.inputs(t) for t in frames], young, poisson, states, before,
+                                  d_young, d_poisson, d_before, solver=self.solver)
+
+    state_sensitivity = sensitivity
+
+    def decode_sensitivity(self, states, S):
+        return S
+
+    def backward_before(self, frames, young, poisson, states, before, dL_dX):
+        """(dL/dE (w, R), dL/dν (w, R), dL/d before (2, n, 3))."""
+        from stages.sim.scene import window_adjoint
+
+        g = window_adjoint(self.scene, [self.inputs(t) for t in frames], young, poisson, states, before, dL_dX)
+        return np.asarray(g["young"]), np.asarray(g["poisson"]), np.asarray(g["x_before"])
+
+    def state_grad(self, state: np.ndarray, dL_dx: np.ndarray) -> np.ndarray:
+        return dL_dx
+
+    def start(self, young, poisson, kind: str, init=None) -> np.ndarray:
+        """x_0 (n, 3): the rest shape or the static equilibrium under the frame-0 inputs (stages.sim.static)."""
+        from stages.sim.static import start_state
+
+        kw = {} if kind == "rest" else {"x_init": init, "solver": self.solver}
+        return np.asarray(start_state(self.scene, self.inputs(0), young, poisson, kind, **kw))
+
+    def start_sensitivity(self, young, poisson, kind: str, x0, d_young, d_poisson) -> np.ndarray:
+        """dx_0/dp (k, n, 3) along k directions of θ (0 for the rest start)."""
+        from stages.sim.static import equilibrium_sensitivity
+
+        k = len(d_young)
+        if kind == "rest":
+            return np.zeros((k,) + np.shape(x0))
+        S = equilibrium_sensitivity(self.scene, self.inputs(0), young, poisson, x0, solver=self.solver)  # (2R, n, 3)
+        return np.tensordot(np.concatenate([d_young, d_poisson], axis=1), S, axes=1)
+
+    def start_adjoint(self, young, poisson, kind: str, x0, dL_dx0) -> tuple[np.ndarray, np.ndarray]:
+        """(dL/dE, dL/dν) (R,) through x_0(θ), for dL/dx_0 (n, 3)."""
+        from stages.sim.static import equilibrium_adjoint
+
+        if kind == "rest":
+            return np.zeros(len(young)), np.zeros(len(young))
+        g = equilibrium_adjoint(self.scene, self.inputs(0), young, poisson, x0, dL_dx0, solver=self.solver)
         return np.asarray(g["young"]), np.asarray(g["poisson"])
 
 
@@ -163,14 +227,109 @@ class _ReducedSpace:
         return np.asarray(states)
 
     def forward(self, frames, young, poisson, before):
-        return np.asarray(self.model.simulate([self.inputs(t) for t in frames], young, poisson,
-                                              z_prev=before[1], z_prev2=before[0]))
+        states = np.asarray(self.model.simulate([self.inputs(t) for t in frames], young, poisson,
+                                                z_prev=before[1], z_prev2=before[0]))
+        if getattr(self, "guard", None) is not None:
+            self.guard(frames, self.decode(states), young)
+        return states
 
     def backward(self, frames, young, poisson, states, before, dL_dX):
         """dL/dX → dL/dZ = Jᵀ dL/dX → reduced adjoint over the window → (dL/dE, dL/dν) (w, R)."""
         g = self.model.window_adjoint([self.inputs(t) for t in frames], young, poisson, states, before,
                                       dL_dX=dL_dX)
         return np.asarray(g["young"]), np.asarray(g["poisson"])
+
+    def sensitivity(self, frames, young, poisson, states, before, d_young, d_poisson, d_before=None):
+        """dX/dp (k, w, n, 3) = J(z_t) dz_t/dp along k directions (stages.subspace.sensitivity)."""
+        from stages.subspace.sensitivity import decode_sensitivity, window_sensitivity
+
+        S = window_sensitivity(self.model, [self.inputs(t) for t in frames], young, poisson, states, before,
+                               d_young, d_poisson, d_before)
+        return decode_sensitivity(self.model, states, S)
+
+    def state_sensitivity(self, frames, young, poisson, states, before, d_young, d_poisson, d_before=None):
+        """dZ/dp (k, w, r)."""
+        from stages.subspace.sensitivity import window_sensitivity
+
+        return window_sensitivity(self.model, [self.inputs(t) for t in frames], young, poisson, states, before,
+                                  d_young, d_poisson, d_before)
+
+    def decode_sensitivity(self, states, S):
+        from stages.subspace.sensitivity import decode_sensitivity
+
+        return decode_sensitivity(self.model, states, S)
+
+    def backward_before(self, frames, young, poisson, states, before, dL_dX):
+        """(dL/dE (w, R), dL/dν (w, R), dL/d before (2, r))."""
+        g = self.model.window_adjoint([self.inputs(t) for t in frames], young, poisson, states, before,
+                                      dL_dX=dL_dX)
+        return np.asarray(g["young"]), np.asarray(g["poisson"]), np.asarray(g["z_before"])
+
+    def state_grad(self, state: np.ndarray, dL_dx: np.ndarray) -> np.ndarray:
+        return self.model.jacobian_transpose(state, dL_dx)
+
+    def start(self, young, poisson, kind: str, init=None) -> np.ndarray:
+        """z_0 (r,): ψ(rest) or the reduced static equilibrium under the frame-0 inputs (stages.sim.static)."""
+        from stages.sim.static import reduced_equilibrium
+
+        if kind == "rest":
+            return self.rest_state
+        return np.asarray(reduced_equilibrium(self.model, self._inputs(0), young, poisson, z_init=init))
+
+    def start_sensitivity(self, young, poisson, kind: str, z0, d_young, d_poisson) -> np.ndarray:
+        """dz_0/dp (k, r)."""
+        from stages.sim.static import reduced_equilibrium_sensitivity
+
+        if kind == "rest":
+            return np.zeros((len(d_young),) + np.shape(z0))
+        S = reduced_equilibrium_sensitivity(self.model, self._inputs(0), young, poisson, z0)  # (2R, r)
+        return np.concatenate([d_young, d_poisson], axis=1) @ S
+
+    def start_adjoint(self, young, poisson, kind: str, z0, dL_dz0) -> tuple[np.ndarray, np.ndarray]:
+        from stages.sim.static import reduced_equilibrium_adjoint
+
+        if kind == "rest":
+            return np.zeros(len(young)), np.zeros(len(young))
+        g = reduced_equilibrium_adjoint(self.model, self._inputs(0), young, poisson, z0, dL_dz=dL_dz0)
+        return np.asarray(g["young"]), np.asarray(g["poisson"])
+
+
+class SolveCollapsed(RslError):
+    """A forward solve inverted elements or diverged (raised by :class:`_SolveGuard`)."""
+
+
+class _SolveGuard:
+    """Stops a run whose simulation collapsed: after every forward solve (full or reduced space), positions must
+    be finite, within 10 object sizes of rest, and no element inverted (signed volume of its corners ≤ 0)."""
+
+    def __init__(self, vertices: np.ndarray, tets: np.ndarray, region_names: list[str], where: Path,
+                 young_toml: float):
+        self.rest, self.tets = np.asarray(vertices), np.asarray(tets)[:, :4]
+        self.size = float(np.linalg.norm(self.rest.max(0) - self.rest.min(0)))
+        self.names, self.where, self.young_toml = region_names, where, young_toml
+
+    def __call__(self, frames: Sequence[int], X: np.ndarray, young: np.ndarray) -> None:
+        """X (w, n, 3) positions of ``frames``; young (w, R) Pa."""
+        X = np.asarray(X)[:, :len(self.rest)]
+        for i, t in enumerate(frames):
+            x = X[i]
+            what = None
+            if not np.all(np.isfinite(x)):
+                what = "diverged (positions became NaN or infinite)"
+            elif np.max(np.linalg.norm(x - self.rest, axis=1)) > 10 * self.size:
+                what = "diverged (vertices moved over 10 object sizes)"
+            else:
+                p = x[self.tets]
+                vol = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])
+                bad = int(np.sum(vol <= 0))
+                if bad:
+                    what = f"inverted {bad} of {len(vol)} elements"
+            if what:
+                E = ", ".join(f"{n} {e:.3g} Pa" for n, e in zip(self.names, np.atleast_2d(young)[min(i, len(young) - 1)]))
+                raise SolveCollapsed(
+                    f"{self.where}: the simulation {what} at frame {t} with E = {E}, far too soft for this object; "
+                    f"start from a larger E (--young-init, or [material] young = {self.young_toml:g} Pa) or "
+                    f"take smaller steps (--lr).")
 
 
 # =========================================================================== observations
@@ -218,6 +377,31 @@ class _Markers:
         grad[:, :self.n] = self.binding.scatter(2.0 * r, self.n)
         return np.sum(r * r, axis=(1, 2)), grad
 
+    def residuals(self, frames: Sequence[int], X: np.ndarray) -> list[np.ndarray]:
+        """Per frame, r_f = m_i(x_f) − p_f^i over the observed markers, flattened (3·M_f,), m."""
+        out = []
+        for t, x in zip(frames, X):
+            P = self.P[t]
+            ok = np.all(np.isfinite(P), axis=-1)
+            out.append((self.binding.positions(x[:self.n])[ok] - P[ok]).reshape(-1))
+        return out
+
+    def jacobian(self, frames: Sequence[int], X: np.ndarray, dX: np.ndarray) -> list[np.ndarray]:
+        """Per frame, ∂r_f/∂p (3·M_f, k) for position sensitivities dX (k, w, n, 3) (markers are linear in x)."""
+        out = []
+        for i, t in enumerate(frames):
+            ok = np.all(np.isfinite(self.P[t]), axis=-1)
+            dm = self.binding.positions(dX[:, i, :self.n])[:, ok]  # (k, M_f, 3)
+            out.append(dm.reshape(len(dX), -1).T)
+        return out
+
+    def noise_scale(self, r: np.ndarray) -> float:
+        """σ of one residual from residuals r: their RMS (Gaussian marker noise), m."""
+        return float(np.sqrt(np.mean(r * r))) if len(r) else 0.0
+
+    huber = None  # marker noise is Gaussian: plain least squares
+    noise_floor = 1e-6  # m
+
 
 class _Vision:
     """Image observations: render the Gaussians bound to the mesh in each chosen camera (stages.render)."""
@@ -241,6 +425,14 @@ class _Vision:
                                    f"[capture] cameras.")
         self.sources = {c: capture.frame_source(c) for c in self.cameras}
         self.loss_fn = ImageLoss(gauss, mesh, [cams_art.by_name(c) for c in self.cameras], appearance=appearance)
+        # Occluders (controls.json handle/obstacle ``visual``): the pixels they cover at frame t are left out
+        # of the loss (stages/occluders.py), whatever the frame and the mask hold there.
+        from stages.occluders import has_occluders
+
+        self.controls = capture.controls()
+        self.occluded = has_occluders(self.controls)
+        self._cams = [cams_art.by_name(c) for c in self.cameras]
+        self._ignore: dict[int, list[np.ndarray | None]] = {}
         # Without masks the renders are composited over the capture's background plates (when there are
         # any) and compared with the raw frames; with masks, the frames' backgrounds are replaced.
         self.plates = {c: (None if self.masks is not None and c in self.masks else capture.background(c))
@@ -270,6 +462,23 @@ class _Vision:
         else:
             self.anchor = x_fit[:self.n] - self.rest
 
+    def count_checked(self) -> int:
+        """Outside --follow: every frame of every chosen camera (PNG/JPG files or a video, read as segment
+        reads them: capture.FrameSource) must decode, at the image size its camera in cameras.h5 was
+        calibrated for; an unreadable frame anywhere is an error naming the file.  The frame count."""
+        counts = {c: s.count for c, s in self.sources.items()}
+        if len(set(counts.values())) > 1:
+            detail = ", ".join(f"{c}: {k}" for c, k in counts.items())
+            raise CaptureError(f"{self.capture.root / 'frames'}: cameras hold unequal frame counts ({detail}).")
+        for cam, (c, src) in zip(self._cams, self.sources.items()):
+            for t in range(src.count if src.files is not None else min(src.count, 1)):
+                img = src.read(t)  # names the file (or the video) it cannot decode
+                if img.shape[:2] != (cam.height, cam.width):
+                    where = src.files[t] if src.files is not None else src.video
+                    raise CaptureError(f"{where}: the frame is {img.shape[1]}x{img.shape[0]} but camera '{c}' in "
+                                       f"cameras.h5 is calibrated for {cam.width}x{cam.height} images.")
+        return next(iter(counts.values()), 0)
+
     def available(self) -> int:
         """Frames whose images exist and decode in every chosen camera (counted on from the last call)."""
         n = getattr(self, "_n_ready", 0)
@@ -283,7 +492,8 @@ class _Vision:
         if t not in self._cache:
             out = []
             for c in self.cameras:
-                img = _read_frame(self.capture, c, t).astype(np.float32) / 255.0
+                src = self.sources[c]
+                img = (src.read(t) if src.video is not None else _read_frame(self.capture, c, t)).astype(np.float32) / 255.0
                 if self.masks is not None and c in self.masks and t < len(self.masks[c]):
                     m = self.masks[c][t][..., None].astype(np.float32)
                     img = img * m + self.loss_fn.background[None, None, :] * (1 - m)
@@ -293,12 +503,83 @@ class _Vision:
                 del self._cache[old]
         return self._cache[t]
 
+    def ignore(self, t: int) -> list[np.ndarray | None]:
+        """Per chosen camera, the (H, W) pixels the occluders cover at frame t (None: no occluder)."""
+        if not self.occluded:
+            return [None] * len(self.cameras)
+        if t not in self._ignore:
+            from stages.occluders import ignore_mask
+
+            self._ignore[t] = [ignore_mask(self.controls, t, c) for c in self._cams]
+            for old in [k for k in self._ignore if k < t - 64]:
+                del self._ignore[old]
+        return self._ignore[t]
+
     def loss(self, frames: Sequence[int], X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         losses, grad = np.zeros(len(frames)), np.zeros_like(X)
         for i, t in enumerate(frames):
-            li, gi = self.loss_fn(X[i, :self.n] - self.anchor, self.targets(t))
+            li, gi = self.loss_fn(X[i, :self.n] - self.anchor, self.targets(t), self.ignore(t))
             losses[i], grad[i, :self.n] = li, gi
         return losses, grad
+
+    # Gauss–Newton residuals: the pixel differences themselves (every camera, RGB), weighted by Huber IRLS
+    # (stages.estimator) — L2 near the solution, L1-like on outlying pixels, like the L1 loss of Adam.
+    huber = 1.345  # Huber δ in units of σ (95 % efficiency under Gaussian noise)
+    noise_floor = 1e-4  # of the [0, 1] intensity range
+
+    def _renders(self, x: np.ndarray) -> np.ndarray:
+        return np.concatenate([im.reshape(-1) for im in self.loss_fn.render(x[:self.n] - self.anchor)]
+                              ).astype(np.float64)
+
+    def residuals(self, frames: Sequence[int], X: np.ndarray) -> list[np.ndarray]:
+        """Per frame, r_f = R(G(x_f), c) − Ĩ_f^c over every pixel, channel and camera, flattened."""
+        return [self._renders(x) - np.concatenate([im.reshape(-1) for im in self.targets(t)]).astype(np.float64)
+                for t, x in zip(frames, X)]
+
+    def jacobian(self, frames: Sequence[int], X: np.ndarray, dX: np.ndarray, rel_step: float = 1e-2
+                 ) -> list[np.ndarray]:
+        """Per frame, ∂r_f/∂p (pixels, k) approximately: the renderer's directional derivative along each
+        position sensitivity dX[j, f] by central differences, (R(x + ε v) − R(x − ε v)) / 2ε with ε·max|v| =
+        ``rel_step`` × the object's size (the rasterizer has no forward mode; 2k renders per frame).  3DGS
+        rasterization is only piecewise smooth (the α < 1/255 cut-off) and renders in float32, so these
+        columns carry errors of several % (tests); Gauss–Newton therefore takes its gradient from
+        :meth:`exact_jtwr` and uses J only for the normal matrix (step shape and σ)."""
+        size = float(np.linalg.norm(np.ptp(self.rest, axis=0)))
+        out = []
+        for i, x in enumerate(X):
+            cols = []
+            for j in range(len(dX)):
+                v = dX[j, i]
+                vmax = float(np.abs(v[:self.n]).max())
+                if vmax == 0.0:
+                    cols.append(np.zeros(0))
+                    continue
+                eps = rel_step * size / vmax
+                cols.append((self._renders(x + eps * v) - self._renders(x - eps * v)) / (2 * eps))
+            m = max((len(c) for c in cols), default=0)
+            out.append(np.stack([c if len(c) else np.zeros(m) for c in cols], axis=1))
+        return out
+
+    def exact_jtwr(self, frames: Sequence[int], X: np.ndarray, dX: np.ndarray, rs: list, Ws: list) -> np.ndarray:
+        """Jᵀ W r (k,) exactly: per frame, dℓ/dx of ℓ = ½ Σ W (R(x) − Ĩ)² by torch autograd through the
+        rasterizer, projected on the sensitivities dX (k, w, n, 3)."""
+        torch = self.loss_fn.torch
+        g = np.zeros(len(dX))
+        for i, t in enumerate(frames):
+            xt = torch.tensor(np.asarray(X[i, :self.n] - self.anchor, np.float64), requires_grad=True)
+            imgs = self.loss_fn.images(xt)
+            tg = torch.cat([torch.as_tensor(a, dtype=torch.float64).reshape(-1) for a in self.targets(t)])
+            rend = torch.cat([im.reshape(-1) for im in imgs]).double()
+            w = torch.as_tensor(np.asarray(Ws[i], np.float64))
+            (0.5 * (w * (rend - tg) ** 2).sum()).backward()
+            g += np.einsum("ni,kni->k", xt.grad.numpy(), dX[:, i, :self.n])
+        return g
+
+    def noise_scale(self, r: np.ndarray) -> float:
+        """σ of one pixel residual: 1.4826 × the median |r| over the pixels that differ (robust; the
+        background pixels that match exactly are left out)."""
+        a = np.abs(r[np.abs(r) > 1e-6])
+        return float(1.4826 * np.median(a)) if len(a) else 0.0
 
 
 def _pick_cameras(spec: str, names: list[str], path: Path) -> list[str]:
@@ -351,6 +632,68 @@ def _frame_ready(capture: Capture, cams: Sequence[str], t: int) -> bool:
     return True
 
 
+# =========================================================================== the start convention
+class StartWindow:
+    """A window simulated under the capture's start convention (docs/capture.md): frame 0 is x_0(θ) — the rest
+    shape, or the static equilibrium under the frame-0 controls solved with θ — with x_{−1} = x_{−2} = x_0;
+    frame t ≥ 1 is an implicit-Euler step from (x_{t−1}, x_{t−2}).  A window that holds frame 0 differentiates
+    through the static solve (stages.sim.static); other windows start from their two stored states.
+    θ = (E (R,), ν (R,)) is shared by the window frames."""
+
+    def __init__(self, backend, kind: str = "rest"):
+        if kind not in ("rest", "equilibrium"):
+            raise RslError(f"the start state should be 'rest' or 'equilibrium', found '{kind}'.")
+        self.backend, self.kind = backend, kind
+        self._x0 = None  # the last x_0: the warm start of the next static solve
+
+    @staticmethod
+    def _tile(a, k):
+        return np.tile(np.asarray(a, float), (k, 1))
+
+    def forward(self, frames: Sequence[int], E, nu, before) -> np.ndarray:
+        """States (w, …) of ``frames``; ``before`` = [state t0−2, state t0−1] (unused when frames[0] = 0)."""
+        b, w = self.backend, len(frames)
+        if frames[0] != 0:
+            return b.forward(list(frames), self._tile(E, w), self._tile(nu, w), before)
+        x0 = b.start(E, nu, self.kind, self._x0)
+        self._x0 = x0
+        if w == 1:
+            return x0[None]
+        rest = b.forward(list(frames[1:]), self._tile(E, w - 1), self._tile(nu, w - 1), np.stack([x0, x0]))
+        return np.concatenate([x0[None], rest])
+
+    def backward(self, frames, E, nu, states, before, dL_dX) -> tuple[np.ndarray, np.ndarray]:
+        """(dL/dE, dL/dν) (R,) of a loss of the window's positions, dL_dX (w, n, 3)."""
+        b, w = self.backend, len(frames)
+        if frames[0] != 0:
+            dE, dn = b.backward(list(frames), self._tile(E, w), self._tile(nu, w), states, before, dL_dX)
+            return dE.sum(0), dn.sum(0)
+        x0 = states[0]
+        g0 = b.state_grad(x0, dL_dX[0])
+        gE, gN = np.zeros(len(E)), np.zeros(len(E))
+        if w > 1:
+            dE, dn, gb = b.backward_before(list(frames[1:]), self._tile(E, w - 1), self._tile(nu, w - 1), states[1:],
+                                           np.stack([x0, x0]), dL_dX[1:])
+            gE, gN, g0 = dE.sum(0), dn.sum(0), g0 + gb[0] + gb[1]
+        a, c = b.start_adjoint(E, nu, self.kind, x0, g0)
+        return gE + a, gN + c
+
+    def sensitivity(self, frames, E, nu, states, before, d_young, d_poisson, d_before=None) -> np.ndarray:
+        """dX/dp (k, w, n, 3) along k directions (θ shared by the window; d_before on the stored states)."""
+        b, w = self.backend, len(frames)
+        if frames[0] != 0:
+            return b.sensitivity(list(frames), self._tile(E, w), self._tile(nu, w), states, before, d_young,
+                                 d_poisson, d_before)
+        x0 = states[0]
+        S0 = b.start_sensitivity(E, nu, self.kind, x0, d_young, d_poisson)  # (k, state)
+        X0 = b.decode_sensitivity(states[:1], S0[:, None])
+        if w == 1:
+            return X0
+        Sd = b.state_sensitivity(list(frames[1:]), self._tile(E, w - 1), self._tile(nu, w - 1), states[1:],
+                                 np.stack([x0, x0]), d_young, d_poisson, np.stack([S0, S0], axis=1))
+        return np.concatenate([X0, b.decode_sensitivity(states[1:], Sd)], axis=1)
+
+
 # =========================================================================== the window objective
 class WindowObjective:
     """L(p) over a window of frames and dL/dp, p = (log E (R,), s (R,)), θ shared by the window:
@@ -362,18 +705,17 @@ class WindowObjective:
     θ, Gaussians anchored at their fit frame simulated with θ (held fixed within the gradient).
     """
 
-    def __init__(self, backend, obs, n_regions: int, poisson_range: tuple[float, float]):
+    def __init__(self, backend, obs, n_regions: int, poisson_range: tuple[float, float], start: str = "rest"):
         self.backend, self.obs, self.R, self.prange = backend, obs, n_regions, poisson_range
+        self.win = StartWindow(backend, start)
         self.rebind = True
         self.anchor_frame = int(getattr(obs, "fit_frame", 0))
-        rest = backend.rest_state
-        self._rest2 = np.stack([rest, rest])
 
     def anchor_positions(self, E: np.ndarray, nu: np.ndarray) -> np.ndarray:
-        """The anchor frame (0 for markers, the Gaussians' fit frame for images) simulated from rest with θ,
-        positions (n, 3)."""
+        """The anchor frame (0 for markers, the Gaussians' fit frame for images) simulated with θ under the start
+        convention (frame 0 = x_0(θ)), positions (n, 3)."""
         k = self.anchor_frame + 1
-        X = self.backend.forward(list(range(k)), np.tile(E, (k, 1)), np.tile(nu, (k, 1)), self._rest2)
+        X = self.win.forward(list(range(k)), E, nu, None)
         return self.backend.decode(X[-1:])[0]
 
     def __call__(self, frames: Sequence[int], p: np.ndarray, before: np.ndarray, need_grad: bool = True):
@@ -385,46 +727,133 @@ class WindowObjective:
         t0 = time.perf_counter()
         if self.rebind:
             self.obs.rebind(self.anchor_positions(E, nu))
-        states = backend.forward(list(frames), Ew, nuw, before)
+        states = self.win.forward(list(frames), E, nu, before)
         X = backend.decode(states)
         t1 = time.perf_counter()
         losses, dX = self.obs.loss(frames, X)
         t2 = time.perf_counter()
         g = None
         if need_grad:
-            dE, dnu = backend.backward(list(frames), Ew, nuw, states, before, dX)
-            g = np.concatenate(chain_params(dE.sum(0), dnu.sum(0), E, p[R:], self.prange))
+            dE, dnu = self.win.backward(list(frames), E, nu, states, before, dX)
+            g = np.concatenate(chain_params(dE, dnu, E, p[R:], self.prange))
         t3 = time.perf_counter()
         return states, losses, g, (t1 - t0, t3 - t2, t2 - t1)
 
 
+# =========================================================================== Gauss–Newton window
+class GNWindow:
+    """Residuals and their Jacobian over a window for the Gauss–Newton estimator (stages.estimator).
+
+    Unknowns p = (log E (R), s (R) when ν is fitted, c (k_c) when the starting states are corrected): θ as
+    for Adam (ν = ν_lo + (ν_hi − ν_lo)·sigmoid(s)) and the coefficients of a correction of the two states
+    before the window, before + Σ_j c_j D_j (D (k_c, 2, …), the reduced space's unit vectors).
+    r(p) = the observations' residuals of every window frame (markers or pixels);
+    ∂r/∂p = (∂r/∂X)(dX/dp) with dX/dp the forward sensitivities of the window (stages.sim.sensitivity,
+    stages.subspace.sensitivity): ∂X/∂log E = E ∂X/∂E, ∂X/∂s = ν'(s) ∂X/∂ν.
+    """
+
+    def __init__(self, objective: "WindowObjective", fit_poisson: bool, s_fixed: np.ndarray):
+        self.obj, self.fit_poisson, self.s_fixed = objective, fit_poisson, s_fixed
+        self.R = objective.R
+        self.k_theta = self.R * (2 if fit_poisson else 1)
+        self.times = [0.0, 0.0, 0.0]  # forward, sensitivity, residuals/render
+        self.last_states = None
+        self.last_frames: list[np.ndarray] = []  # per frame residuals of the last evaluation
+        self.last_jac: list[np.ndarray] = []
+
+    def theta(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(E, ν, s) from the unknowns."""
+        R = self.R
+        s = p[R:2 * R] if self.fit_poisson else self.s_fixed
+        E, nu = theta_from_params(p[:R], s, self.obj.prange)
+        return E, nu, s
+
+    def evaluate(self, frames: Sequence[int], p: np.ndarray, before: np.ndarray, D: np.ndarray | None,
+                 need_jac: bool, rebind: bool = True):
+        """(r (m,), J (m, k) or None); the window's states are kept in ``last_states``."""
+        obj, R = self.obj, self.R
+        backend = obj.backend
+        E, nu, s = self.theta(p)
+        w = len(frames)
+        Ew, nuw = np.tile(E, (w, 1)), np.tile(nu, (w, 1))
+        c = p[self.k_theta:]
+        b = before if D is None or not len(c) else before + np.tensordot(c, D, axes=1)
+        t0 = time.perf_counter()
+        if need_jac and rebind and obj.rebind:
+            obj.obs.rebind(obj.anchor_positions(E, nu))
+        states = obj.win.forward(list(frames), E, nu, b)
+        X = backend.decode(states)
+        t1 = time.perf_counter()
+        rs = obj.obs.residuals(frames, X)
+        t2 = time.perf_counter()
+        self.times[0] += t1 - t0
+        self.times[2] += t2 - t1
+        self.last_states, self.last_before, self.last_p, self.last_rs = states, b, p.copy(), rs
+        if not need_jac:
+            return np.concatenate(rs), None
+        k = len(p)
+        de, dn = np.zeros((k, R)), np.zeros((k, R))
+        de[np.arange(R), np.arange(R)] = E  # ∂E/∂log E
+        if self.fit_poisson:
+            lo, hi = self.obj.prange
+            sig = 1.0 / (1.0 + np.exp(-s))
+            dn[R + np.arange(R), np.arange(R)] = (np.asarray(hi) - np.asarray(lo)) * sig * (1 - sig)
+        db = None
+        if D is not None and len(c):
+            db = np.zeros((k,) + np.shape(before))
+            db[self.k_theta:] = D
+        dX = obj.win.sensitivity(list(frames), E, nu, states, b, de, dn, db)
+        t3 = time.perf_counter()
+        Js = obj.obs.jacobian(frames, X, dX)
+        t4 = time.perf_counter()
+        self.times[1] += t3 - t2
+        self.times[2] += t4 - t3
+        self.last_frames, self.last_jac = rs, Js
+        exact = getattr(obj.obs, "exact_jtwr", None)
+        if exact is None:
+            return np.concatenate(rs), np.concatenate(Js, axis=0)
+        sizes = np.cumsum([len(x) for x in rs])[:-1]
+
+        def jtw(W):  # Jᵀ W r exactly (autograd through the renderer), J only approximate
+            t5 = time.perf_counter()
+            g = exact(frames, X, dX, rs, np.split(W, sizes))
+            self.times[2] += time.perf_counter() - t5
+            return g
+        return np.concatenate(rs), np.concatenate(Js, axis=0), jtw
+
+
+def _sigma_from_cov(gn: GNWindow, p: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """σ of E (= E σ_logE) and of ν (= ν'(s) σ_s; 0 when ν is held) per region, from the covariance of p."""
+    R = gn.R
+    E, _, s = gn.theta(p)
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    sE = E * sd[:R]
+    if gn.fit_poisson:
+        lo, hi = gn.obj.prange
+        sig = 1.0 / (1.0 + np.exp(-s))
+        sN = (np.asarray(hi) - np.asarray(lo)) * sig * (1 - sig) * sd[R:2 * R]
+    else:
+        sN = np.zeros(R)
+    return sE, np.broadcast_to(sN, (R,)).astype(float)
+
+
+def _state_directions(backend, stored: dict, t0: int, first: int, scale: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Correction directions of the two states before a window starting at t0 (reduced space only): unit
+    vectors of z_{t0−2} and z_{t0−1}, (2r, 2, r), and the prior σ of each coefficient, ``scale`` × the RMS of
+    that latent coordinate over the stored frames (its typical excursion).  None when a state before the
+    window is not a stored frame (the start state is known) or in full space."""
+    if backend.space != "reduced" or t0 - 2 < first:
+        return None
+    r = backend.dim
+    Z = np.stack([stored[t] for t in sorted(stored) if t < t0]) - backend.rest_state
+    rms = np.sqrt(np.mean(Z * Z, axis=0)) + 1e-9
+    D = np.zeros((2 * r, 2, r))
+    for i in range(2):
+        D[i * r + np.arange(r), i, np.arange(r)] = 1.0
+    return D, scale * np.concatenate([rms, rms])
+
+
 # =========================================================================== mesh refinement
-def refine_tets(vertices: np.ndarray, tets: np.ndarray, tet_region: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Split every tet into 8 through its edge midpoints (Bey 1995); the first n vertices are the
-    original ones, so positions of the coarse mesh are a prefix of the fine mesh's."""
-    n = len(vertices)
-    edges = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
-    e = np.sort(tets[:, edges].reshape(-1, 2), axis=1)
-    uniq, inv = np.unique(e, axis=0, return_inverse=True)
-    mid = 0.5 * (vertices[uniq[:, 0]] + vertices[uniq[:, 1]])
-    m = inv.reshape(-1, 6) + n  # midpoint ids: 01 02 03 12 13 23
-    a, b, c, d = tets.T
-    m01, m02, m03, m12, m13, m23 = m.T
-    children = [
-        (a, m01, m02, m03), (m01, b, m12, m13), (m02, m12, c, m23), (m03, m13, m23, d),
-        (m01, m02, m03, m13), (m01, m02, m12, m13), (m02, m03, m13, m23), (m02, m12, m13, m23),
-    ]
-    new = np.stack([np.stack(ch, axis=1) for ch in children], axis=1).reshape(-1, 4)
-    verts = np.vstack([vertices, mid])
-    # keep positive orientation
-    p = verts[new]
-    vol = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])
-    flip = vol < 0
-    new[flip] = new[flip][:, [0, 2, 1, 3]]
-    return verts, new, np.repeat(tet_region, 8)
-
-
 def _refined_mesh(mesh: MeshArtefact, levels: int) -> MeshArtefact:
     from stages.sim.mesh import rest_quantities
 
@@ -448,6 +877,8 @@ class _Record:
     t_bwd: list = dataclasses.field(default_factory=list)
     t_ren: list = dataclasses.field(default_factory=list)
     t_tot: list = dataclasses.field(default_factory=list)
+    young_sigma: list = dataclasses.field(default_factory=list)
+    poisson_sigma: list = dataclasses.field(default_factory=list)
 
 
 def _parse_frames(spec: str, n_avail: int | None, where: Path) -> tuple[int, int | None]:
@@ -472,8 +903,13 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
 
     ws = Path(config.workspace)
     capture = load_capture(config.capture)
+    prepare_workspace(ws)  # writable? (checked before any compute) and no stale temp files
     if config.window < 1:
         raise RslError(f"{capture.toml_path}: --window must be at least 1, found {config.window}.")
+    if config.estimator not in ("adam", "gn"):
+        raise RslError(f"{capture.toml_path}: --estimator should be adam or gn, found '{config.estimator}'.")
+    if not config.process_noise >= 0:
+        raise RslError(f"{capture.toml_path}: --process-noise must be 0 or more, found {config.process_noise}.")
     if config.iters_per_frame < 1 or config.offline_iters < 1:
         raise RslError(f"{capture.toml_path}: --iters-per-frame and --offline-iters must be at least 1.")
     if config.refine and config.space != "full":
@@ -481,7 +917,9 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
                        f"trained on mesh.h5's vertices).")
     mesh_path = ws / KIND_FILES["mesh"]
     mesh = MeshArtefact.load(mesh_path)
+    check_mesh_source(mesh_path, capture.mesh_path)
     controls = capture.controls()
+    check_obstacles_clear(controls, mesh.vertices, capture.controls_path)
     sim_mesh = _refined_mesh(mesh, config.refine) if config.refine else mesh
     scene = make_scene(sim_mesh, controls, capture.material.model, capture.dt, capture.gravity)
     n = mesh.n_vertices
@@ -500,6 +938,7 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
         from stages.subspace import ReducedModel
 
         sub_path = ws / KIND_FILES["subspace"]
+        check_same_mesh(mesh_path, sub_path)
         backend = _ReducedSpace(ReducedModel.from_artefacts(SubspaceArtefact.load(sub_path), scene), inputs)
         inputs_used.append(sub_path)
 
@@ -507,21 +946,27 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
     names = list(scene.region_names)
     mat = capture.material
     young0 = np.array([config.young_init or mat.region_young(r) for r in names], float)
+    if config.young_init is not None and not mat.young_range[0] <= config.young_init <= mat.young_range[1]:
+        raise RslError(f"{capture.toml_path}: --young-init {config.young_init:g} Pa lies outside [material] "
+                       f"young_range {list(mat.young_range)}; give a value inside it or widen the range.")
+    backend.guard = _SolveGuard(sim_mesh.vertices, sim_mesh.tets, names, capture.toml_path, mat.young)
     poisson0 = np.array([config.poisson_init if config.poisson_init is not None else mat.region_poisson(r)
                          for r in names], float)
     if config.loss == "markers":
         # Markers bind to the simulated frame-0 surface; the binding is refreshed as θ changes
-        # (frame 0 is already one step from rest, so it depends on θ).
-        rest = backend.rest_state
-        x0 = backend.decode(backend.forward([0], young0[None], poisson0[None], np.stack([rest, rest])))[0]
+        # (frame 0 is x_0(θ): with start = "equilibrium" it depends on θ).
+        x0 = backend.decode(StartWindow(backend, capture.start).forward([0], young0, poisson0, None))[0]
         obs = _Markers(capture, x0, mesh.surface_faces, n)
         inputs_used.append(capture.markers_path)
         if obs.far > 0.05:
             reporter.warn(f"{capture.markers_path}: a frame-0 marker lies {obs.far:.1%} of the object size "
                           f"away from the rest surface; is the marker frame the mesh's frame?")
     else:
+        check_same_mesh(mesh_path, ws / KIND_FILES["gaussians"])
         obs = _Vision(capture, ws, config.cameras, mesh, config.appearance, config.gaussian_anchor)
         inputs_used += [ws / KIND_FILES[k] for k in ("cameras", "gaussians", "masks")]
+        inputs_used += [capture.root / "frames" / c if src.files is not None else src.video
+                        for c, src in obs.sources.items()]  # the frames read (a hash per camera)
 
     prange = mat.poisson_range
     if not config.fit_poisson:  # ν held at its initial value, per region
@@ -533,7 +978,7 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
                        f"poisson_range {list(prange)}.")
     log_e, s_nu = params_from_theta(young0, np.clip(poisson0, *prange), prange)
 
-    n_avail = None if config.follow else obs.available()
+    n_avail = None if config.follow else (obs.count_checked() if hasattr(obs, "count_checked") else obs.available())
     if n_avail == 0:
         raise CaptureError(f"{capture.root}: holds no frame to adapt to.")
     first, last = _parse_frames(config.frames, n_avail, capture.toml_path)
@@ -542,16 +987,18 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
     t_start = time.perf_counter()
     interrupted = False
     status = "failed"
+    failure: BaseException | None = None
 
     def state_at(t: int) -> np.ndarray:
-        return stored[t] if t >= 0 else backend.rest_state
+        """The stored state of frame t; before frame 0, x_{−1} = x_{−2} = x_0 (the start convention)."""
+        t = max(t, 0)
+        return stored[t] if t in stored else backend.rest_state  # (a window holding frame 0 ignores it)
 
     # Frames before the range: a plain forward simulation with the initial θ.
     if first > 0:
         with reporter.task("simulating frames before the range", None):
-            X0 = backend.forward(list(range(first)), np.tile(young0, (first, 1)),
-                                 np.tile(theta_from_params(log_e, s_nu, prange)[1], (first, 1)),
-                                 np.stack([backend.rest_state, backend.rest_state]))
+            X0 = StartWindow(backend, capture.start).forward(list(range(first)), young0,
+                                                             theta_from_params(log_e, s_nu, prange)[1], None)
         for t in range(first):
             stored[t] = X0[t]
 
@@ -559,14 +1006,22 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
     adam = Adam(lr, beta1=config.beta1)
     params = np.concatenate([log_e, s_nu])
 
-    objective = WindowObjective(backend, obs, R, prange)
+    objective = WindowObjective(backend, obs, R, prange, capture.start)
 
     def evaluate(frames: list[int], p: np.ndarray, need_grad: bool):
         before = np.stack([state_at(frames[0] - 2), state_at(frames[0] - 1)])
         return objective(frames, p, before, need_grad)
 
     try:
-        if config.mode == "online":
+        if config.estimator == "gn" and config.mode == "online":
+            _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter,
+                       backend)
+        elif config.estimator == "gn":
+            if last is None:
+                raise RslError(f"{capture.toml_path}: --mode offline needs a finite frame range (not --follow "
+                               f"without --frames).")
+            _offline_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter)
+        elif config.mode == "online":
             _online(config, obs, capture, first, last, params, adam, evaluate, stored, rec, R, prange, reporter,
                     backend)
         else:
@@ -576,19 +1031,29 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
             params = _offline(config, first, last, params, adam, evaluate, stored, rec, R, prange, reporter)
         status = "complete"
     except KeyboardInterrupt:
-        interrupted, status = True, "interrupted"
+        # With --follow, Ctrl-C is the way to end: the frames so far are the complete result.
+        interrupted, status = True, ("complete" if config.follow else "interrupted")
+    except RslError as e:
+        failure = e
     finally:
         # Whatever ends the loop (the last frame, Ctrl-C, a failed solve), the frames so far are saved
-        # (atomically); extra["status"] says which.
+        # (atomically); extra["status"] says which.  Only a complete run writes adapt.h5: an interrupted or
+        # failed one goes to adapt.partial.h5 and the previous adapt.h5 stays as it was.
         if rec.frames:
             path = _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs,
-                         status, time.perf_counter() - t_start, n)
+                         status, time.perf_counter() - t_start, n, ended_by_ctrl_c=interrupted)
+    final = ws / KIND_FILES["adapt"]
+    unchanged = f"{final.name} is unchanged" if final.exists() else f"no {final.name} was written"
+    if failure is not None:
+        kept = (f"the {len(rec.frames)} frame(s) done are kept in {path.name}, {unchanged}" if rec.frames
+                else unchanged)
+        raise type(failure)(f"{str(failure).rstrip('.')} ({kept}).") from None
     if not rec.frames:
         if interrupted:
-            raise KeyboardInterrupt
+            raise Interrupted(f"no frame was finished; {unchanged}.")
         raise RslError(f"{capture.root}: no frame was processed (none arrived within --follow-timeout).")
     if interrupted and not config.follow:
-        raise KeyboardInterrupt
+        raise Interrupted(f"the {len(rec.frames)} frame(s) done are kept in {path}; {unchanged}.")
     _report(config, reporter, rec, names, backend, scene, mesh, path, interrupted)
     return path
 
@@ -623,6 +1088,129 @@ def _online(config, obs, capture, first, last, params, adam, evaluate, stored, r
             task.advance(1, frame=T, E=" ".join(f"{e:.4g}" for e in E), loss=float(losses.sum()),
                          s_per_frame=rec.t_tot[-1])
             T += 1
+
+
+def _frame_loss(obs, r: np.ndarray) -> float:
+    """The loss Adam minimises, from one frame's residuals: Σ r² (markers), Σ |r| (images, L1)."""
+    return float(r @ r) if obs.kind == "markers" else float(np.abs(r).sum())
+
+
+def _gn_prior(p: np.ndarray) -> "object":
+    """The initial arrival cost: N(p, I) — σ = 1 on log E (a factor e either way) and on s."""
+    from stages.estimator import Prior
+
+    return Prior(p.copy(), np.eye(len(p)))
+
+
+def _gn_solve(gn: GNWindow, frames, p0, prior, before, D, sigma, obs, iterations: int):
+    """One window's Gauss–Newton solve; afterwards gn.last_* hold the window evaluated at the estimate."""
+    from stages.estimator import gauss_newton
+
+    res = gauss_newton(lambda pp, nj: gn.evaluate(frames, pp, before, D, nj), p0, prior, sigma,
+                       max_iterations=iterations, huber=obs.huber)
+    lin = (list(gn.last_frames), list(gn.last_jac))  # per-frame residuals and Jacobians at res.p_lin
+    if not np.array_equal(gn.last_p, res.p):
+        gn.evaluate(frames, res.p, before, D, False)
+    return res, lin
+
+
+def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter, backend):
+    """Online moving-horizon estimation (stages.estimator): per new frame, Gauss–Newton on the window's
+    unknowns against the arrival-cost prior; the frame leaving the window is folded into the prior, which then
+    takes one frame of process noise."""
+    from scipy.linalg import block_diag
+
+    from stages.estimator import Prior, WindowFilter, huber_weights
+
+    R, w = objective.R, config.window
+    gn = GNWindow(objective, config.fit_poisson, s_nu)
+    k_th = gn.k_theta
+    p_th = np.concatenate([log_e, s_nu]) if config.fit_poisson else log_e.copy()
+    filt = WindowFilter(_gn_prior(p_th), np.full(k_th, float(config.process_noise)))
+    sigma = None
+    total = None if last is None else last - first
+    with reporter.task(f"adapt online gn ({backend.space}, {obs.kind}, w={w})", total) as task:
+        T = first
+        while last is None or T < last:
+            if config.follow and not _wait_for(obs, T, config.follow_timeout):
+                break
+            frames = list(range(max(first, T - w + 1), T + 1))
+            t0 = frames[0]
+            before = np.stack([state_at(t0 - 2), state_at(t0 - 1)])
+            tt = time.perf_counter()
+            gn.times = [0.0, 0.0, 0.0]
+            sc = (_state_directions(backend, stored, t0, first, 0.05)
+                  if config.state_correction and obs.kind == "markers" else None)
+            D, prior, p0 = None, filt.prior, p_th.copy()
+            if sc is not None:
+                D, sd = sc
+                prior = Prior(np.concatenate([filt.prior.mean, np.zeros(len(D))]),
+                              block_diag(filt.prior.cov, np.diag(sd ** 2)))
+                p0 = np.concatenate([p_th, np.zeros(len(D))])
+            if sigma is None:  # the first window: the noise level seen at the initial θ (conservative)
+                r0, _ = gn.evaluate(frames, p0, before, D, False)
+                sigma = max(obs.noise_scale(r0), obs.noise_floor)
+            res, (r_lin, J_lin) = _gn_solve(gn, frames, p0, prior, before, D, sigma, obs, config.iters_per_frame)
+            p_th = res.p[:k_th].copy()
+            for i, t in enumerate(frames):
+                stored[t] = gn.last_states[i]
+            if D is not None:  # the corrected starting states replace the stored ones
+                stored[t0 - 2], stored[t0 - 1] = gn.last_before[0], gn.last_before[1]
+            sE, sN = _sigma_from_cov(gn, res.p, res.cov[:k_th, :k_th])
+            if len(frames) == w:  # frame t0 leaves the window: fold it into the arrival cost
+                r0 = r_lin[0] + J_lin[0][:, k_th:] @ (res.p[k_th:] - res.p_lin[k_th:])
+                filt.leave(res.p_lin[:k_th], r0, J_lin[0][:, :k_th], sigma, huber_weights(r0, sigma, obs.huber))
+            r_all = np.concatenate(gn.last_rs)
+            sigma = max(obs.noise_scale(r_all), obs.noise_floor)
+            E, nu, _ = gn.theta(res.p)
+            losses = [_frame_loss(obs, r) for r in gn.last_rs]
+            rec.frames.append(T)
+            rec.young.append(E)
+            rec.poisson.append(nu)
+            rec.young_sigma.append(sE)
+            rec.poisson_sigma.append(sN)
+            rec.loss.append(float(np.sum(losses)))
+            rec.frame_loss.append(losses[-1])
+            rec.t_fwd.append(gn.times[0])
+            rec.t_bwd.append(gn.times[1])
+            rec.t_ren.append(gn.times[2])
+            rec.t_tot.append(time.perf_counter() - tt)
+            task.advance(1, frame=T, E=" ".join(f"{e:.4g}±{s:.2g}" for e, s in zip(E, sE)),
+                         loss=rec.loss[-1], s_per_frame=rec.t_tot[-1])
+            T += 1
+
+
+def _offline_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter):
+    """Offline baseline with the same Gauss–Newton machinery: one θ, every frame in one window."""
+    gn = GNWindow(objective, config.fit_poisson, s_nu)
+    p = np.concatenate([log_e, s_nu]) if config.fit_poisson else log_e.copy()
+    frames = list(range(first, last))
+    before = np.stack([state_at(first - 2), state_at(first - 1)])
+    with reporter.task(f"adapt offline gn ({len(frames)} frames)", None):
+        r0, _ = gn.evaluate(frames, p, before, None, False)
+        sigma = max(obs.noise_scale(r0), obs.noise_floor)
+        res, _ = _gn_solve(gn, frames, p, _gn_prior(p), before, None, sigma, obs, config.offline_iters)
+        # σ of the estimate with the noise level of the final residuals
+        sigma2 = max(obs.noise_scale(np.concatenate(gn.last_rs)), obs.noise_floor)
+        res, _ = _gn_solve(gn, frames, res.p, _gn_prior(p), before, None, sigma2, obs, 1)
+    E, nu, _ = gn.theta(res.p)
+    sE, sN = _sigma_from_cov(gn, res.p, res.cov)
+    k = len(frames)
+    tf, tb, tr = gn.times
+    for i, t in enumerate(frames):
+        stored[t] = gn.last_states[i]
+        rec.frames.append(t)
+        rec.young.append(E)
+        rec.poisson.append(nu)
+        rec.young_sigma.append(sE)
+        rec.poisson_sigma.append(sN)
+        loss = _frame_loss(obs, gn.last_rs[i])
+        rec.loss.append(loss)
+        rec.frame_loss.append(loss)
+        rec.t_fwd.append(tf / k)
+        rec.t_bwd.append(tb / k)
+        rec.t_ren.append(tr / k)
+        rec.t_tot.append((tf + tb + tr) / k)
 
 
 def _wait_for(obs, t: int, timeout: float, poll: float = 0.1) -> bool:
@@ -669,7 +1257,8 @@ def _offline(config, first, last, params, adam, evaluate, stored, rec, R, prange
     return params
 
 
-def _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs, status, wall_s, n) -> Path:
+def _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs, status, wall_s, n,
+          ended_by_ctrl_c: bool = False) -> Path:
     frames = np.asarray(rec.frames, np.int64)
     states = np.stack([stored[t] for t in rec.frames])
     X = backend.decode(states)[:, :n]
@@ -681,6 +1270,7 @@ def _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs, statu
         "gaussian_anchor": getattr(obs, "anchor_kind", None),
         "refine": config.refine,
         "status": status,  # complete | interrupted | failed
+        "ended": "ctrl-c" if ended_by_ctrl_c else ("last frame" if status == "complete" else "error"),
         "wall_s": wall_s,
         "young_meaning": _young_meaning(config, mesh),
     }
@@ -689,10 +1279,23 @@ def _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs, statu
         positions=X, loss=np.asarray(rec.loss), time_forward_s=np.asarray(rec.t_fwd),
         time_backward_s=np.asarray(rec.t_bwd), time_render_s=np.asarray(rec.t_ren),
         time_total_s=np.asarray(rec.t_tot), region_names=names, mode=config.mode, space=backend.space,
-        loss_kind=obs.kind, window=config.window if config.mode == "online" else len(frames), extra=extra)
-    path = ws / KIND_FILES["adapt"]
+        loss_kind=obs.kind, window=config.window if config.mode == "online" else len(frames), extra=extra,
+        **_sigmas(rec))
+    path = ws / (KIND_FILES["adapt"] if status == "complete" else PARTIAL_ADAPT)
     art.save(path, Provenance.make(config, inputs_used))
+    if status == "complete":
+        (ws / PARTIAL_ADAPT).unlink(missing_ok=True)  # superseded by this complete run
     return path
+
+
+def _sigmas(rec: _Record) -> dict:
+    """young_sigma / poisson_sigma (T, R) of the record (NaN where the estimator gives none: Adam)."""
+    T, R = len(rec.frames), len(rec.young[0])
+    out = {}
+    for k in ("young_sigma", "poisson_sigma"):
+        v = getattr(rec, k)
+        out[k] = np.asarray(v, float) if len(v) == T else np.full((T, R), np.nan)
+    return out
 
 
 def _young_meaning(config: AdaptConfig, mesh: MeshArtefact) -> str:
@@ -713,7 +1316,12 @@ def _report(config, reporter, rec, names, backend, scene, mesh, path, interrupte
                   f"{f:8.3f} {b:8.3f} {r:8.3f} {t:8.3f}")
     reporter.info(_young_meaning(config, mesh))
     E, nu = rec.young[-1], rec.poisson[-1]
-    mats = ", ".join(f"{nm}: E={e:.4g} Pa ν={v:.3f}" for nm, e, v in zip(names, E, nu))
+    if rec.young_sigma:  # the estimator's 1σ (E ± σ: the truth lies inside ±2σ about 95 % of the time)
+        sE, sN = rec.young_sigma[-1], rec.poisson_sigma[-1]
+        mats = ", ".join(f"{nm}: E={e:.4g} ± {se:.2g} Pa ν={v:.3f} ± {sn:.2g}"
+                         for nm, e, se, v, sn in zip(names, E, sE, nu, sN))
+    else:
+        mats = ", ".join(f"{nm}: E={e:.4g} Pa ν={v:.3f}" for nm, e, v in zip(names, E, nu))
     stop = " (stopped early)" if interrupted else ""
     reporter.summary(f"adapted {len(rec.frames)} frames{stop} {config.mode} in {backend.space} space from "
                      f"{'markers' if config.loss == 'markers' else 'images'}: {mats} "

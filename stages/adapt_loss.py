@@ -336,14 +336,26 @@ class ImageLoss:
             out.append(premult + (1 - alpha)[..., None] * (g.background if bg is None else bg))
         return out
 
-    def __call__(self, x: np.ndarray, targets: list[np.ndarray]) -> tuple[float, np.ndarray]:
-        """(L, dL/dx (n, 3)) for positions x (n, 3) and one target image (H, W, 3) in [0, 1] per camera."""
+    def __call__(self, x: np.ndarray, targets: list[np.ndarray], ignore: list[np.ndarray | None] | None = None
+                 ) -> tuple[float, np.ndarray]:
+        """(L, dL/dx (n, 3)) for positions x (n, 3) and one target image (H, W, 3) in [0, 1] per camera.
+
+        ``ignore``: per camera None or an (H, W) bool mask of pixels left out of the loss (an occluder covers
+        them, stages/occluders.py): L = Σ_c Σ_{p not ignored} |R_p − Ĩ_p|₁, so those pixels add nothing to L
+        or to dL/dx whatever the render and the target hold there.
+        """
         torch = self.torch
         xt = torch.tensor(np.asarray(x, np.float64), requires_grad=True)
         if self.opt is not None:
             self.opt.zero_grad()
-        loss = sum((img - torch.as_tensor(target, dtype=torch.float32)).abs().sum()
-                   for img, target in zip(self.images(xt), targets))
+        ignore = list(ignore) if ignore is not None else [None] * len(targets)
+        loss = 0.0
+        for img, target, ign in zip(self.images(xt), targets, ignore):
+            diff = (img - torch.as_tensor(target, dtype=torch.float32)).abs()
+            if ign is not None:
+                keep = torch.as_tensor(~np.asarray(ign, bool))[..., None]
+                diff = torch.where(keep, diff, torch.zeros_like(diff))
+            loss = loss + diff.sum()
         loss.backward()
         if self.opt is not None:
             self.opt.step()

@@ -17,6 +17,7 @@ import datetime as _dt
 import hashlib
 import json
 import os
+import re
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +26,7 @@ from typing import Any, Iterator
 import h5py
 import numpy as np
 
+from stages.domain.cameras import Camera  # noqa: F401 (re-exported; the type lives in the domain layer)
 from stages.errors import RslError
 
 RSL_VERSION = "0.1.0"
@@ -46,6 +48,10 @@ class ArtefactError(RslError):
 
 
 # --------------------------------------------------------------------------- provenance
+HASH_CACHE = ".rsl_hashes.json"  # in the workspace: path -> [size, mtime_ns, sha256]
+TEMP_RE = re.compile(r"^\.(?P<name>.+?)\.(?P<pid>\d+)\.[^.]+\.tmp$")  # .NAME.h5.PID.RANDOM.tmp
+
+
 def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
     """Content hash of a file (hex sha256)."""
     h = hashlib.sha256()
@@ -58,24 +64,176 @@ def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+class HashCache:
+    """sha256 of files, cached by (size, mtime_ns) in WS/.rsl_hashes.json, so that hashing every frame of a
+    capture on each run costs one stat per unchanged file."""
+
+    def __init__(self, folder: str | Path | None = None):
+        self.path = None if folder is None else Path(folder) / HASH_CACHE
+        self.table: dict[str, list] = {}
+        self.dirty = False
+        if self.path is not None and self.path.is_file():
+            with contextlib.suppress(OSError, ValueError):
+                t = json.loads(self.path.read_text())
+                self.table = t if isinstance(t, dict) else {}
+
+    def sha256(self, path: str | Path) -> str:
+        p = Path(path)
+        st = p.stat()
+        key = str(p.resolve())
+        hit = self.table.get(key)
+        if isinstance(hit, list) and len(hit) == 3 and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
+            return str(hit[2])
+        digest = file_sha256(p)
+        self.table[key] = [st.st_size, st.st_mtime_ns, digest]
+        self.dirty = True
+        return digest
+
+    def folder_sha256(self, folder: str | Path) -> tuple[str, int]:
+        """(sha256 over the sorted names and contents of the files in ``folder``, number of files)."""
+        h = hashlib.sha256()
+        files = sorted(p for p in Path(folder).iterdir() if p.is_file() and not p.name.startswith("."))
+        for p in files:
+            h.update(f"{p.name}\0{self.sha256(p)}\n".encode())
+        return h.hexdigest(), len(files)
+
+    def entry_sha256(self, path: str | Path) -> str:
+        """Hash of a file, or of a folder's files (a camera's frames)."""
+        p = Path(path)
+        return self.folder_sha256(p)[0] if p.is_dir() else self.sha256(p)
+
+    def save(self) -> None:
+        """Write the cache back (best effort: a read-only workspace just does not cache)."""
+        if self.path is None or not self.dirty or not self.path.parent.is_dir():
+            return
+        with contextlib.suppress(OSError):
+            tmp = self.path.with_name(f".{HASH_CACHE}.{os.getpid()}.tmp")
+            tmp.write_text(json.dumps(self.table))
+            os.replace(tmp, self.path)
+            self.dirty = False
+
+
 @dataclass(frozen=True)
 class Provenance:
-    """Where an artefact came from: the stage config and the hashed inputs."""
+    """Where an artefact came from: the stage config and the hashed inputs.
+
+    ``inputs`` holds ``{"path", "sha256"}`` per input (a folder, e.g. a camera's frames, gets one hash over
+    its files and a ``files`` count); they are written relative to the workspace (``"base": "workspace"``,
+    relative to the artefact's folder) or to the capture folder (``"base": "capture"``), so a copied or moved
+    workspace is checked against its own files.  ``mesh_sha256`` is the hash of the mesh.h5 read, if any.
+    """
 
     config: dict = field(default_factory=dict)
-    inputs: tuple = ()  # of {"path": str, "sha256": str}
+    inputs: tuple = ()  # of {"path": str (absolute here; made relative when written), "sha256": str}
+    mesh_sha256: str = ""
 
     @staticmethod
     def make(config: Any, input_paths: list[str | Path] = ()) -> "Provenance":
-        """Build provenance from a config (dataclass or dict) and input files."""
+        """Build provenance from a config (dataclass or dict) and input files or folders (hashed, cached in
+        the config's workspace)."""
         if dataclasses.is_dataclass(config):
             config = dataclasses.asdict(config)
-        inputs = tuple(
-            {"path": str(Path(p).resolve()), "sha256": file_sha256(p)}
-            for p in input_paths
-            if p is not None and Path(p).is_file()
-        )
-        return Provenance(config=_jsonable(config or {}), inputs=inputs)
+        config = dict(config or {})
+        ws = config.get("workspace")
+        cache = HashCache(ws if ws and Path(str(ws)).is_dir() else None)
+        inputs = []
+        mesh_sha = ""
+        for p in input_paths:
+            if p is None or not (Path(p).is_file() or Path(p).is_dir()):
+                continue
+            p = Path(p)
+            item: dict = {"path": str(p.resolve())}
+            if p.is_dir():
+                item["sha256"], item["files"] = cache.folder_sha256(p)
+            else:
+                item["sha256"] = cache.sha256(p)
+                if p.name == KIND_FILES["mesh"]:
+                    mesh_sha = item["sha256"]
+            inputs.append(item)
+        cache.save()
+        return Provenance(config=_jsonable(config), inputs=tuple(inputs), mesh_sha256=mesh_sha)
+
+
+def relative_inputs(inputs: tuple | list, artefact: Path, capture: str | Path | None,
+                    workspace: str | Path | None = None) -> list[dict]:
+    """Input entries with paths relative to the artefact's folder (files of the workspace, or of the artefact's
+    own folder) or to the capture folder; other paths stay absolute."""
+    here = artefact.parent.resolve()
+    cap = Path(str(capture)).resolve() if capture not in (None, "") else None
+    ws = Path(str(workspace)).resolve() if workspace not in (None, "") else here
+    out = []
+    for item in inputs:
+        item = dict(item)
+        p = Path(str(item.get("path", "")))
+        if p.is_absolute():
+            if cap is not None and p.is_relative_to(cap):
+                item.update(path=p.relative_to(cap).as_posix(), base="capture")
+            elif p.is_relative_to(here) or (here.is_relative_to(ws) and p.is_relative_to(ws)):
+                item.update(path=os.path.relpath(p, here), base="workspace")
+        out.append(item)
+    return out
+
+
+def resolve_input(item: dict, artefact: Path, attrs: dict) -> Path:
+    """The file an input entry names, as seen from the artefact at ``artefact`` (see :func:`relative_inputs`)."""
+    p = Path(str(item.get("path", "")))
+    base = item.get("base")
+    if base == "workspace":
+        return artefact.parent / p
+    if base == "capture":
+        root = attrs.get("capture_root") or (attrs.get("config") or {}).get("capture") or ""
+        return Path(str(root)) / p
+    return p
+
+
+def recorded_mesh_sha256(attrs: dict) -> str:
+    """The sha256 of the mesh.h5 an artefact was made from ('' when it does not say)."""
+    sha = attrs.get("mesh_sha256")
+    if sha:
+        return str(sha)
+    for item in attrs.get("inputs") or []:
+        if isinstance(item, dict) and Path(str(item.get("path", ""))).name == KIND_FILES["mesh"]:
+            return str(item.get("sha256", ""))
+    return ""
+
+
+_REMAKE = {"gaussians": "fit-gaussians", "snapshots": "generate-data", "subspace": "train-subspace",
+           "adapt": "adapt", "stress": "export"}
+
+
+def check_same_mesh(mesh_path: str | Path, *paths: str | Path | None) -> None:
+    """Each existing artefact in ``paths`` must have been made from the mesh.h5 at ``mesh_path`` (same sha256),
+    whatever its vertex and tet counts; otherwise an ArtefactError names it and the stage that remakes it."""
+    mesh_path = Path(mesh_path)
+    if not mesh_path.is_file():
+        return
+    current = HashCache(mesh_path.parent).sha256(mesh_path)
+    for p in paths:
+        if p is None or not Path(p).is_file():
+            continue
+        attrs = read_provenance(p)
+        sha = recorded_mesh_sha256(attrs)
+        if sha and sha != current:
+            kind = str(attrs.get("rsl_kind", ""))
+            redo = _REMAKE.get(kind)
+            raise ArtefactError(
+                f"{p}: was made from a different mesh.h5 than {mesh_path} (sha256 {sha[:12]}… vs {current[:12]}…); "
+                + (f"run `rsl {redo}` again for the current mesh." if redo else "remake it for the current mesh."))
+
+
+def check_mesh_source(mesh_path: str | Path, source: str | Path) -> None:
+    """mesh.h5 must have been made from the capture's object mesh ``source`` (same content): a mesh.h5 from
+    another capture would pair its vertices with this capture's handles, markers and frames."""
+    mesh_path, source = Path(mesh_path), Path(source)
+    if not mesh_path.is_file() or not source.is_file():
+        return
+    suffixes = (".obj", ".ply", ".stl", ".off", ".mesh", ".msh")
+    recorded = [it for it in (read_provenance(mesh_path).get("inputs") or [])
+                if isinstance(it, dict) and Path(str(it.get("path", ""))).suffix.lower() in suffixes
+                and "regions" not in Path(str(it.get("path", ""))).parts[:-1]]
+    if recorded and not any(it.get("sha256") == HashCache(mesh_path.parent).sha256(source) for it in recorded):
+        raise ArtefactError(f"{mesh_path}: was made from another object mesh than {source} (another capture?); "
+                            f"run `rsl tetrahedralize` for this capture first.")
 
 
 def _jsonable(obj: Any) -> Any:
@@ -115,41 +273,177 @@ def _attr(v: Any) -> Any:
 
 
 # --------------------------------------------------------------------------- writing
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def clean_stale_temps(folder: str | Path, min_age_s: float = 60.0) -> list[Path]:
+    """Remove temporary files ``.NAME.h5.PID.RANDOM.tmp`` left by a killed stage (its PID is gone; a temp file
+    without a PID counts when older than ``min_age_s``); returns the files removed."""
+    folder = Path(folder)
+    removed = []
+    if not folder.is_dir():
+        return removed
+    now = _dt.datetime.now().timestamp()
+    for p in folder.glob(".*.tmp"):
+        m = TEMP_RE.match(p.name)
+        try:
+            if m and ".h5" in m.group("name"):
+                stale = int(m.group("pid")) != os.getpid() and not _pid_alive(int(m.group("pid")))
+            elif ".h5." in p.name:
+                stale = now - p.stat().st_mtime > min_age_s
+            else:
+                continue
+            if stale:
+                p.unlink()
+                removed.append(p)
+        except OSError:
+            continue
+    return removed
+
+
+_MANIFESTS: dict[str, dict[str, tuple]] = {}  # temp file -> dataset name -> (shape, dtype, sha256)
+
+
+def _digest(a: np.ndarray) -> str:
+    if a.dtype.kind in "OUS":
+        return hashlib.sha256("\0".join(map(str, a.ravel().tolist())).encode()).hexdigest()
+    return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()
+
+
+def verify_h5(path: str | Path, kind: str, manifest: dict[str, tuple] | None = None) -> str | None:
+    """Re-open a written file and read every dataset back (HDF5 checks the Fletcher-32 checksums); each dataset
+    in ``manifest`` must have its recorded shape, dtype and content hash.  The problem found, or None."""
+    manifest = manifest or {}
+    problems: list[str] = []
+    seen: set[str] = set()
+
+    def check(name: str, obj: Any) -> None:
+        if not isinstance(obj, h5py.Dataset) or problems:
+            return
+        seen.add(name)
+        a = np.asarray(obj[()])
+        if name not in manifest:
+            return
+        shape, dtype, digest = manifest[name]
+        if a.dtype.kind == "O":
+            a = np.array([x.decode() if isinstance(x, bytes) else x for x in a.ravel()], dtype=object).reshape(a.shape)
+        if a.shape != shape or (a.dtype.kind != "O" and a.dtype.str != dtype):
+            problems.append(f"dataset '{name}' reads back as {a.shape} {a.dtype}, written as {shape} {dtype}")
+        elif _digest(a) != digest:
+            problems.append(f"dataset '{name}' reads back with other values than were written")
+
+    try:
+        with h5py.File(path, "r") as f:
+            if _attr(f.attrs.get("rsl_kind", "")) != kind:
+                return "the root attributes did not reach the disk"
+            f.visititems(check)
+    except (OSError, RuntimeError, ValueError, KeyError) as e:
+        return f"it cannot be read back: {str(e).splitlines()[0] if str(e) else type(e).__name__}"
+    if problems:
+        return problems[0]
+    missing = [n for n in manifest if n not in seen]
+    if missing:
+        return f"dataset '{missing[0]}' is missing when read back"
+    return None
+
+
 @contextlib.contextmanager
 def atomic_h5(path: str | Path, kind: str, provenance: Provenance) -> Iterator[h5py.File]:
-    """Open a temporary HDF5 file next to ``path``; rename it into place on success.
+    """Open a temporary HDF5 file next to ``path``; rename it into place once verified.
 
-    On any exception the temporary file is removed and ``path`` is untouched.
+    After the block the file is flushed, closed, fsync'ed, re-opened and every dataset read back (shape, dtype,
+    content hash of what was written, Fletcher-32 checksums); only then is it renamed over ``path``.  On any
+    failure (a full disk shows only when the file closes) the temporary file is removed, ``path`` is untouched
+    and an :class:`ArtefactError` says so in one sentence.  Stale temporary files of killed runs are removed.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
     try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["rsl_kind"] = kind
-            f.attrs["schema_version"] = SCHEMA_VERSION
-            f.attrs["rsl_version"] = RSL_VERSION
-            f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-            f.attrs["config"] = json.dumps(_jsonable(provenance.config), sort_keys=True)
-            f.attrs["inputs"] = json.dumps(list(provenance.inputs))
-            yield f
-        os.replace(tmp, path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        clean_stale_temps(path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp", dir=path.parent)
+        os.close(fd)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; an artefact gets the usual permissions
+    except OSError as e:
+        raise ArtefactError(f"{path}: cannot write in {path.parent} ({e.strerror or e}).") from None
+    kept = f"the previous {path.name} is kept" if path.exists() else f"no {path.name} was written"
+    manifest = _MANIFESTS.setdefault(str(Path(tmp).resolve()), {})
+    try:
+        try:
+            with h5py.File(tmp, "w") as f:
+                f.attrs["rsl_kind"] = kind
+                f.attrs["schema_version"] = SCHEMA_VERSION
+                f.attrs["rsl_version"] = RSL_VERSION
+                f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+                f.attrs["config"] = json.dumps(_jsonable(provenance.config), sort_keys=True)
+                capture = (provenance.config or {}).get("capture")
+                f.attrs["inputs"] = json.dumps(relative_inputs(provenance.inputs, path, capture,
+                                                               (provenance.config or {}).get("workspace")))
+                if capture not in (None, ""):
+                    f.attrs["capture_root"] = str(Path(str(capture)).resolve())
+                if provenance.mesh_sha256 and kind != "mesh":
+                    f.attrs["mesh_sha256"] = provenance.mesh_sha256
+                yield f
+                f.flush()
+            _fsync(tmp)
+        except OSError as e:
+            raise ArtefactError(f"{path}: writing failed ({_oserror_text(e)}); {kept}.") from None
+        problem = verify_h5(tmp, kind, manifest)
+        if problem:
+            raise ArtefactError(f"{path}: the written file did not verify ({problem}); {kept}.")
+        try:
+            os.replace(tmp, path)
+        except OSError as e:
+            raise ArtefactError(f"{path}: cannot move the written file into place ({_oserror_text(e)}); "
+                                f"{kept}.") from None
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+        with contextlib.suppress(OSError):
             os.remove(tmp)
         raise
+    finally:
+        _MANIFESTS.pop(str(Path(tmp).resolve()), None)
+
+
+def _fsync(path: str) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _oserror_text(e: OSError) -> str:
+    text = e.strerror or str(e)
+    text = " ".join(str(text).split())
+    return text if len(text) <= 160 else text[:160] + "…"
 
 
 def _put(group: h5py.Group, name: str, value: Any, compress: bool = False) -> None:
+    """Write a dataset: chunked with Fletcher-32 checksums (and gzip when ``compress``); recorded for the
+    read-back check of :func:`atomic_h5`."""
     value = np.asarray(value)
     if value.dtype.kind == "U":
-        group.create_dataset(name, data=value.astype(object), dtype=h5py.string_dtype())
-    elif compress and value.ndim >= 2 and value.size > 0:
-        chunks = (1,) + value.shape[1:] if value.ndim == 3 else True
-        group.create_dataset(name, data=value, compression="gzip", compression_opts=4, chunks=chunks)
+        value = value.astype(object)
+        ds = group.create_dataset(name, data=value, dtype=h5py.string_dtype())
+    elif value.ndim >= 1 and value.size > 0:
+        kw: dict = {"fletcher32": True, "chunks": True}
+        if compress and value.ndim >= 2:
+            kw.update(compression="gzip", compression_opts=4,
+                      chunks=(1,) + value.shape[1:] if value.ndim == 3 else True)
+        ds = group.create_dataset(name, data=value, **kw)
     else:
-        group.create_dataset(name, data=value)
+        ds = group.create_dataset(name, data=value)
+    manifest = _MANIFESTS.get(str(Path(group.file.filename).resolve()))
+    if manifest is not None:
+        manifest[ds.name.lstrip("/")] = (value.shape, value.dtype.str, _digest(value))
 
 
 # --------------------------------------------------------------------------- reading
@@ -275,25 +569,6 @@ def describe(path: str | Path) -> dict:
 
 # =========================================================================== kinds
 @dataclass
-class Camera:
-    """One pinhole camera, OpenCV convention: x_cam = R x_world + t; pixel = K x_cam / z."""
-
-    name: str
-    K: np.ndarray  # (3, 3)
-    dist: np.ndarray  # (5,) k1 k2 p1 p2 k3
-    R: np.ndarray  # (3, 3) world -> camera
-    t: np.ndarray  # (3,) metres
-    width: int
-    height: int
-    rms_px: float = float("nan")  # reprojection RMS of the calibration
-
-    @property
-    def center(self) -> np.ndarray:
-        """Camera centre in world coordinates, -Rᵀ t."""
-        return -self.R.T @ self.t
-
-
-@dataclass
 class CamerasArtefact:
     cameras: list[Camera]
     method: str  # "chessboard", "charuco", "sfm", "json", "colmap", "synth"
@@ -374,13 +649,13 @@ class MasksArtefact:
 class MeshArtefact:
     """Tetrahedral mesh with everything the FEM needs at rest (SI units)."""
 
-    vertices: np.ndarray  # (n, 3) rest positions, m
-    tets: np.ndarray  # (m, 4) vertex ids, positive orientation
+    vertices: np.ndarray  # (n, 3) rest positions, m (all nodes: corners, then mid-edge nodes for order 2)
+    tets: np.ndarray  # (m, 4) vertex ids, positive orientation; (m, 10) quadratic tets (stages.sim.quadrature)
     surface_faces: np.ndarray  # (k, 3) outward-facing boundary triangles
     tet_region: np.ndarray  # (m,) index into region_names
     region_names: list[str]
-    rest_volumes: np.ndarray  # (m,) m^3
-    dm_inv: np.ndarray  # (m, 3, 3) inverse rest shape matrices Dm^-1
+    rest_volumes: np.ndarray  # (m,) m^3 (order 2: the sum of the element's quadrature weights)
+    dm_inv: np.ndarray  # (m, 3, 3) inverse rest shape matrices Dm^-1 of the corner tets
     vertex_masses: np.ndarray  # (n,) kg, lumped
     density: float  # kg/m^3
     handles: dict[str, np.ndarray] = field(default_factory=dict)  # name -> vertex ids
@@ -397,6 +672,11 @@ class MeshArtefact:
     def n_tets(self) -> int:
         return int(self.tets.shape[0])
 
+    @property
+    def order(self) -> int:
+        """Element order: 1 for linear (4-node), 2 for quadratic (10-node) tets."""
+        return 2 if self.tets.shape[1] == 10 else 1
+
     def save(self, path: str | Path, provenance: Provenance = Provenance()) -> Path:
         with atomic_h5(path, self.kind, provenance) as f:
             _put(f, "vertices", np.asarray(self.vertices, np.float64))
@@ -408,6 +688,7 @@ class MeshArtefact:
             _put(f, "vertex_masses", np.asarray(self.vertex_masses, np.float64))
             f.attrs["region_names"] = json.dumps(list(self.region_names))
             f.attrs["density"] = float(self.density)
+            f.attrs["order"] = self.order  # element order, also readable from tets' shape
             f.attrs["quality"] = json.dumps(_jsonable(self.quality))
             for group, sets in (("handles", self.handles), ("loads", self.loads)):
                 h = f.create_group(group)
@@ -420,7 +701,9 @@ class MeshArtefact:
         with open_artefact(path, cls.kind) as r:
             v = r.array("vertices", shape=(None, 3))
             n = v.shape[0]
-            tets = r.array("tets", shape=(None, 4), kind="i").astype(np.int64)
+            tets = r.array("tets", shape=(None, None), kind="i").astype(np.int64)
+            if tets.shape[1] not in (4, 10):
+                r.fail(f"tets has {tets.shape[1]} nodes per element; 4 (linear) or 10 (quadratic) expected.")
             m = tets.shape[0]
             if m == 0:
                 r.fail("holds no tetrahedron.")
@@ -600,8 +883,16 @@ class AdaptArtefact:
     loss_kind: str  # "vision" | "markers"
     window: int
     extra: dict = field(default_factory=dict)
+    young_sigma: np.ndarray | None = None  # (T, R) Pa, σ of E per frame (NaN where unknown, e.g. Adam)
+    poisson_sigma: np.ndarray | None = None  # (T, R), σ of ν per frame (NaN where unknown)
 
     kind = "adapt"
+
+    def __post_init__(self):
+        shape = np.shape(self.young)
+        for k in ("young_sigma", "poisson_sigma"):
+            if getattr(self, k) is None:
+                setattr(self, k, np.full(shape, np.nan))
 
     _per_frame = ("young", "poisson", "z", "positions", "loss",
                   "time_forward_s", "time_backward_s", "time_render_s", "time_total_s")
@@ -616,10 +907,13 @@ class AdaptArtefact:
                 f.attrs[k] = getattr(self, k)
             f.attrs["window"] = int(self.window)
             f.attrs["extra"] = json.dumps(_jsonable(self.extra))
+            for k in ("young_sigma", "poisson_sigma"):
+                _put(f, k, np.asarray(getattr(self, k), np.float64))
         return Path(path)
 
     @classmethod
-    def load(cls, path: str | Path) -> "AdaptArtefact":
+    def load(cls, path: str | Path, allow_partial: bool = False) -> "AdaptArtefact":
+        """Read and validate; an interrupted or failed run (extra["status"]) is refused unless ``allow_partial``."""
         with open_artefact(path, cls.kind) as r:
             frames = r.array("frames", ndim=1, kind="i")
             t = frames.shape[0]
@@ -634,10 +928,18 @@ class AdaptArtefact:
             )
             for k in ("time_forward_s", "time_backward_s", "time_render_s", "time_total_s"):
                 out[k] = r.array(k, shape=(t,))
+            for k in ("young_sigma", "poisson_sigma"):  # absent from older files: NaN (unknown)
+                if k in r.f:
+                    out[k] = r.array(k, shape=(t, nreg), finite=False)
+            extra = json.loads(r.attr("extra", "{}"))
+            status = str(extra.get("status", "complete")) if isinstance(extra, dict) else "complete"
+            if status != "complete" and not allow_partial:
+                r.fail(f"holds an unfinished ({status}) run of {t} frame(s), not a complete one; run `rsl adapt` "
+                       f"to the end first.")
             return cls(
                 **out, region_names=json.loads(r.attr("region_names")), mode=str(r.attr("mode")),
                 space=str(r.attr("space")), loss_kind=str(r.attr("loss_kind")),
-                window=int(r.attr("window")), extra=json.loads(r.attr("extra", "{}")),
+                window=int(r.attr("window")), extra=extra,
             )
 
 
@@ -700,4 +1002,6 @@ def load_any(path: str | Path):
         raise ArtefactError(f"{path}: not an rsl artefact (no 'rsl_kind' attribute).")
     if kind not in ARTEFACT_TYPES:
         raise ArtefactError(f"{path}: unknown artefact kind '{kind}'.")
+    if kind == "adapt":  # `rsl info adapt.partial.h5` shows an unfinished run as it is
+        return ARTEFACT_TYPES[kind].load(path, allow_partial=True)
     return ARTEFACT_TYPES[kind].load(path)

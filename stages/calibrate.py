@@ -37,8 +37,10 @@ from typing import Literal
 import numpy as np
 
 from stages.artefacts import KIND_FILES, Camera, CamerasArtefact, Provenance
-from stages.capture import Capture, load_capture, quat_to_matrix, read_cameras_json, read_image, write_image
+from stages.capture import Capture, load_capture, read_cameras_json, read_image, write_image
+from stages.domain.rotations import quat_wxyz_to_matrix as quat_to_matrix
 from stages.errors import RslError
+from stages.workspace import prepare_workspace
 from stages.progress import Reporter, SilentReporter
 
 
@@ -89,6 +91,7 @@ def run(config: CalibrateConfig, reporter: Reporter = SilentReporter()) -> Path:
     """Calibrate or import the cameras and write WS/cameras.h5."""
     cap = load_capture(config.capture)
     out = Path(config.workspace) / KIND_FILES["cameras"]
+    prepare_workspace(config.workspace)  # writable? (before the compute) and no stale temp files
     names = cap.camera_names
     if not names:
         raise RslError(f"{cap.toml_path}: 'capture.cameras' lists no camera.")

@@ -17,7 +17,12 @@ from typing import Any
 
 import numpy as np
 
-from stages.errors import RslError
+from stages.domain.controls import (IDENTITY_POSE, Controls, Handle, Load, Obstacle,  # noqa: F401 (re-exported)
+                                    Selection, Track, Visual, apply_pose, select_handles)
+from stages.domain.errors import CaptureError, RslError  # noqa: F401 (re-exported)
+from stages.domain.rotations import matrix_to_quat_wxyz as matrix_to_quat  # noqa: F401 (re-exported)
+from stages.domain.rotations import quat_wxyz_to_matrix as quat_to_matrix  # noqa: F401 (re-exported)
+from stages.domain.rotations import slerp_wxyz as slerp  # noqa: F401 (re-exported)
 
 try:
     import tomllib
@@ -30,211 +35,56 @@ MATERIAL_MODELS = ("stable_neohookean", "yeoh", "linear")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
-class CaptureError(RslError):
-    """A capture folder is missing something or holds malformed data."""
+# =========================================================================== known keys
+# Every key a lab may type.  A key not listed here is rejected with the nearest known key (difflib), so a
+# typo ("youngs", "[materail]", "stifness") never passes silently.  Helpers adding a key: add it here.
+# capture.toml: table -> its keys; "*" = any key (a free-form record); [regions.NAME] uses "regions.*".
+KNOWN_KEYS: dict[str, tuple[str, ...]] = {
+    "capture": ("name", "fps", "gravity", "cameras", "start"),
+    "object": ("mesh", "density"),
+    "material": ("model", "young", "poisson", "young_range", "poisson_range"),
+    "regions": (),  # a table of [regions.NAME] tables
+    "regions.*": ("young", "poisson"),
+    "calibration": ("board",),
+    "synth": ("*",),  # written by `rsl synth`: a record of how the capture was made
+}
+START_STATES = ("equilibrium", "rest")  # [capture] start: what frame 0 shows
+# controls.json: object -> its keys.
+CONTROLS_KEYS: dict[str, tuple[str, ...]] = {
+    "controls": ("handles", "loads", "obstacles", "friction"),
+    "handle": ("name", "select", "stiffness", "hard", "poses", "keyframes", "visual"),
+    "load": ("name", "select", "force", "keyframes"),
+    "obstacle": ("name", "shape", "normal", "offset", "radius", "half_extents", "poses", "keyframes", "visual"),
+    "select": ("box", "plane", "ids"),
+    "plane": ("normal", "offset"),
+    "pose_keyframes": ("frame", "pose", "poses"),  # keyframes of a handle or an obstacle
+    "force_keyframes": ("frame", "force"),  # keyframes of a load
+    "visual": ("box", "mesh"),
+}
 
 
-# =========================================================================== rigid poses
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a quaternion (w, x, y, z); q is normalised first."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q)
-    w, x, y, z = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+def nearest_key(key: str, known: tuple[str, ...] | list[str]) -> str:
+    """" (did you mean 'K'?)" for the known key K nearest ``key`` (difflib), else ''."""
+    import difflib
+
+    close = difflib.get_close_matches(str(key), [k for k in known if k != "*"], n=1, cutoff=0.5)
+    return f" (did you mean '{close[0]}'?)" if close else ""
 
 
-def matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """Quaternion (w, x, y, z) with w ≥ 0 of a rotation matrix."""
-    R = np.asarray(R, dtype=np.float64)
-    tr = np.trace(R)
-    if tr > 0:
-        s = math.sqrt(tr + 1.0) * 2
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2]) * 2
-        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2]) * 2
-        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
-    else:
-        s = math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1]) * 2
-        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
-    q = np.array(q)
-    return q if q[0] >= 0 else -q
+def check_keys(obj: dict, known: tuple[str, ...] | list[str], where: str, path: Path) -> None:
+    """Reject the first key of ``obj`` not in ``known``, naming the file, where it is and the nearest key."""
+    if "*" in known or not isinstance(obj, dict):
+        return
+    for key in obj:
+        if key not in known:
+            loc = f"'{where}.{key}'" if where else f"'{key}'"
+            listed = ", ".join(known) if known else "none"
+            raise CaptureError(f"{path}: {loc} is not a known key{nearest_key(key, known)}; "
+                               f"the keys there are {listed}.")
 
 
-def slerp(q0: np.ndarray, q1: np.ndarray, a: float) -> np.ndarray:
-    """Spherical linear interpolation between unit quaternions (w, x, y, z), a ∈ [0, 1]."""
-    q0 = q0 / np.linalg.norm(q0)
-    q1 = q1 / np.linalg.norm(q1)
-    d = float(np.dot(q0, q1))
-    if d < 0:
-        q1, d = -q1, -d
-    if d > 0.9995:
-        q = q0 + a * (q1 - q0)
-        return q / np.linalg.norm(q)
-    th = math.acos(min(d, 1.0))
-    return (math.sin((1 - a) * th) * q0 + math.sin(a * th) * q1) / math.sin(th)
-
-
-def apply_pose(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """p = R(q) p_rest + t for a pose [tx, ty, tz, qw, qx, qy, qz]; points (k, 3)."""
-    pose = np.asarray(pose, dtype=np.float64)
-    return np.asarray(points, dtype=np.float64) @ quat_to_matrix(pose[3:]).T + pose[:3]
-
-
-IDENTITY_POSE = np.array([0.0, 0, 0, 1, 0, 0, 0])
-
-
-@dataclass
-class Track:
-    """A per-frame quantity: explicit values (T, D), or keyframes interpolated linearly
-    (poses: linear translation and slerp rotation).  Past the last entry the last value holds."""
-
-    frames: np.ndarray  # (K,) increasing frame ids
-    values: np.ndarray  # (K, D)
-    is_pose: bool = False
-
-    @property
-    def n_frames(self) -> int:
-        """Frames covered (last keyframe + 1)."""
-        return int(self.frames[-1]) + 1
-
-    def at(self, frame: float) -> np.ndarray:
-        f = self.frames
-        if frame <= f[0]:
-            return self.values[0].copy()
-        if frame >= f[-1]:
-            return self.values[-1].copy()
-        k = int(np.searchsorted(f, frame, side="right")) - 1
-        a = (frame - f[k]) / (f[k + 1] - f[k])
-        v0, v1 = self.values[k], self.values[k + 1]
-        if not self.is_pose:
-            return (1 - a) * v0 + a * v1
-        return np.concatenate([(1 - a) * v0[:3] + a * v1[:3], slerp(v0[3:], v1[3:], a)])
-
-    def sample(self, n_frames: int) -> np.ndarray:
-        """Values at frames 0..n_frames-1, shape (n_frames, D)."""
-        return np.stack([self.at(i) for i in range(n_frames)])
-
-    @staticmethod
-    def constant(value: np.ndarray, is_pose: bool = False) -> "Track":
-        return Track(np.array([0]), np.asarray(value, dtype=np.float64)[None], is_pose)
-
-
-# =========================================================================== controls
-@dataclass
-class Selection:
-    """Which rest vertices something acts on: a box, a plane side (n·p ≥ d) or explicit ids."""
-
-    kind: str  # "box" | "plane" | "ids"
-    box: np.ndarray | None = None  # (2, 3) corners
-    normal: np.ndarray | None = None
-    offset: float = 0.0
-    ids: np.ndarray | None = None
-
-    def select(self, vertices: np.ndarray, surface_ids: np.ndarray | None = None) -> np.ndarray:
-        """Vertex ids (sorted) selected among ``vertices`` (n, 3).
-
-        Boxes and planes select among all vertices; ``ids`` refer to vertices of the rest
-        mesh directly.
-        """
-        if self.kind == "box":
-            lo, hi = np.minimum(self.box[0], self.box[1]), np.maximum(self.box[0], self.box[1])
-            inside = np.all((vertices >= lo - 1e-12) & (vertices <= hi + 1e-12), axis=1)
-            return np.flatnonzero(inside)
-        if self.kind == "plane":
-            n = self.normal / np.linalg.norm(self.normal)
-            return np.flatnonzero(vertices @ n >= self.offset - 1e-12)
-        return np.unique(self.ids)
-
-    def to_json(self) -> dict:
-        if self.kind == "box":
-            return {"box": self.box.tolist()}
-        if self.kind == "plane":
-            return {"plane": {"normal": self.normal.tolist(), "offset": self.offset}}
-        return {"ids": self.ids.tolist()}
-
-
-@dataclass
-class Handle:
-    """Vertices pulled by stiff springs (N/m per vertex) to rigidly moved rest positions."""
-
-    name: str
-    select: Selection
-    stiffness: float
-    poses: Track  # (·, 7)
-
-
-@dataclass
-class Load:
-    """A known total force (N) spread evenly over the selected vertices."""
-
-    name: str
-    select: Selection
-    force: Track  # (·, 3)
-
-
-@dataclass
-class Obstacle:
-    """A rigid collider: an infinite plane (n·p ≥ offset is outside), a sphere, or a box."""
-
-    name: str
-    shape: str  # "plane" | "sphere" | "box"
-    normal: np.ndarray | None = None  # plane
-    offset: float = 0.0  # plane
-    radius: float = 0.0  # sphere, m
-    half_extents: np.ndarray | None = None  # box, m
-    poses: Track = field(default_factory=lambda: Track.constant(IDENTITY_POSE, True))
-
-
-@dataclass
-class Controls:
-    """The known inputs of an experiment (controls.json)."""
-
-    handles: list[Handle] = field(default_factory=list)
-    loads: list[Load] = field(default_factory=list)
-    obstacles: list[Obstacle] = field(default_factory=list)
-    friction: float = 0.0
-
-    @property
-    def n_frames(self) -> int | None:
-        """Frames the explicit per-frame tracks cover (max over tracks); None if all constant."""
-        tracks = [h.poses for h in self.handles] + [ld.force for ld in self.loads] + \
-                 [o.poses for o in self.obstacles]
-        n = [t.n_frames for t in tracks if t.n_frames > 1]
-        return max(n) if n else None
-
-    def to_json(self) -> dict:
-        def track(t: Track, key: str) -> dict:
-            if len(t.frames) == t.n_frames and np.array_equal(t.frames, np.arange(len(t.frames))):
-                return {key: t.values.tolist()}
-            return {"keyframes": {"frame": t.frames.tolist(), key[:-1] if key == "poses" else key:
-                                  t.values.tolist()}}
-
-        out: dict[str, Any] = {"handles": [], "loads": [], "obstacles": [], "friction": self.friction}
-        for h in self.handles:
-            out["handles"].append({"name": h.name, "select": h.select.to_json(),
-                                   "stiffness": h.stiffness, **track(h.poses, "poses")})
-        for ld in self.loads:
-            out["loads"].append({"name": ld.name, "select": ld.select.to_json(), **track(ld.force, "force")})
-        for o in self.obstacles:
-            d: dict[str, Any] = {"name": o.name, "shape": o.shape}
-            if o.shape == "plane":
-                d.update(normal=o.normal.tolist(), offset=o.offset)
-            elif o.shape == "sphere":
-                d.update(radius=o.radius)
-            else:
-                d.update(half_extents=o.half_extents.tolist())
-            d.update(track(o.poses, "poses"))
-            out["obstacles"].append(d)
-        return out
-
-
+# Track, Selection, Handle, Load, Obstacle, Controls, poses and select_handles live in
+# stages/domain/controls.py (add fields there); this module parses controls.json into them.
 class _Fields:
     """Field-by-field validation with messages naming the file and the JSON path."""
 
@@ -349,15 +199,18 @@ def parse_controls(data: Any, path: Path) -> Controls:
     v = _Fields(path)
     if not isinstance(data, dict):
         raise CaptureError(f"{path}: should hold a JSON object with 'handles', 'loads', 'obstacles'.")
-    unknown = set(data) - {"handles", "loads", "obstacles", "friction"}
-    if unknown:
-        v.fail(sorted(unknown)[0], "is not a known field (handles, loads, obstacles, friction).")
+    check_controls_keys(data, path)
     ctl = Controls(friction=v.number(data, "friction", "controls", default=0.0, nonneg=True))
     for i, h in enumerate(v.named_list(data, "handles")):
         w = f"handles[{i}]"
         ctl.handles.append(Handle(h["name"], v.selection(h, w),
                                   v.number(h, "stiffness", w, default=1.0e4, positive=True),
                                   v.track(h, "poses", 7, w, is_pose=True, required=False)))
+        ctl.handles[-1].visual = parse_visual(h, w, path)
+        if "hard" in h:
+            if not isinstance(h["hard"], bool):
+                v.fail(f"{w}.hard", "should be true or false.")
+            ctl.handles[-1].hard = h["hard"]
     for i, ld in enumerate(v.named_list(data, "loads")):
         w = f"loads[{i}]"
         ctl.loads.append(Load(ld["name"], v.selection(ld, w), v.track(ld, "force", 3, w, False, True)))
@@ -381,7 +234,88 @@ def parse_controls(data: Any, path: Path) -> Controls:
             ctl.obstacles.append(Obstacle(o["name"], "box", half_extents=he, poses=poses))
         else:
             v.fail(f"{w}.shape", f"should be 'plane', 'sphere' or 'box', found {json.dumps(shape)}.")
+        ctl.obstacles[-1].visual = parse_visual(o, w, path)
     return ctl
+
+
+def parse_visual(obj: dict, where: str, path: Path) -> Visual | None:
+    """The optional ``visual`` of a handle or obstacle (INTERFACES §7): {"box": [[x0,y0,z0],[x1,y1,z1]]} or
+    {"mesh": "FILE"} (obj/ply/stl/off relative to controls.json), in the frame its pose moves."""
+    if "visual" not in obj:
+        return None
+    v, w = _Fields(path), f"{where}.visual"
+    vis = obj["visual"]
+    if not isinstance(vis, dict) or len(vis) != 1 or next(iter(vis)) not in ("box", "mesh"):
+        v.fail(w, "should be an object with exactly one of 'box' (two corners) or 'mesh' (a file name).")
+    (kind, val), = vis.items()
+    if kind == "box":
+        if not isinstance(val, list) or len(val) != 2:
+            v.fail(f"{w}.box", "should be two corners [[x0,y0,z0],[x1,y1,z1]].")
+        box = np.stack([v.vector(c, 3, f"{w}.box[{i}]") for i, c in enumerate(val)])
+        if np.any(np.abs(box[1] - box[0]) <= 0):
+            v.fail(f"{w}.box", "has zero extent along an axis; give two opposite corners.")
+        return Visual("box", box=box)
+    if not isinstance(val, str) or not val:
+        v.fail(f"{w}.mesh", "should be the name of a mesh file (obj, ply, stl, off) beside controls.json.")
+    file = Path(path).parent / val
+    if file.suffix.lower() not in SURFACE_SUFFIXES:
+        v.fail(f"{w}.mesh", f"names '{val}', which is not an obj, ply, stl or off file.")
+    if not file.is_file():
+        v.fail(f"{w}.mesh", f"names '{val}', but {file} does not exist.")
+    import trimesh
+
+    try:
+        m = trimesh.load(str(file), force="mesh", process=False)
+        verts, faces = np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
+    except Exception as e:  # trimesh raises many kinds on a bad file
+        raise CaptureError(f"{file}: cannot read the mesh of {path} '{w}.mesh' ({type(e).__name__}: {e}).") from None
+    if faces.ndim != 2 or len(faces) == 0 or not np.all(np.isfinite(verts)):
+        raise CaptureError(f"{file}: the mesh of {path} '{w}.mesh' holds no triangles (or non-finite vertices).")
+    return Visual("mesh", vertices=verts, faces=faces, source=val)
+
+
+def check_controls_keys(data: dict, path: Path) -> None:
+    """Every key of controls.json must be known (CONTROLS_KEYS); the first unknown one is an error."""
+    K = CONTROLS_KEYS
+    check_keys(data, K["controls"], "", path)
+    for lst, kind, kf in (("handles", "handle", "pose_keyframes"), ("loads", "load", "force_keyframes"),
+                          ("obstacles", "obstacle", "pose_keyframes")):
+        items = data.get(lst)
+        if not isinstance(items, list):
+            continue
+        for i, it in enumerate(items):
+            if not isinstance(it, dict):
+                continue
+            w = f"{lst}[{i}]"
+            check_keys(it, K[kind], w, path)
+            sel = it.get("select")
+            check_keys(sel, K["select"], f"{w}.select", path)
+            if isinstance(sel, dict):
+                check_keys(sel.get("plane"), K["plane"], f"{w}.select.plane", path)
+            check_keys(it.get("keyframes"), K[kf], f"{w}.keyframes", path)
+            check_keys(it.get("visual"), K["visual"], f"{w}.visual", path)
+
+
+def check_obstacles_clear(controls: Controls, vertices: np.ndarray, path: Path | str = "controls.json",
+                          tolerance: float = 0.01) -> None:
+    """An obstacle must not start inside the object: at frame 0, no rest vertex (n, 3) may lie deeper inside a
+    plane, sphere or box obstacle than ``tolerance`` × the object's size (its bounding-box diagonal)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    size = float(np.linalg.norm(v.max(0) - v.min(0)))
+    for o in controls.obstacles:
+        pose = o.poses.at(0)
+        pl = (v - pose[:3]) @ quat_to_matrix(pose[3:])  # R^T (p − t), rows
+        if o.shape == "plane":
+            depth = o.offset - pl @ (o.normal / np.linalg.norm(o.normal))
+        elif o.shape == "sphere":
+            depth = o.radius - np.linalg.norm(pl, axis=1)
+        else:
+            depth = np.min(o.half_extents - np.abs(pl), axis=1)
+        inside = depth > tolerance * size
+        if np.any(inside):
+            raise CaptureError(f"{path}: obstacle '{o.name}' starts inside the object at frame 0 ({int(inside.sum())} "
+                               f"rest vertices up to {1000 * float(depth.max()):.1f} mm deep); move it out of the "
+                               f"rest shape with its poses.")
 
 
 def load_controls(path: str | Path) -> Controls:
@@ -394,26 +328,6 @@ def load_controls(path: str | Path) -> Controls:
     except json.JSONDecodeError as e:
         raise CaptureError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}, column {e.colno}).") from None
     return parse_controls(data, path)
-
-
-def select_handles(controls: Controls, vertices: np.ndarray, path: Path | str = "controls.json"
-                   ) -> dict[str, np.ndarray]:
-    """Vertex ids of each handle; a selection that picks no vertex is an error."""
-    out = {}
-    n = len(vertices)
-    for h in controls.handles:
-        ids = h.select.select(vertices)
-        if h.select.kind == "ids" and ids.size and ids.max() >= n:
-            raise CaptureError(f"{path}: handle '{h.name}' selects vertex id {int(ids.max())} but the mesh "
-                               f"has {n} vertices.")
-        if ids.size == 0:
-            raise CaptureError(f"{path}: handle '{h.name}' selects no vertex of the mesh.")
-        out[h.name] = ids
-    for ld in controls.loads:
-        ids = ld.select.select(vertices)
-        if ids.size == 0 or (ld.select.kind == "ids" and ids.max() >= n):
-            raise CaptureError(f"{path}: load '{ld.name}' selects no valid vertex of the mesh.")
-    return out
 
 
 # =========================================================================== capture.toml
@@ -446,6 +360,10 @@ class Capture:
     density: float  # kg/m^3
     material: MaterialSettings
     raw: dict = field(default_factory=dict)  # the parsed capture.toml
+    start: str = "equilibrium"
+    """What frame 0 shows ([capture] start): "equilibrium" — the static equilibrium under gravity and the
+    frame-0 controls, at rest; "rest" — the rest shape with zero velocity (held, released at t = 0).
+    Either way the states before frame 0 are x_{−1} = x_{−2} = x_0 (docs/capture.md)."""
 
     # ------------------------------------------------------------------ paths
     @property
@@ -462,7 +380,9 @@ class Capture:
 
     @property
     def markers_path(self) -> Path:
-        return self.root / "markers.csv"
+        """markers.csv, or markers.c3d when only that one exists (what :meth:`markers` reads)."""
+        csv_path, c3d_path = self.root / "markers.csv", self.root / "markers.c3d"
+        return c3d_path if c3d_path.exists() and not csv_path.exists() else csv_path
 
     @property
     def truth_dir(self) -> Path:
@@ -509,6 +429,18 @@ class Capture:
     def frame_source(self, cam: str) -> "FrameSource":
         return FrameSource.open(self.root / "frames", cam)
 
+    def frame_inputs(self, cams: list[str] | None = None, backgrounds: bool = False) -> list[Path]:
+        """What a stage reading the frames of ``cams`` (default: all) reads, for its provenance: each camera's
+        frame folder (hashed file by file) or video, and with ``backgrounds`` its background plate."""
+        out: list[Path] = []
+        for c in self.camera_names if cams is None else cams:
+            src = self.frame_source(c)
+            out.append(self.root / "frames" / c if src.files is not None else src.video)
+            if backgrounds:
+                out += [self.root / "background" / f"{c}{suf}" for suf in IMAGE_SUFFIXES
+                        if (self.root / "background" / f"{c}{suf}").is_file()]
+        return out
+
     def frame_count(self) -> int:
         """Frames per camera; unequal counts across cameras are an error."""
         counts = {c: self.frame_source(c).count for c in self.camera_names}
@@ -518,10 +450,20 @@ class Capture:
         return next(iter(counts.values())) if counts else 0
 
     def markers(self) -> np.ndarray | None:
-        """markers.csv as (T, M, 3) metres (NaN where a marker was not observed: a gap), or None when absent."""
-        if not self.markers_path.exists():
+        """markers.csv or markers.c3d as (T, M, 3) metres (NaN where a marker was not observed: a gap), or None
+        when neither exists.  Both present is an error; so is a C3D frame rate other than capture.fps."""
+        from stages import mocap
+
+        csv_path, c3d_path = self.root / "markers.csv", self.root / "markers.c3d"
+        if csv_path.exists() and c3d_path.exists():
+            raise CaptureError(f"{self.root}: holds both markers.csv and markers.c3d; keep one of them.")
+        path = self.markers_path
+        if not path.exists():
             return None
-        return read_markers(self.markers_path)
+        data = mocap.read_markers_file(path)
+        mocap.check_rate(data, path, self.fps, self.toml_path)
+        mocap.check_bindable(data, path)
+        return data.positions
 
 
 def load_capture(root: str | Path) -> Capture:
@@ -537,6 +479,7 @@ def load_capture(root: str | Path) -> Capture:
     except tomllib.TOMLDecodeError as e:
         raise CaptureError(f"{path}: not valid TOML ({e}).") from None
     v = _Fields(path)
+    check_toml_keys(raw, path)
     cap = raw.get("capture", {})
     obj = raw.get("object", {})
     mat = raw.get("material", {})
@@ -548,6 +491,9 @@ def load_capture(root: str | Path) -> Capture:
     cams = cap.get("cameras", [])
     if not isinstance(cams, list) or not all(isinstance(c, str) and c for c in cams):
         v.fail("capture.cameras", "should be a list of camera names.")
+    dup = sorted({c for c in cams if cams.count(c) > 1})
+    if dup:
+        v.fail("capture.cameras", f"lists camera '{dup[0]}' twice; camera names must be unique.")
     mesh_name = obj.get("mesh")
     if not isinstance(mesh_name, str):
         v.fail("object.mesh", "is missing; name the rest-shape mesh file.")
@@ -570,6 +516,9 @@ def load_capture(root: str | Path) -> Capture:
         v.fail("material.young_range", f"should be [low, high] with 0 < low ≤ high, found {list(yr)}.")
     if not 0 <= pr[0] <= pr[1] < 0.5:
         v.fail("material.poisson_range", f"should be [low, high] within [0, 0.5), found {list(pr)}.")
+    if "young" in mat and not yr[0] <= young <= yr[1]:
+        v.fail("material.young", f"= {young:g} Pa lies outside young_range {list(yr)}; widen the range or "
+               f"change the initial guess.")
     regions = raw.get("regions", {})
     if not isinstance(regions, dict):
         v.fail("regions", "should be a table of tables.")
@@ -579,13 +528,34 @@ def load_capture(root: str | Path) -> Capture:
             v.fail(f"regions.{name}", "should be a table.")
         reg_mat[name] = {}
         if "young" in tab:
-            reg_mat[name]["young"] = v.number(tab, "young", f"regions.{name}", positive=True)
+            reg_mat[name]["young"] = e = v.number(tab, "young", f"regions.{name}", positive=True)
+            if not yr[0] <= e <= yr[1]:
+                v.fail(f"regions.{name}.young", f"= {e:g} Pa lies outside material.young_range {list(yr)}.")
         if "poisson" in tab:
-            reg_mat[name]["poisson"] = v.number(tab, "poisson", f"regions.{name}")
+            reg_mat[name]["poisson"] = nu = v.number(tab, "poisson", f"regions.{name}")
+            if not 0.0 <= nu < 0.5:
+                v.fail(f"regions.{name}.poisson", f"should lie in [0, 0.5), found {nu}.")
     material = MaterialSettings(model, young, poisson, (float(yr[0]), float(yr[1])),
                                 (float(pr[0]), float(pr[1])), reg_mat)
     name = cap.get("name", root.name)
-    return Capture(root, str(name), fps, gravity, list(cams), mesh_path, density, material, raw)
+    start = cap.get("start", "equilibrium")
+    if start not in START_STATES:
+        v.fail("capture.start", f"should be \"equilibrium\" or \"rest\", found {json.dumps(start)}.")
+    return Capture(root, str(name), fps, gravity, list(cams), mesh_path, density, material, raw, str(start))
+
+
+def check_toml_keys(raw: dict, path: Path) -> None:
+    """Every table and key of capture.toml must be known (KNOWN_KEYS); the first unknown one is an error."""
+    tables = [k for k in KNOWN_KEYS if "." not in k]
+    for sec, val in raw.items():
+        if sec not in KNOWN_KEYS:
+            raise CaptureError(f"{path}: table '[{sec}]' is not a known table{nearest_key(sec, tables)}; "
+                               f"the tables are {', '.join('[' + t + ']' for t in tables)}.")
+        if sec == "regions" and isinstance(val, dict):
+            for name, tab in val.items():
+                check_keys(tab, KNOWN_KEYS["regions.*"], f"regions.{name}", path)
+        elif isinstance(val, dict):
+            check_keys(val, KNOWN_KEYS[sec], sec, path)
 
 
 # =========================================================================== images and frames
@@ -690,87 +660,23 @@ class FrameSource:
 
 # =========================================================================== markers and truth
 def read_markers(path: str | Path) -> np.ndarray:
-    """markers.csv (header frame,marker,x,y,z, metres) -> (T, M, 3), NaN where a marker was not observed.
+    """markers.csv or markers.c3d (by suffix; stages/mocap.py) -> (T, M, 3) metres, NaN where a marker was not
+    observed (a gap).  Besides the file format's rules (stages/mocap.py), rejected with one sentence naming the
+    file: a marker that is never observed; a marker not observed at frame 0 (rsl adapt binds every marker to the
+    surface point nearest its frame-0 position)."""
+    from stages import mocap
 
-    A (frame, marker) pair with no row, or a row whose x, y and z are all empty, is a gap (a marker no
-    camera saw): NaN in the returned array.  Markers are the distinct marker ids in increasing order;
-    frames must run 0..T−1 (each frame with at least one row, empty coordinates allowed).  Rejected,
-    each with one sentence naming the file: a header other than frame,marker,x,y,z; a row that is not
-    numbers, or writes a non-finite value (nan, inf) or only some of x, y, z; a repeated (frame, marker)
-    row; frames not 0..T−1; a marker that is never observed; a marker not observed at frame 0 (rsl adapt
-    binds every marker to the surface point nearest its frame-0 position).
-    """
-    path = Path(path)
-    rows: list[tuple[int, int, float, float, float]] = []
-    with open(path, newline="") as f:
-        reader = csv.reader(f)
-        header = next(reader, None)
-        if header is None or [h.strip() for h in header] != ["frame", "marker", "x", "y", "z"]:
-            raise CaptureError(f"{path}: header should be 'frame,marker,x,y,z', found {header}.")
-        for ln, row in enumerate(reader, start=2):
-            if not row:
-                continue
-            if len(row) == 5 and all(not v.strip() for v in row[2:5]):
-                xyz = [math.nan] * 3  # an explicit gap
-                try:
-                    fr, mk = int(row[0]), int(row[1])
-                except ValueError:
-                    raise CaptureError(f"{path}: line {ln} is not 'frame,marker,x,y,z' numbers: {row}.") from None
-            else:
-                try:
-                    fr, mk = int(row[0]), int(row[1])
-                    xyz = [float(v) for v in row[2:5]]
-                except (ValueError, IndexError):
-                    raise CaptureError(f"{path}: line {ln} is not 'frame,marker,x,y,z' numbers "
-                                       f"(a gap leaves x, y and z all empty): {row}.") from None
-                if len(row) != 5 or not all(math.isfinite(v) for v in xyz):
-                    raise CaptureError(f"{path}: line {ln} should hold 5 finite values (or a gap: x, y and z all "
-                                       f"empty), found {row}.")
-            rows.append((fr, mk, *xyz))
-    if not rows:
-        raise CaptureError(f"{path}: holds no marker rows.")
-    arr = np.array(rows)
-    frames = np.unique(arr[:, 0]).astype(int)
-    markers = np.unique(arr[:, 1]).astype(int)
-    if not np.array_equal(frames, np.arange(len(frames))):
-        raise CaptureError(f"{path}: frames should run 0..T-1 without gaps (a frame where no marker is seen "
-                           f"needs one row with x, y and z empty).")
-    out = np.full((len(frames), len(markers), 3), np.nan)
-    seen = np.zeros((len(frames), len(markers)), bool)
-    mindex = {m: i for i, m in enumerate(markers)}
-    for fr, mk, x, y, z in arr:
-        t, m = int(fr), mindex[int(mk)]
-        if seen[t, m]:
-            raise CaptureError(f"{path}: marker {int(mk)} is listed twice at frame {t}.")
-        seen[t, m] = True
-        out[t, m] = (x, y, z)
-    observed = np.isfinite(out[..., 0])
-    never = markers[~observed.any(axis=0)]
-    if len(never):
-        raise CaptureError(f"{path}: marker(s) {', '.join(map(str, never[:10]))} are never observed.")
-    late = markers[~observed[0]]
-    if len(late):
-        raise CaptureError(f"{path}: marker(s) {', '.join(map(str, late[:10]))} are not observed at frame 0; every "
-                           f"marker must be seen at frame 0, where rsl adapt binds it to the surface.")
-    return out
+    data = mocap.read_markers_file(path)
+    mocap.check_bindable(data, path)
+    return data.positions
 
 
 def write_markers(path: str | Path, markers: np.ndarray) -> None:
-    """(T, M, 3) -> markers.csv; an entry with a NaN (a gap) is left out, and a frame with no observed marker
-    is written as one row of the first observed marker with x, y and z empty, so that the file still holds
-    frames 0..T−1."""
-    markers = np.asarray(markers, float)
-    anywhere = np.flatnonzero(np.all(np.isfinite(markers), axis=-1).any(axis=0))
-    placeholder = int(anywhere[0]) if len(anywhere) else 0
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["frame", "marker", "x", "y", "z"])
-        for t in range(markers.shape[0]):
-            seen = np.all(np.isfinite(markers[t]), axis=-1)
-            if not seen.any():
-                w.writerow([t, placeholder, "", "", ""])
-            for m in np.flatnonzero(seen):
-                w.writerow([t, m, *(f"{v:.9g}" for v in markers[t, m])])
+    """(T, M, 3) -> markers.csv (stages.mocap.write_csv): a NaN entry (a gap) is left out, a frame with no
+    observed marker is one row with x, y and z empty, so that the file still holds frames 0..T−1."""
+    from stages import mocap
+
+    mocap.write_csv(path, markers)
 
 
 @dataclass
@@ -831,6 +737,43 @@ def write_truth(folder: str | Path, young: np.ndarray, poisson: np.ndarray, regi
                 w.writerow([t, name, f"{young[t, r]:.9g}", f"{poisson[t, r]:.9g}"])
     np.savez_compressed(d / "surface.npz", faces=np.asarray(faces, np.int64),
                         vertices=np.asarray(vertices, np.float64))
+
+
+# the columns of truth/forces.csv, identical to those of `rsl export --forces` (stages/export.py FORCE_HEADER):
+# fx..fz = Σ internal nodal force over the handle's / obstacle's vertices, magnitude_sum = Σ of their norms,
+# applied_* = the force the handle or obstacle exerts on the object, N
+FORCE_HEADER = ["frame", "time_s", "name", "kind", "fx_N", "fy_N", "fz_N", "magnitude_sum_N",
+                "applied_fx_N", "applied_fy_N", "applied_fz_N", "n_vertices"]
+
+
+def write_truth_forces(folder: str | Path, rows: list[list]) -> Path:
+    """truth/forces.csv: rows in FORCE_HEADER order (one per frame and handle/obstacle)."""
+    d = Path(folder)
+    d.mkdir(parents=True, exist_ok=True)
+    with open(d / "forces.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(FORCE_HEADER)
+        for r in rows:
+            w.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in r])
+    return d / "forces.csv"
+
+
+def read_forces_csv(path: str | Path) -> list[dict]:
+    """A forces.csv (truth/ or `rsl export --forces`) as a list of rows {column: value} (numbers as float)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CaptureError(f"{path}: file not found.")
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        if reader.fieldnames != FORCE_HEADER:
+            raise CaptureError(f"{path}: header should be '{','.join(FORCE_HEADER)}'.")
+        out = []
+        for r in reader:
+            try:
+                out.append({k: (v if k in ("name", "kind") else float(v)) for k, v in r.items()})
+            except (TypeError, ValueError):
+                raise CaptureError(f"{path}: malformed row {r}.") from None
+    return out
 
 
 # =========================================================================== cameras.json

@@ -24,6 +24,7 @@ import numpy as np
 from stages.artefacts import KIND_FILES, AdaptArtefact, MeshArtefact, Provenance, _jsonable
 from stages.capture import load_capture, read_truth
 from stages.errors import RslError
+from stages.artefacts import check_same_mesh
 from stages.progress import Reporter, SilentReporter
 
 _QUAD = np.array([[2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])  # (3, 3) barycentrics
@@ -89,6 +90,7 @@ def run(config: EvaluateConfig, reporter: Reporter = SilentReporter()) -> Path:
     adapt_path, mesh_path = ws / KIND_FILES["adapt"], ws / KIND_FILES["mesh"]
     adapt = AdaptArtefact.load(adapt_path)
     mesh = MeshArtefact.load(mesh_path)
+    check_same_mesh(mesh_path, adapt_path)  # made from this very mesh.h5, whatever the counts
     frames = adapt.frames
     if adapt.positions.shape[1] != mesh.n_vertices:
         raise RslError(f"{adapt_path}: positions hold {adapt.positions.shape[1]} vertices but {mesh_path} has "
@@ -125,6 +127,8 @@ def run(config: EvaluateConfig, reporter: Reporter = SilentReporter()) -> Path:
         "young_rel_error_per_frame": e_rel.max(axis=1).tolist(),
         "young_rel_error_per_region": {r: e_rel[:, k].tolist() for k, r in enumerate(adapt.region_names)},
         "young_rel_error_final": float(e_rel[-1].max()),
+        # the fraction of (frame, region) where the truth lies inside the estimator's ±2σ (null without σ)
+        "young_within_2sigma": _within_2sigma(adapt, e_true),
         "poisson_abs_error_median": float(np.median(nu_abs.max(axis=1))),
         "poisson_abs_error_per_frame": nu_abs.max(axis=1).tolist(),
         "vertex_error_mean_m": float(vert_err.mean()),
@@ -194,6 +198,15 @@ def _psnr(config, ws, capture, adapt, mesh, reporter) -> tuple[list[float], list
     return out, [int(adapt.frames[i]) for i in pick]
 
 
+def _within_2sigma(adapt, e_true: np.ndarray) -> float | None:
+    """Fraction of the (frame, region) pairs with |E − E_true| ≤ 2σ, over those with a known σ (None: none)."""
+    sd = np.asarray(getattr(adapt, "young_sigma", np.full(adapt.young.shape, np.nan)))
+    ok = np.isfinite(sd)
+    if not ok.any():
+        return None
+    return float(np.mean(np.abs(adapt.young - e_true)[ok] <= 2 * sd[ok]))
+
+
 def _plot(path: Path, frames, adapt, truth, idx, vert_err) -> None:
     import matplotlib
 
@@ -203,6 +216,11 @@ def _plot(path: Path, frames, adapt, truth, idx, vert_err) -> None:
     fig, (a0, a1) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
     for k, r in enumerate(adapt.region_names):
         line, = a0.plot(frames, adapt.young[:, k], label=f"{r} estimated")
+        sd = np.asarray(getattr(adapt, "young_sigma", np.full(adapt.young.shape, np.nan)))[:, k]
+        if np.any(np.isfinite(sd)):  # the estimator's E ± σ as a band
+            lo = np.maximum(adapt.young[:, k] - sd, 1e-12 * adapt.young[:, k])
+            a0.fill_between(frames, lo, adapt.young[:, k] + sd, color=line.get_color(), alpha=0.25, lw=0,
+                            label=f"{r} E ± σ")
         a0.plot(frames, truth.young[frames, idx[k]], "--", color=line.get_color(), label=f"{r} truth")
     a0.set_yscale("log")
     a0.set_ylabel("Young's modulus E (Pa)")

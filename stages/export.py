@@ -37,6 +37,7 @@ from stages.artefacts import (KIND_FILES, AdaptArtefact, MeshArtefact, Provenanc
                               read_provenance)
 from stages.capture import Capture, CaptureError, Controls, load_capture, load_controls
 from stages.errors import RslError
+from stages.artefacts import check_same_mesh
 from stages.progress import Reporter, SilentReporter
 from stages.lazy import lazy_module
 
@@ -178,6 +179,7 @@ def load_sequence(config: ExportConfig) -> Sequence:
     adapt = AdaptArtefact.load(src)
     mesh_path = ws / KIND_FILES["mesh"]
     mesh = MeshArtefact.load(mesh_path)
+    check_same_mesh(mesh_path, src)  # made from this very mesh.h5, whatever the counts
     if adapt.positions.shape[1] != mesh.n_vertices:
         raise ExportError(f"{src}: positions hold {adapt.positions.shape[1]} vertices but {mesh_path} has "
                           f"{mesh.n_vertices}; the two come from different meshes.")
@@ -634,7 +636,11 @@ def write_plots(seq: Sequence, field: StressField | None, force_rows: list[Force
 
     fig, (a0, a1) = plt.subplots(2, 1, figsize=(7, 5.5), sharex=True)
     for r, nm in enumerate(ad.region_names):
-        a0.plot(t, ad.young[:, r], marker=".", label=nm)
+        line, = a0.plot(t, ad.young[:, r], marker=".", label=nm)
+        sd = np.asarray(getattr(ad, "young_sigma", np.full(ad.young.shape, np.nan)))[:, r]
+        if np.any(np.isfinite(sd)):  # the estimator's E ± σ as a band
+            a0.fill_between(t, np.maximum(ad.young[:, r] - sd, 1e-12 * ad.young[:, r]), ad.young[:, r] + sd,
+                            color=line.get_color(), alpha=0.25, lw=0, label=f"{nm} E ± σ")
         a1.plot(t, ad.poisson[:, r], marker=".", label=nm)
     a0.set_yscale("log")
     a0.set_ylabel("Young's modulus E (Pa)")

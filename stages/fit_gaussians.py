@@ -30,6 +30,7 @@ torch = lazy_module("torch")  # torch and the render package load on first use
 
 from stages.artefacts import KIND_FILES, CamerasArtefact, MasksArtefact, MeshArtefact, Provenance
 from stages.capture import load_capture, write_image
+from stages.workspace import prepare_workspace
 from stages.errors import RslError
 from stages.progress import Reporter, SilentReporter
 gauss = lazy_module("stages.render.gaussians")
@@ -154,6 +155,7 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
         raise RslError(f"--sh-degree should be 0 or 1, found {config.sh_degree}.")
     ws = Path(config.workspace)
     cap = load_capture(config.capture)
+    prepare_workspace(ws)  # writable? (before the compute) and no stale temp files of a killed run
     mesh_path, cams_path, masks_path = (ws / KIND_FILES[k] for k in ("mesh", "cameras", "masks"))
     mesh = MeshArtefact.load(mesh_path)
     cams_all = CamerasArtefact.load(cams_path).cameras
@@ -172,8 +174,7 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
         cam = by_name[name]
         src = cap.frame_source(name)
         img = src.read(config.frame).astype(np.float64) / 255.0
-        if src.files is not None:
-            inputs.append(src.files[config.frame])
+        inputs.append(src.files[config.frame] if src.files is not None else src.video)
         if img.shape[:2] != (cam.height, cam.width):
             raise RslError(f"{cap.root / 'frames' / name}: frame {config.frame} is {img.shape[1]}x{img.shape[0]} "
                            f"px but cameras.h5 says camera '{name}' is {cam.width}x{cam.height}.")

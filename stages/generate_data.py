@@ -15,6 +15,7 @@ result does not depend on where or in which order the sequences ran.
 from __future__ import annotations
 
 import multiprocessing
+import os
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -23,10 +24,12 @@ from typing import Literal
 
 import numpy as np
 
-from stages.artefacts import KIND_FILES, MeshArtefact, Provenance, SnapshotsArtefact
-from stages.capture import Controls, Track, load_capture, parse_controls
+from stages.artefacts import KIND_FILES, MeshArtefact, Provenance, SnapshotsArtefact, check_mesh_source
+from stages.capture import Controls, Track, check_obstacles_clear, load_capture, parse_controls
+from stages.domain.rotations import axis_angle_quat_wxyz, quat_multiply_wxyz, rotation_angle
 from stages.errors import RslError
 from stages.progress import Reporter, SilentReporter
+from stages.workspace import prepare_workspace
 
 
 @dataclass(frozen=True)
@@ -70,24 +73,6 @@ class SequencePlan:
     poisson: np.ndarray  # (T, R)
 
 
-def _rotation_angle(q0: np.ndarray, q1: np.ndarray) -> float:
-    """Angle of the relative rotation between unit quaternions, rad."""
-    d = abs(float(np.dot(q0 / np.linalg.norm(q0), q1 / np.linalg.norm(q1))))
-    return 2.0 * float(np.arccos(min(1.0, d)))
-
-
-def _axis_angle_quat(axis: np.ndarray, angle: float) -> np.ndarray:
-    axis = axis / np.linalg.norm(axis)
-    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
-    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
-
-
 def _random_track(track: Track, n_ref: int, key_frames: np.ndarray, ref_frames: np.ndarray, jitter: float,
                   rng: np.random.Generator) -> Track:
     """A keyframed track whose keyframe k is ``track`` at ``ref_frames[k]`` plus a jitter within its range."""
@@ -95,14 +80,14 @@ def _random_track(track: Track, n_ref: int, key_frames: np.ndarray, ref_frames: 
     vals = []
     if track.is_pose:
         span_t = np.ptp(ref[:, :3], axis=0)  # (3,) translation range, m
-        max_angle = max(_rotation_angle(ref[0, 3:], q) for q in ref[:, 3:])
+        max_angle = max(rotation_angle(ref[0, 3:], q) for q in ref[:, 3:])
         for k, s in enumerate(ref_frames):
             v = track.at(int(s)).copy()
             if k > 0 and jitter > 0:
                 v[:3] += jitter * span_t * rng.uniform(-1, 1, 3)
                 if max_angle > 0:
-                    dq = _axis_angle_quat(rng.normal(size=3), jitter * max_angle * rng.uniform(-1, 1))
-                    v[3:] = _quat_mul(dq, v[3:])
+                    dq = axis_angle_quat_wxyz(rng.normal(size=3), jitter * max_angle * rng.uniform(-1, 1))
+                    v[3:] = quat_multiply_wxyz(dq, v[3:])
                     v[3:] /= np.linalg.norm(v[3:])
             vals.append(v)
     else:
@@ -191,17 +176,28 @@ def simulate_sequence(mesh: MeshArtefact, plan: SequencePlan, model: str, dt: fl
     return plan.index, x, ""
 
 
-def _worker_init() -> None:
+def _worker_init(parent_pid: int | None = None) -> None:
+    """Worker set-up: float64 JAX on the CPU, and a watchdog thread that ends the worker as soon as its parent
+    is gone (a kill -9 of `rsl generate-data` must not leave ~300 MB workers behind)."""
     import os
+    import threading
 
     os.environ.setdefault("JAX_ENABLE_X64", "1")
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    if parent_pid is not None:
+        def watch() -> None:
+            while os.getppid() == parent_pid:
+                time.sleep(0.5)
+            os._exit(1)  # the parent died: the worker was re-parented
+
+        threading.Thread(target=watch, name="rsl-parent-watchdog", daemon=True).start()
 
 
 def _run_pool(tasks: list, workers: int, reporter: Reporter, task) -> list:
     ctx = multiprocessing.get_context("spawn")
     results = []
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init) as pool:
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
+                             initargs=(os.getpid(),)) as pool:
         futures = [pool.submit(simulate_sequence, *t) for t in tasks]
         for fut in as_completed(futures):
             results.append(fut.result())
@@ -248,11 +244,14 @@ def run(config: GenerateDataConfig, reporter: Reporter = SilentReporter()) -> Pa
     if c.jitter < 0:
         raise RslError(f"--jitter should not be negative, found {c.jitter}.")
     cap = load_capture(c.capture)
+    prepare_workspace(c.workspace)  # writable? (before the compute) and no stale temp files of a killed run
     mesh_path = Path(c.workspace) / KIND_FILES["mesh"]
     if not mesh_path.exists():
         raise RslError(f"{mesh_path}: file not found; run `rsl tetrahedralize {c.capture} -w {c.workspace}` first.")
     mesh = MeshArtefact.load(mesh_path)
+    check_mesh_source(mesh_path, cap.mesh_path)
     controls = cap.controls()
+    check_obstacles_clear(controls, mesh.vertices, cap.controls_path)
     mat = cap.material
     plans = plan_sequences(c, controls, mat.young_range, mat.poisson_range, len(mesh.region_names))
     tasks = [(mesh, p, mat.model, cap.dt, cap.gravity, c.newton_iterations) for p in plans]

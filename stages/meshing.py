@@ -319,3 +319,68 @@ def map_id_selections(controls, src: Path, vertices: np.ndarray, controls_path: 
 
 
 # =========================================================================== the stage
+
+
+# =========================================================================== quadratic (P2) meshes
+def closest_points_on_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The closest point (p, 3) on a triangle surface to each point (p, 3): the nearest triangle from
+    open3d's RaycastingScene, then the closest point on it in float64 (Ericson, Real-Time Collision
+    Detection §5.1.5, by the triangle's Voronoi regions)."""
+    import open3d as o3d
+
+    points = np.asarray(points, np.float64)
+    if len(points) == 0:
+        return points.copy()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
+    fid = scene.compute_closest_points(o3d.core.Tensor(points.astype(np.float32)))["primitive_ids"].numpy()
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64)[fid.astype(np.int64)]]  # (p, 3, 3)
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    ab, ac, ap, bp, cp = b - a, c - a, points - a, points - b, points - c
+    dot = lambda u, v: np.einsum("pi,pi->p", u, v)  # noqa: E731
+    d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    out = np.empty_like(points)
+    done = np.zeros(len(points), bool)
+
+    def put(mask, value):
+        m = mask & ~done
+        out[m] = value[m]
+        done[m] = True
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        put((d1 <= 0) & (d2 <= 0), a)
+        put((d3 >= 0) & (d4 <= d3), b)
+        put((d6 >= 0) & (d5 <= d6), c)
+        put((vc <= 0) & (d1 >= 0) & (d3 <= 0), a + (d1 / (d1 - d3))[:, None] * ab)
+        put((vb <= 0) & (d2 >= 0) & (d6 <= 0), a + (d2 / (d2 - d6))[:, None] * ac)
+        put((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), b + ((d4 - d3) / ((d4 - d3) + (d5 - d6)))[:, None] * (c - b))
+        denom = 1.0 / (va + vb + vc)
+        put(np.ones(len(points), bool), a + (vb * denom)[:, None] * ab + (vc * denom)[:, None] * ac)
+    return out
+
+
+def quadratic_mesh(vertices: np.ndarray, tets: np.ndarray, surface: tuple[np.ndarray, np.ndarray] | None = None,
+                   min_jacobian: float = 0.2) -> tuple[np.ndarray, np.ndarray, int]:
+    """P2 mesh (vertices (n + e, 3), tets (m, 10), number of reverted mid-edge nodes) from linear tets.
+    With ``surface`` = (vertices, faces) of the input surface, the mid-edge nodes of boundary edges go to
+    their closest point on it (curved elements); an element whose det J falls below ``min_jacobian``
+    × its straight value somewhere (stages.sim.quadrature.jacobian_ratio) gets its mid-edge nodes back
+    on the straight edges."""
+    from stages.sim.quadrature import jacobian_ratio, quadratic_tets
+
+    project = None if surface is None else (lambda p: closest_points_on_surface(p, *surface))
+    v2, t2 = quadratic_tets(vertices, tets, project)
+    if surface is None:
+        return v2, t2, 0
+    straight, _ = quadratic_tets(vertices, tets)
+    reverted = np.zeros(len(v2), bool)
+    for _ in range(4):
+        bad = jacobian_ratio(v2, t2) < min_jacobian
+        if not bad.any():
+            break
+        nodes = np.unique(t2[bad, 4:])
+        reverted[nodes[np.any(v2[nodes] != straight[nodes], axis=1)]] = True
+        v2[nodes] = straight[nodes]
+    return v2, t2, int(reverted.sum())

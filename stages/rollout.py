@@ -21,12 +21,15 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
 from stages.artefacts import KIND_FILES, AdaptArtefact, MeshArtefact, Provenance
 from stages.capture import Controls, load_capture, load_controls, select_handles
 from stages.errors import RslError
+from stages.artefacts import check_same_mesh
+from stages.workspace import prepare_workspace
 from stages.progress import Reporter, SilentReporter
 from stages.lazy import lazy_module
 
@@ -51,14 +54,14 @@ class RolloutConfig:
     """The new controls (controls.json format): handle and obstacle motions to predict."""
     frames: int = 0
     """Frames to simulate; 0 = as many as the new controls describe (or as adapt.h5 holds, if constant)."""
-    material: str = "last"
+    material: Literal["last", "replay"] = "last"
     """Material θ: 'last' (the last adapted θ) or 'replay' (θ(t) of the adapted frames, then the last)."""
     from_rest: bool = False
     """Start from the rest shape instead of the last two adapted positions."""
-    space: str = "auto"
+    space: Literal["auto", "full", "reduced"] = "auto"
     """Simulate in 'full' space, in the 'reduced' subspace (needs subspace.h5), or 'auto': reduced when
     adapt.h5 was adapted in the reduced space and subspace.h5 exists."""
-    solver: str = "auto"
+    solver: Literal["auto", "cholmod", "splu"] = "auto"
     """Linear solver of the full-space Newton steps (see stages/sim/linsolve.py)."""
     contact_distance: float = 1.0e-3
     """A vertex touches an obstacle when closer than the contact margin plus this distance, m."""
@@ -85,8 +88,10 @@ def run(config: RolloutConfig, reporter: Reporter = SilentReporter()) -> Path:
         raise RolloutError(f"--frames {config.frames} is negative.")
     capture = load_capture(config.capture)
     adapt_path, mesh_path = ws / KIND_FILES["adapt"], ws / KIND_FILES["mesh"]
+    prepare_workspace(ws)  # writable? (before the compute) and no stale temp files of a killed run
     adapt = AdaptArtefact.load(adapt_path)
     mesh = MeshArtefact.load(mesh_path)
+    check_same_mesh(mesh_path, adapt_path, ws / KIND_FILES["subspace"] if config.space != "full" else None)
     if adapt.positions.shape[1] != mesh.n_vertices:
         raise RolloutError(f"{adapt_path}: positions hold {adapt.positions.shape[1]} vertices but {mesh_path} "
                            f"has {mesh.n_vertices}; the two come from different meshes.")

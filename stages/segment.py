@@ -8,8 +8,17 @@ Methods (stages/vision/segmentation.py):
   frame 0, then by the previous frame's mask (propagation).
 - ``sam2``: SAM 2 with a user-supplied checkpoint (optional ``sam2`` package), prompted like
   grabcut.
-- ``auto``: background when every camera has a plate, else grabcut when mesh.h5 and
-  cameras.h5 exist, else chroma.
+- ``lab``: the lab's own masks CAPTURE/masks/CAM/000000.png … (object > 127), read as they are.
+- ``auto``: lab when every camera has lab masks; else background when every camera has a plate;
+  else (no plate) chroma when the border of every camera's first frame is one colour
+  (:func:`~stages.vision.segmentation.backdrop_uniformity`) and the chroma key finds an object
+  there (that overlaps the projected rest mesh, IoU ≥ CHROMA_AGREE, when cameras.h5 exists); else grabcut, seeded by the frame-0 state projected with WS/cameras.h5 (mesh.h5's surface,
+  or the capture's rest mesh when tetrahedralize has not run yet: `rsl run` segments first); else
+  chroma.  The method used and why is reported and recorded in masks.h5 (``method``).
+
+Occluders (controls.json ``visual`` of handles and obstacles, stages/occluders.py): the pixels they
+cover are taken out of every mask (neither object nor background; the object stays one piece across
+them), except with ``lab``, whose masks are used as they are.
 
 Every mask is cleaned (opening, closing, largest component, holes filled) and smoothed in
 time by a majority vote.  When CAPTURE/truth/masks/CAM/000000.png exists, the IoU of frame 0
@@ -25,10 +34,15 @@ import numpy as np
 
 from stages.artefacts import KIND_FILES, CamerasArtefact, MasksArtefact, MeshArtefact, Provenance
 from stages.capture import Capture, load_capture, read_image, write_image
+from stages.workspace import prepare_workspace
 from stages.errors import RslError
 from stages.progress import Reporter, SilentReporter
 
-METHODS = ("auto", "background", "chroma", "grabcut", "sam2")
+METHODS = ("auto", "background", "chroma", "grabcut", "sam2", "lab")
+UNIFORM_SPREAD = 6.0
+"""auto: a frame border whose (Cr, Cb) spread (95th percentile, 0–255 units) is below this is one colour."""
+CHROMA_AGREE = 0.6
+"""auto: chroma only when its first-frame mask overlaps the projected rest mesh by this IoU (when cameras.h5 exists)."""
 
 
 @dataclass(frozen=True)
@@ -37,8 +51,9 @@ class SegmentConfig:
     """Capture folder (holds capture.toml)."""
     workspace: Path
     """Workspace folder for the artefacts."""
-    method: Literal["auto", "background", "chroma", "grabcut", "sam2"] = "auto"
-    """auto, background (plates), chroma (key colour), grabcut (seeded by the projected mesh) or sam2."""
+    method: Literal["auto", "background", "chroma", "grabcut", "sam2", "lab"] = "auto"
+    """auto, background (plates), chroma (key colour), grabcut (seeded by the projected mesh), sam2, or lab
+    (the capture's own masks/CAM/000000.png, used as they are)."""
     threshold: float = 0.0
     """Colour-difference threshold (RGB units) for background/chroma; 0 = adaptive."""
     shadow_low: float = 0.4
@@ -67,6 +82,8 @@ class SegmentConfig:
     """SAM 2 model config of the checkpoint, e.g. configs/sam2.1/sam2.1_hiera_t.yaml."""
     seed: int = 0
     """Seed of OpenCV's random generator (GrabCut's GMM initialisation)."""
+    occluder_margin_px: int = 2
+    """Occluders (controls.json visual): grow the pixels they cover by this many pixels before leaving them out."""
 
 
 def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
@@ -85,13 +102,22 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
     n_frames = cap.frame_count()  # unequal counts across cameras raise
     if n_frames == 0:
         raise RslError(f"{cap.root / 'frames'}: holds no frame.")
-    method = _resolve(config.method, cap, ws)
+    method, why = _resolve(config.method, cap, ws)
+    if config.method == "auto":
+        reporter.info(f"segment: auto chose {method}: {why}")
     predictor = _sam2_predictor(config) if method == "sam2" else None
-    inputs: list[Path] = []
+    prepare_workspace(ws)  # writable? (before the compute) and no stale temp files of a killed run
+    inputs: list[Path] = cap.frame_inputs(backgrounds=True)  # every frame read (a hash per camera)
     priors = None
     if method in ("grabcut", "sam2"):
         priors, inputs = _mesh_priors(cap, ws)
     key = _parse_color(config.key_color) if config.key_color else None
+    occluding, cam_objs = _occluder_cameras(cap, ws, method, reporter)
+    if occluding:
+        inputs += [ws / KIND_FILES["cameras"], cap.controls_path]
+    if method == "lab":
+        inputs.append(cap.root / "masks")
+    controls = cap.controls() if occluding else None
     cv2.setRNGSeed(int(config.seed))
     masks: dict[str, np.ndarray] = {}
     ious: dict[str, float] = {}
@@ -106,6 +132,24 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
             prev = priors[cam] if priors is not None else None
             for i in range(n_frames):
                 frame = next(frames)
+                ign = None
+                if occluding:
+                    from stages.occluders import ignore_mask
+
+                    ign = ignore_mask(controls, i, cam_objs[cam], config.occluder_margin_px)
+                    if ign.shape != frame.shape[:2]:
+                        raise RslError(f"{ws / 'cameras.h5'}: camera '{cam}' is calibrated for {ign.shape[1]}x"
+                                       f"{ign.shape[0]} images but its frames are {frame.shape[1]}x{frame.shape[0]}.")
+                if method == "lab":
+                    m = _lab_mask(cap, cam, i)
+                    if m.shape != frame.shape[:2]:
+                        raise RslError(f"{_lab_path(cap, cam, i)}: mask is {m.shape[1]}x{m.shape[0]} but the frames "
+                                       f"of camera '{cam}' are {frame.shape[1]}x{frame.shape[0]}.")
+                    raw.append(m)
+                    if i in _overlay_frames(n_frames, config.overlays):
+                        frames_used.append((i, frame))
+                    task.advance(1, cam=cam)
+                    continue
                 if plate is not None and plate.shape != frame.shape:
                     raise RslError(f"{cap.root / 'background'}: plate of camera '{cam}' is "
                                    f"{plate.shape[1]}x{plate.shape[0]} but its frames are "
@@ -123,20 +167,20 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
                     # the mesh prior is exact up to calibration: a narrow reach; a propagated
                     # prior lags the motion by a frame: a wider one
                     reach = config.band_px if i == 0 else config.reach_px
-                    m = seg.grabcut(frame, prev, config.band_px, config.iterations, reach_px=reach,
-                                    reach_factor=2 if i == 0 else 4)
+                    m = seg.grabcut(frame, prev if ign is None else prev & ~ign, config.band_px, config.iterations,
+                                    reach_px=reach, reach_factor=2 if i == 0 else 4)
                 else:
                     from stages.vision.sam2_model import sam2_mask
 
                     m = sam2_mask(predictor, frame, prev)
-                m = seg.clean_mask(m, config.open_px, config.close_px)
+                m = seg.clean_mask(m, config.open_px, config.close_px, ignore=ign)
                 if prev is not None and np.any(m):
                     prev = m  # propagate to the next frame
                 raw.append(m)
                 if i in _overlay_frames(n_frames, config.overlays):
                     frames_used.append((i, frame))
                 task.advance(1, cam=cam)
-            stack = seg.temporal_majority(np.stack(raw), config.temporal)
+            stack = np.stack(raw) if method == "lab" else seg.temporal_majority(np.stack(raw), config.temporal)
             empty = [i for i in range(n_frames) if not stack[i].any()]
             if len(empty) == n_frames:
                 raise RslError(f"{cap.root / 'frames' / cam}: the {method} segmentation found no object in any "
@@ -160,8 +204,11 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
                             seg.overlay(frame, stack[i], truth=truth if i == 0 else None))
     MasksArtefact(masks, method, ious).save(out, Provenance.make(config, inputs))
     cover = np.mean([m.mean() for m in masks.values()])
-    msg = (f"segment: {len(masks)} camera(s) × {n_frames} frame(s) by {method}, object covers "
+    how = f"{method} (auto: {why})" if config.method == "auto" else method
+    msg = (f"segment: {len(masks)} camera(s) × {n_frames} frame(s) by {how}, object covers "
            f"{100 * cover:.1f} % of the pixels")
+    if occluding:
+        msg += ", occluder pixels left out"
     if ious:
         msg += f", IoU vs truth {min(ious.values()):.3f}–{max(ious.values()):.3f}"
     reporter.summary(msg + f" -> {out}")
@@ -195,44 +242,138 @@ def _overlay_frames(n: int, k: int) -> set[int]:
     return {int(round(i * (n - 1) / (k - 1))) for i in range(k)}
 
 
-def _resolve(method: str, cap: Capture, ws: Path) -> str:
+def _resolve(method: str, cap: Capture, ws: Path) -> tuple[str, str]:
+    """(method, why): the method asked for, or the one ``auto`` picks (module doc)."""
     if method != "auto":
         if method == "background":
             missing = [c for c in cap.camera_names if cap.background(c) is None]
             if missing:
                 raise RslError(f"{cap.root / 'background'}: no plate for camera(s) {', '.join(missing)} "
                                f"(expected background/{missing[0]}.png); --method background needs one per camera.")
-        return method
+        if method == "lab":
+            missing = [c for c in cap.camera_names if not _lab_path(cap, c, 0).is_file()]
+            if missing:
+                raise RslError(f"{_lab_path(cap, missing[0], 0)}: file not found; --method lab needs the lab's masks "
+                               f"masks/CAM/000000.png … for every camera.")
+        return method, "asked for"
+    if all(_lab_path(cap, c, 0).is_file() for c in cap.camera_names):
+        return "lab", "the capture holds masks/CAM/ for every camera"
     if all(cap.background(c) is not None for c in cap.camera_names):
-        return "background"
-    if (ws / KIND_FILES["mesh"]).is_file() and (ws / KIND_FILES["cameras"]).is_file():
-        return "grabcut"
-    return "chroma"
+        return "background", "every camera has a background plate"
+    from stages.vision.segmentation import backdrop_uniformity, chroma_key, clean_mask, iou
+
+    has_cams = (ws / KIND_FILES["cameras"]).is_file()
+    spreads = {}
+    for c in cap.camera_names:
+        frame0 = cap.frame_source(c).read(0)
+        spread, key = backdrop_uniformity(frame0)
+        chroma = clean_mask(chroma_key(frame0, key)) if spread < UNIFORM_SPREAD else None
+        spreads[c] = (spread, chroma, frame0.shape[:2])
+    worst = max(sp for sp, _, _ in spreads.values())
+    if all(ch is not None and 0.001 < ch.mean() < 0.8 for _, ch, _ in spreads.values()):
+        why = (f"no background plate; the border of every first frame is one colour (chroma spread {worst:.1f} "
+               f"< {UNIFORM_SPREAD:g})")
+        if not has_cams:
+            return "chroma", why
+        # check the key against the projected object: a plain but not keyable backdrop falls through to GrabCut
+        priors, _ = _mesh_priors(cap, ws)
+        agree = min(iou(spreads[c][1], priors[c]) if priors[c].shape == spreads[c][2] else 0.0 for c in priors)
+        if agree >= CHROMA_AGREE:
+            return "chroma", why + f" and the key agrees with the projected object (IoU ≥ {agree:.2f})"
+    if has_cams:
+        seed = "mesh.h5's surface" if (ws / KIND_FILES["mesh"]).is_file() else f"the rest mesh {cap.mesh_path.name}"
+        return "grabcut", (f"no background plate and the frame border is not one colour (chroma spread "
+                           f"{worst:.1f}); seeded by {seed} projected with cameras.h5")
+    return "chroma", ("no background plate and no cameras.h5 to project the object with (run rsl calibrate "
+                      "for GrabCut); the chroma key is a guess here")
+
+
+def _rest_surface(cap: Capture) -> tuple[np.ndarray, np.ndarray]:
+    """The capture's rest mesh as (vertices (n, 3), triangles (k, 3)): a surface file, or a tet mesh's boundary."""
+    from stages.meshing import boundary_faces, read_tet_mesh
+
+    path = cap.mesh_path
+    if path.suffix.lower() in (".mesh", ".msh"):
+        v, tets, _ = read_tet_mesh(path)
+        return v, boundary_faces(tets)
+    import trimesh
+
+    try:
+        m = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as e:
+        raise RslError(f"{path}: cannot read the rest mesh ({type(e).__name__}: {e}).") from None
+    return np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
 
 
 def _mesh_priors(cap: Capture, ws: Path) -> tuple[dict[str, np.ndarray], list[Path]]:
-    """Silhouette of the rest mesh in every camera (the first frame's seed)."""
+    """Silhouette of the frame-0 state in every camera (the first frame's seed): mesh.h5's surface, or the
+    capture's rest mesh when mesh.h5 does not exist yet, projected with cameras.h5."""
     from stages.vision.segmentation import mesh_silhouette
 
-    paths = [ws / KIND_FILES["mesh"], ws / KIND_FILES["cameras"]]
-    for p in paths:
-        if not p.is_file():
-            raise RslError(f"{p}: file not found; mesh-seeded segmentation needs WS/mesh.h5 "
-                           "(rsl tetrahedralize) and WS/cameras.h5 (rsl calibrate).")
-    mesh = MeshArtefact.load(paths[0])
-    cams = CamerasArtefact.load(paths[1])
+    cams_path, mesh_path = ws / KIND_FILES["cameras"], ws / KIND_FILES["mesh"]
+    if not cams_path.is_file():
+        raise RslError(f"{cams_path}: file not found; mesh-seeded segmentation needs WS/cameras.h5 "
+                       "(rsl calibrate) and WS/mesh.h5 (rsl tetrahedralize) or the capture's rest mesh.")
+    if mesh_path.is_file():
+        mesh = MeshArtefact.load(mesh_path)
+        verts, faces = mesh.vertices, mesh.surface_faces
+        paths = [mesh_path, cams_path]
+    else:
+        verts, faces = _rest_surface(cap)
+        paths = [cap.mesh_path, cams_path]
+    cams = CamerasArtefact.load(cams_path)
     out = {}
     for name in cap.camera_names:
         try:
             c = cams.by_name(name)
         except KeyError:
-            raise RslError(f"{paths[1]}: holds no camera '{name}' (rerun rsl calibrate).") from None
-        sil = mesh_silhouette(mesh.vertices, mesh.surface_faces, c.K, c.dist, c.R, c.t, c.width, c.height)
+            raise RslError(f"{cams_path}: holds no camera '{name}' (rerun rsl calibrate).") from None
+        sil = mesh_silhouette(verts, faces, c.K, c.dist, c.R, c.t, c.width, c.height)
         if not sil.any():
-            raise RslError(f"{paths[1]}: camera '{name}' does not see the rest mesh (its projection misses "
+            raise RslError(f"{cams_path}: camera '{name}' does not see the rest mesh (its projection misses "
                            "the image); check the calibration's world frame.")
         out[name] = sil
     return out, paths
+
+
+def _occluder_cameras(cap: Capture, ws: Path, method: str, reporter: Reporter) -> tuple[bool, dict]:
+    """(whether occluder pixels are left out, camera name -> Camera): needs controls.json visuals and cameras.h5."""
+    from stages.occluders import has_occluders
+
+    if method == "lab" or not has_occluders(cap.controls()):
+        return False, {}
+    path = ws / KIND_FILES["cameras"]
+    if not path.is_file():
+        reporter.warn(f"{cap.controls_path}: handles/obstacles carry a visual, but {path} does not exist to "
+                      f"project it; occluders are not left out of the masks (run rsl calibrate first).")
+        return False, {}
+    cams = CamerasArtefact.load(path)
+    out = {}
+    for name in cap.camera_names:
+        try:
+            out[name] = cams.by_name(name)
+        except KeyError:
+            raise RslError(f"{path}: holds no camera '{name}' (rerun rsl calibrate).") from None
+    return True, out
+
+
+def _lab_path(cap: Capture, cam: str, frame: int) -> Path:
+    """CAPTURE/masks/CAM/NNNNNN.png (the first existing suffix of png, jpg, jpeg; png when none exists)."""
+    from stages.capture import IMAGE_SUFFIXES
+
+    for suf in IMAGE_SUFFIXES:
+        p = cap.root / "masks" / cam / f"{frame:06d}{suf}"
+        if p.is_file():
+            return p
+    return cap.root / "masks" / cam / f"{frame:06d}.png"
+
+
+def _lab_mask(cap: Capture, cam: str, frame: int) -> np.ndarray:
+    """The lab's mask of a frame as (H, W) bool (object where the brightest channel > 127), as it is."""
+    p = _lab_path(cap, cam, frame)
+    if not p.is_file():
+        raise RslError(f"{p}: file not found; the lab masks of camera '{cam}' should cover every frame.")
+    return read_image(p).max(axis=2) > 127
 
 
 def _truth_mask(cap: Capture, cam: str, frame: int = 0) -> np.ndarray | None:

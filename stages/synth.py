@@ -28,7 +28,7 @@ import numpy as np
 from stages.artefacts import Camera, MeshArtefact
 from stages.capture import (IDENTITY_POSE, SURFACE_SUFFIXES, TET_SUFFIXES, Controls, Handle, Load, Obstacle,
                             Selection, Track, matrix_to_quat, parse_controls, select_handles,
-                            write_cameras_json, write_markers, write_truth)
+                            write_cameras_json, write_markers, write_truth, write_truth_forces)
 from stages.errors import RslError
 from stages.progress import Reporter, SilentReporter
 from stages.sim.mesh import rest_quantities
@@ -103,6 +103,20 @@ class SynthConfig:
     """Supersampling factor of the rasterizer (anti-aliasing); masks are coverage ≥ ½."""
     newton_iterations: int = 300
     """Most Newton iterations per time step before the simulation gives up."""
+    start: Literal["auto", "equilibrium", "rest"] = "auto"
+    """What frame 0 shows (written as [capture] start): equilibrium — the object at rest in its static
+    equilibrium under gravity and the frame-0 controls; rest — the rest shape, released at t = 0; auto —
+    equilibrium, or rest when nothing holds the object (drop)."""
+    truth_order: int = 1
+    """Element order of the truth simulation: 1 (linear tets) or 2 (quadratic, 10-node tets)."""
+    truth_refine: int = 0
+    """Split every truth tet into 8 this many times (a finer truth mesh than the object.obj surface suggests)."""
+    substeps: int = 1
+    """Implicit-Euler steps per frame in the truth simulation (time step 1/(fps·substeps)); frames record
+    every substeps-th state."""
+    handles: Literal["spring", "hard"] = "spring"
+    """Handles of the truth: stiff springs, or hard (Dirichlet: the held vertices follow the handle exactly).
+    With hard, controls.json declares the handles "hard": true, as a lab describes a clamp."""
     overwrite: bool = False
     """Replace CAPTURE_OUT when it exists (it must then be a capture made by rsl synth)."""
 
@@ -253,14 +267,15 @@ def _smooth(frames: int) -> np.ndarray:
 
 def _rot_about(axis: np.ndarray, angle: float, center: np.ndarray) -> np.ndarray:
     """Pose [t, q] of a rotation by ``angle`` about the line through ``center`` along ``axis``: t = c − R c."""
-    from stages.synth_views import _axis_angle
+    from stages.domain.rotations import axis_angle_matrix as _axis_angle
 
     R = _axis_angle(axis, angle)
     return np.concatenate([center - R @ center, matrix_to_quat(R)])
 
 
 def scenario_controls(scenario: str, vertices: np.ndarray, faces: np.ndarray, frames: int, mass_kg: float,
-                      gravity: np.ndarray, young_max: float, amp: float = 1.0) -> tuple[Controls, dict]:
+                      gravity: np.ndarray, young_max: float, amp: float = 1.0, hard: bool = False
+                      ) -> tuple[Controls, dict]:
     """Controls of a scenario for a mesh centred at the origin: (controls, notes).
 
     The long axis a is the bounding box's longest side; 'up' is −g. End handles hold the
@@ -300,7 +315,9 @@ def scenario_controls(scenario: str, vertices: np.ndarray, faces: np.ndarray, fr
         sel = end_box(which)
         n_sel = max(1, len(sel.select(vertices)))
         k = 200.0 * young_max * area / L / n_sel
-        return Handle(name, sel, float(f"{k:.4g}"), Track(np.arange(len(poses)), poses, True))
+        h = Handle(name, sel, float(f"{k:.4g}"), Track(np.arange(len(poses)), poses, True))
+        h.hard = bool(hard)
+        return h
 
     still = np.tile(IDENTITY_POSE, (frames, 1))
     ctl = Controls()
@@ -430,14 +447,95 @@ def capture_toml(sections: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+# =========================================================================== the truth
+def resolve_start(start: str, controls: Controls) -> str:
+    """The declared start state: "auto" is equilibrium, or rest when nothing holds the object (no handle)."""
+    if start == "auto":
+        return "equilibrium" if controls.handles else "rest"
+    if start not in ("equilibrium", "rest"):
+        raise RslError(f"--start {start!r} is unknown; use equilibrium, rest or auto.")
+    if start == "equilibrium" and not controls.handles:
+        raise RslError("--start equilibrium needs an object held by handles; nothing holds it in this scenario "
+                       "(it would fall): use --start rest.")
+    return start
+
+
+def truth_mesh(mesh: SynthMesh, density: float, refine: int, order: int) -> tuple[SynthMesh, MeshArtefact]:
+    """The truth discretisation of the shipped rest shape: ``refine`` × 8-fold splits (Bey), then P2 nodes
+    when order = 2 (straight mid-edge nodes: the same geometry).  (SynthMesh, MeshArtefact)."""
+    from stages.sim.meshgen import mesh_artefact as make_artefact
+    from stages.sim.meshgen import refine_tets
+
+    v, t, reg = mesh.vertices, mesh.tets, mesh.tet_region
+    for _ in range(refine):
+        v, t, reg = refine_tets(v, t, reg)
+    art = make_artefact(v, t, density, reg, tuple(mesh.region_names), order=order)
+    tm = SynthMesh(np.asarray(art.vertices), np.asarray(art.tets), np.asarray(art.surface_faces),
+                   np.asarray(art.tet_region), list(mesh.region_names), mesh.region_box)
+    return tm, art
+
+
+def truth_forces(scene, ctl: Controls, X: np.ndarray, states: list, young: np.ndarray, poisson: np.ndarray,
+                 substeps: int, fps: float, contact_distance: float = 1.0e-3) -> list[list]:
+    """Rows of truth/forces.csv (stages.capture.FORCE_HEADER): per frame, per handle and obstacle, the sum of
+    the internal nodal forces over its vertices, their magnitude sum, the force it exerts on the object
+    (spring pull, hard-handle reaction = −residual of Φ without the handle at its vertices, or −∂E_c/∂x)
+    and its vertex count — what ``rsl export --forces`` computes, on the truth simulation.
+    ``states``: per frame (x_{t−1}, x_{t−2}) of the last substep (stages.sim.static.simulate_from_start)."""
+    import dataclasses
+
+    from stages.sim.scene import frame_inputs, handle_reactions, internal_forces
+    from stages.sim.stress import set_forces
+
+    fine = scene if substeps == 1 else dataclasses.replace(scene, dt=scene.dt / substeps)
+    rows = []
+    for t in range(len(X)):
+        x, (xp, xpp) = X[t], states[t]
+        inputs = frame_inputs(fine, ctl, t)
+        f_int = internal_forces(x, fine, young[t], poisson[t])
+        sets = set_forces(fine, inputs, x, xp, f_int, contact_distance, x_prev2=xpp)
+        react = handle_reactions(fine, inputs, x, xp, xpp, young[t], poisson[t])
+        for i, f in enumerate(sets):
+            applied = react[i] if f.kind == "handle" else f.applied  # scene.handle_reactions: spring or hard
+            rows.append([t, t / fps, f.name, f.kind, *map(float, f.internal), float(f.magnitude_sum),
+                         *map(float, applied), int(f.n_vertices)])
+    return rows
+
+
+def write_truth_mesh(folder: Path, mesh: SynthMesh) -> Path:
+    """truth/object.mesh (Medit, linear tets, region as medit:ref) or truth/object.vtu (quadratic tets,
+    VTK_QUADRATIC_TETRA node order, region as cell data "region")."""
+    import meshio
+
+    folder.mkdir(parents=True, exist_ok=True)
+    if mesh.tets.shape[1] == 10:
+        path = folder / "object.vtu"
+        meshio.write(str(path), meshio.Mesh(mesh.vertices, [("tetra10", mesh.tets)],
+                                            cell_data={"region": [mesh.tet_region]}))
+    else:
+        path = folder / "object.mesh"
+        meshio.write(str(path), meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)],
+                                            cell_data={"medit:ref": [mesh.tet_region]}), file_format="medit")
+    return path
+
+
 # =========================================================================== the stage
 def _check_config(c: SynthConfig) -> None:
     if c.scenario not in SCENARIOS:
         raise RslError(f"--scenario {c.scenario!r} is unknown; use one of {', '.join(SCENARIOS)}.")
     if c.model not in ("stable_neohookean", "yeoh", "linear"):
         raise RslError(f"--model {c.model!r} is unknown; use stable_neohookean, yeoh or linear.")
+    if c.truth_order not in (1, 2):
+        raise RslError(f"--truth-order should be 1 or 2, found {c.truth_order}.")
+    if c.handles not in ("spring", "hard"):
+        raise RslError(f"--handles {c.handles!r} is unknown; use spring or hard.")
+    if c.start not in ("auto", "equilibrium", "rest"):
+        raise RslError(f"--start {c.start!r} is unknown; use equilibrium, rest or auto.")
+    if not 0 <= c.truth_refine <= 3:
+        raise RslError(f"--truth-refine should lie in 0..3 (each level multiplies the tets by 8), found "
+                       f"{c.truth_refine}.")
     for name, val, lo in (("--cameras", c.cameras, 1), ("--frames", c.frames, 1), ("--resolution", c.resolution, 16),
-                          ("--supersample", c.supersample, 1)):
+                          ("--supersample", c.supersample, 1), ("--substeps", c.substeps, 1)):
         if val < lo:
             raise RslError(f"{name} should be at least {lo}, found {val}.")
     if not 0 <= c.poisson < 0.5:
@@ -473,7 +571,8 @@ def _prepare_out(out: Path, overwrite: bool) -> Path:
 
 def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
     """Simulate and film a scenario; write the capture folder ``config.out`` and return its path."""
-    from stages.sim.scene import frame_inputs, make_scene, simulate
+    from stages.sim.scene import SimulationError, frame_inputs, make_scene
+    from stages.sim.static import simulate_from_start
     from stages.synth_views import background_plate, board_poses, camera_ring
 
     c = config
@@ -496,19 +595,29 @@ def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
     poisson = np.full((c.frames, R), c.poisson)
     _, _, masses = rest_quantities(mesh.vertices, mesh.tets, c.density)
     ctl, notes = scenario_controls(c.scenario, mesh.vertices, mesh.faces, c.frames, float(masses.sum()),
-                                   gravity, float(young.max()), c.amplitude)
+                                   gravity, float(young.max()), c.amplitude, hard=c.handles == "hard")
     controls_json = ctl.to_json()
     ctl = parse_controls(json.loads(json.dumps(controls_json)), Path("controls.json"))  # exactly what is written
     art = mesh_artefact(mesh, c.density, ctl)
 
+    start = resolve_start(c.start, ctl)
+    tmesh, tart = truth_mesh(mesh, c.density, c.truth_refine, c.truth_order)
+
     # ---------------------------------------------------------------- simulate
-    scene = make_scene(art, ctl, c.model, 1.0 / c.fps, gravity)
-    inputs = [frame_inputs(scene, ctl, f) for f in range(c.frames)]
-    with reporter.task(f"simulating {c.scenario}", c.frames) as task:
-        X = simulate(scene, inputs, young, poisson, callback=lambda _t: task.advance(1),
-                     max_iterations=c.newton_iterations)
+    scene = make_scene(tart, ctl, c.model, 1.0 / c.fps, gravity)
+    states: list = []
+    with reporter.task(f"simulating {c.scenario} (truth: P{c.truth_order}, {len(tart.tets)} tets, "
+                       f"{c.substeps} substep{'s' * (c.substeps > 1)}, {c.handles} handles, start {start})",
+                       c.frames) as task:
+        try:
+            X = simulate_from_start(scene, lambda f: frame_inputs(scene, ctl, f), young, poisson, c.frames, start,
+                                    c.substeps, callback=lambda _t: task.advance(1), states=states,
+                                    max_iterations=c.newton_iterations)
+        except SimulationError as e:
+            raise RslError(f"{c.mesh}: the truth simulation failed: {e}") from None
     if not np.all(np.isfinite(X)):
         raise RslError("the simulation produced non-finite positions.")
+    forces = truth_forces(scene, ctl, X, states, young, poisson, c.substeps, c.fps)
 
     # ---------------------------------------------------------------- views
     lo = np.minimum(X.min(axis=(0, 1)), mesh.vertices.min(0))
@@ -540,8 +649,9 @@ def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
 
     tmp = _prepare_out(Path(c.out), c.overwrite)
     try:
-        _write_capture(tmp, c, mesh, art, ctl, controls_json, X, young, poisson, cams, backgrounds,
-                       (cols, rows, square), poses, notes, rng, reporter)
+        notes.update(start=start, truth_vertices=int(len(tart.vertices)), truth_tets=int(len(tart.tets)))
+        _write_capture(tmp, c, mesh, tmesh, ctl, controls_json, X, young, poisson, cams, backgrounds,
+                       (cols, rows, square), poses, notes, rng, reporter, start, forces)
         out = Path(c.out)
         if out.exists():
             shutil.rmtree(out)
@@ -549,12 +659,16 @@ def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    disp = float(np.linalg.norm(X - mesh.vertices[None], axis=2).max())
+    disp = float(np.linalg.norm(X - tmesh.vertices[None], axis=2).max())
     e_desc = (f"E {young[0, 0]:.3g} Pa" if np.all(young[:, 0] == young[0, 0])
               else f"E {young[:, 0].min():.3g}–{young[:, 0].max():.3g} Pa")
     reg = f", region {mesh.region_names[1]} E {region_e:.3g} Pa" if region_e is not None else ""
+    truth_desc = ("" if (c.truth_order, c.truth_refine, c.substeps, c.handles) == (1, 0, 1, "spring") else
+                  f" (truth: P{c.truth_order}, {len(tart.vertices)} vertices / {len(tart.tets)} tets, "
+                  f"{c.substeps} substeps, {c.handles} handles)")
     reporter.summary(f"{out}: {c.scenario}, {c.frames} frames × {c.cameras} cameras at {c.resolution}², "
-                     f"{len(art.vertices)} vertices / {len(art.tets)} tets, {e_desc}{reg}, ν {c.poisson}, "
+                     f"{len(art.vertices)} vertices / {len(art.tets)} tets{truth_desc}, start {start}, "
+                     f"{e_desc}{reg}, ν {c.poisson}, "
                      f"max displacement {disp * 1000:.1f} mm, {len(poses)} board views "
                      f"(chessboard:{cols}x{rows}:{square:g})")
     return out
@@ -571,12 +685,13 @@ def occlude_markers(pts: np.ndarray, seen_by: np.ndarray, need: int) -> np.ndarr
     return out
 
 
-def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, art: MeshArtefact, ctl: Controls,
+def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, tmesh: SynthMesh, ctl: Controls,
                    controls_json: dict, X: np.ndarray, young: np.ndarray, poisson: np.ndarray,
                    cams: list[Camera], backgrounds: dict, board: tuple[int, int, float], poses: list,
-                   notes: dict, rng: np.random.Generator, reporter: Reporter) -> None:
-    import meshio
-
+                   notes: dict, rng: np.random.Generator, reporter: Reporter, start: str,
+                   forces: list[list]) -> None:
+    """Write the capture into ``root``: ``mesh`` is the shipped rest shape (object.obj), ``tmesh`` the truth
+    mesh that X (T, n_truth, 3) moves (private: truth/object.mesh or .vtu)."""
     from stages.render.mesh_raster import procedural_texture, render_mesh
     from stages.synth_views import first_corner_pose, render_board, visible_points
 
@@ -585,19 +700,22 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, art: MeshArtefac
     surf = mesh.surface_ids
     remap = np.full(len(mesh.vertices), -1, np.int64)
     remap[surf] = np.arange(len(surf))
+    _write_obj(root / "object.obj", mesh.vertices[surf], remap[mesh.faces])
+    mesh = tmesh  # from here on: the truth
+    surf = mesh.surface_ids
+    remap = np.full(len(mesh.vertices), -1, np.int64)
+    remap[surf] = np.arange(len(surf))
     faces_s = remap[mesh.faces]
 
     # ---------------------------------------------------------------- geometry, controls, truth
-    _write_obj(root / "object.obj", mesh.vertices[surf], faces_s)
     if mesh.region_box is not None:
         bv, bf = _box_mesh(mesh.region_box)
         _write_obj(root / "regions" / f"{mesh.region_names[1]}.obj", bv, bf)
     (root / "controls.json").write_text(json.dumps(controls_json))
     write_cameras_json(root / "cameras.json", cams)
     write_truth(root / "truth", young, poisson, mesh.region_names, faces_s, X[:, surf])
-    meshio.write(str(root / "truth" / "object.mesh"),
-                 meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)], cell_data={"medit:ref": [mesh.tet_region]}),
-                 file_format="medit")
+    write_truth_forces(root / "truth", forces)
+    write_truth_mesh(root / "truth", mesh)
     pts = seen_by = None
     if c.markers:
         fi, bary = sample_surface_points(mesh.vertices, mesh.faces, c.markers, rng)
@@ -614,7 +732,7 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, art: MeshArtefac
     young_all = young.ravel()
     toml = {
         "capture": {"name": Path(c.out).name, "fps": float(c.fps), "gravity": [0.0, 0.0, -9.81],
-                    "cameras": [cam.name for cam in cams]},
+                    "cameras": [cam.name for cam in cams], "start": start},
         "object": {"mesh": "object.obj", "density": float(c.density)},
         "material": {"model": c.model, "young": float(young[0, 0]), "poisson": float(poisson[0, 0]),
                      "young_range": [float(f"{young_all.min() / 5:.3g}"), float(f"{young_all.max() * 5:.3g}")],
@@ -625,7 +743,7 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, art: MeshArtefac
     toml["calibration"] = {"board": f"chessboard:{cols}x{rows}:{square:g}"}
     synth = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(c).items() if k not in ("out",)}
     synth.update({k: v for k, v in notes.items()})
-    synth["n_vertices"], synth["n_tets"] = int(len(art.vertices)), int(len(art.tets))
+    synth["n_vertices"], synth["n_tets"] = int(notes["truth_vertices"]), int(notes["truth_tets"])
     toml["synth"] = synth
     (root / "capture.toml").write_text("# made by rsl synth; truth/ holds the ground truth\n" + capture_toml(toml))
 

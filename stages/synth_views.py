@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from stages.artefacts import Camera
-from stages.capture import quat_to_matrix
+from stages.domain.rotations import axis_angle_matrix, matrix_to_quat_wxyz, quat_wxyz_to_matrix
 from stages.render.mesh_raster import look_at, project_points, render_mesh
 
 
@@ -180,7 +180,6 @@ def board_poses(cameras: list[Camera], center: np.ndarray, up: np.ndarray, cols:
     angle between the board normal and the direction to the camera is below ``max_view_angle_deg``
     and all four outer corners project ``margin_px`` inside the image.
     """
-    from stages.capture import matrix_to_quat
 
     rng = np.random.default_rng(seed)
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
@@ -198,7 +197,7 @@ def board_poses(cameras: list[Camera], center: np.ndarray, up: np.ndarray, cols:
         tilt_axis -= up * (tilt_axis @ up)
         tilt_axis /= np.linalg.norm(tilt_axis)
         tilt = np.radians(rng.uniform(0, max_tilt_deg)) if len(poses) else 0.0
-        Rb = _axis_angle(tilt_axis, tilt) @ base @ _axis_angle(np.array([0, 0, 1.0]), spin)
+        Rb = axis_angle_matrix(tilt_axis, tilt) @ base @ axis_angle_matrix(np.array([0, 0, 1.0]), spin)
         shift = rng.uniform(-1, 1, 3) * shift_m if len(poses) else np.zeros(3)
         shift -= up * (shift @ up)
         tb = np.asarray(center, np.float64) + shift
@@ -217,22 +216,15 @@ def board_poses(cameras: list[Camera], center: np.ndarray, up: np.ndarray, cols:
                 ok = False
                 break
         if ok:
-            poses.append(np.concatenate([tb, matrix_to_quat(Rb)]))
+            poses.append(np.concatenate([tb, matrix_to_quat_wxyz(Rb)]))
     return poses
-
-
-def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rodrigues: R = I + sin θ [a]× + (1 − cos θ) [a]×²."""
-    a = np.asarray(axis, np.float64) / np.linalg.norm(axis)
-    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
 
 
 def render_board(camera: Camera, pose: np.ndarray, cols: int, rows: int, square_m: float,
                  background: np.ndarray, supersample: int = 4) -> np.ndarray:
     """One chessboard view (H, W, 3) float in [0, 1] of the board at ``pose`` [t, q] over a plate."""
     verts, faces, _ = board_mesh(cols, rows, square_m)
-    world = verts @ quat_to_matrix(pose[3:]).T + pose[:3]
+    world = verts @ quat_wxyz_to_matrix(pose[3:]).T + pose[:3]
     lights = np.array([[0.0, 0.0, 1.0, 0.6]])
     rgb, _, _ = render_mesh(world, faces, verts, camera.K, camera.R, camera.t, camera.width,
                             camera.height, chessboard_texture(cols, rows, square_m), background,
@@ -243,7 +235,7 @@ def render_board(camera: Camera, pose: np.ndarray, cols: int, rows: int, square_
 def board_corners_world(pose: np.ndarray, cols: int, rows: int, square_m: float) -> np.ndarray:
     """Inner corners (rows·cols, 3) of the board at ``pose`` in world coordinates."""
     _, _, corners = board_mesh(cols, rows, square_m)
-    return corners @ quat_to_matrix(pose[3:]).T + pose[:3]
+    return corners @ quat_wxyz_to_matrix(pose[3:]).T + pose[:3]
 
 
 def first_corner_pose(pose: np.ndarray, cols: int, rows: int, square_m: float) -> np.ndarray:
@@ -252,4 +244,4 @@ def first_corner_pose(pose: np.ndarray, cols: int, rows: int, square_m: float) -
     R p_first + (t − R c), c the centre of the corner grid."""
     pose = np.asarray(pose, np.float64)
     c = np.array([(cols - 1) / 2 * square_m, (rows - 1) / 2 * square_m, 0.0])
-    return np.concatenate([pose[:3] - quat_to_matrix(pose[3:]) @ c, pose[3:]])
+    return np.concatenate([pose[:3] - quat_wxyz_to_matrix(pose[3:]) @ c, pose[3:]])

@@ -31,11 +31,13 @@ import numpy as np
 from stages.artefacts import KIND_FILES, MeshArtefact, Provenance
 from stages.capture import SURFACE_SUFFIXES, CaptureError, load_capture, select_handles
 from stages.errors import RslError
+from stages.workspace import prepare_workspace
 from stages.progress import Reporter, SilentReporter
 from stages.meshing import (TET_FACES, assign_regions, boundary_faces, dihedral_angles, enclosed_volume,  # noqa: F401
-                            map_id_selections, mesh_quality, orient_tets, read_surface, read_tet_mesh,
+                            map_id_selections, mesh_quality, orient_tets, quadratic_mesh, read_surface, read_tet_mesh,
                             tet_faces, tetwild, winding_numbers)
 from stages.sim.mesh import rest_quantities, signed_volumes
+from stages.sim.quadrature import jacobian_ratio, mid_edge_closure, quadratic_surface
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,8 @@ class TetrahedralizeConfig:
     """A tet with |volume| below this fraction of the mean tet volume is degenerate (an error)."""
     preview: bool = True
     """Also draw WS/mesh.png: three views with regions and handles, and the dihedral-angle histogram."""
+    order: int = 1
+    """Element order: 1 = linear 4-node tets, 2 = quadratic 10-node tets (mid-edge nodes on the input surface when it is one)."""
 
 
 def build_mesh(config: TetrahedralizeConfig, reporter: Reporter = SilentReporter()) -> tuple[MeshArtefact, list[Path]]:
@@ -66,8 +70,10 @@ def build_mesh(config: TetrahedralizeConfig, reporter: Reporter = SilentReporter
     src = cap.mesh_path
     inputs = [cap.toml_path, src]
     quality: dict = {}
+    surface = None  # the input surface, onto which P2 mid-edge nodes of boundary edges are projected
     if src.suffix.lower() in SURFACE_SUFFIXES:
         sv, sf = read_surface(src, reporter)
+        surface = (sv, sf)
         quality["input_surface_volume"] = enclosed_volume(sv, sf)
         v, t, fac = tetwild(sv, sf, config.edge_length, config.max_tets, config.optimize, config.threads,
                              config.envelope, reporter)
@@ -117,13 +123,21 @@ def build_mesh(config: TetrahedralizeConfig, reporter: Reporter = SilentReporter
             reporter.warn(f"capture.toml sets material for region '{name}' but regions/{name}.obj does not exist.")
 
     controls = map_id_selections(cap.controls(), src, v, cap.controls_path)
-    handles = select_handles(controls, v, cap.controls_path)
-    loads = {ld.name: ld.select.select(v) for ld in controls.loads}
+    quality["order"] = int(config.order)
+    corners = t
+    if config.order == 2:  # vertices: the corners, then one node per edge (on the input surface if any)
+        v, t, reverted = quadratic_mesh(v, t, surface)
+        faces = quadratic_surface(t)
+        quality.update(curved_nodes_reverted=reverted, min_jacobian_ratio=float(jacobian_ratio(v, t).min()))
+        if reverted:
+            reporter.info(f"{reverted} mid-edge nodes kept on straight edges (curving them would fold their tets)")
+    handles = {k: mid_edge_closure(ids, t) for k, ids in select_handles(controls, v, cap.controls_path).items()}
+    loads = {ld.name: mid_edge_closure(ld.select.select(v), t) for ld in controls.loads}
     if cap.controls_path.exists():
         inputs.append(cap.controls_path)
 
     volumes, dm_inv, masses = rest_quantities(v, t, cap.density)
-    quality.update(mesh_quality(v, t, volumes))
+    quality.update(mesh_quality(v, corners, volumes))
     quality.update(n_vertices=int(len(v)), n_tets=int(len(t)), n_surface_faces=int(len(faces)),
                    flipped_tets=flipped, enclosed_volume=enclosed_volume(v, faces))
     mesh = MeshArtefact(vertices=v, tets=t, surface_faces=faces, tet_region=region, region_names=region_names,
@@ -142,7 +156,7 @@ def draw_preview(mesh: MeshArtefact, path: Path) -> None:
     fig = Figure(figsize=(16, 4), dpi=90)
     FigureCanvasAgg(fig)
     v, f = mesh.vertices, mesh.surface_faces
-    cent = v[mesh.tets].mean(axis=1)
+    cent = v[mesh.tets[:, :4]].mean(axis=1)
     for k, (i, j) in enumerate([(0, 1), (0, 2), (1, 2)]):
         ax = fig.add_subplot(1, 4, k + 1)
         ax.add_collection(PolyCollection(v[f][:, :, [i, j]], facecolors="none", edgecolors=(0, 0, 0, 0.15),
@@ -159,10 +173,10 @@ def draw_preview(mesh: MeshArtefact, path: Path) -> None:
         if k == 0:
             fig.legend(loc="upper center", ncol=max(1, len(mesh.region_names)), fontsize=8, markerscale=3)
     ax = fig.add_subplot(1, 4, 4)
-    ax.hist(dihedral_angles(v, mesh.tets).ravel(), bins=60, color="gray")
+    ax.hist(dihedral_angles(v, mesh.tets[:, :4]).ravel(), bins=60, color="gray")
     ax.set_xlabel("dihedral angle (deg)")
     ax.set_ylabel("count")
-    ax.set_title(f"{mesh.n_tets} tets, {mesh.n_vertices} vertices, handles in red", fontsize=9)
+    ax.set_title(f"{mesh.n_tets} tets (order {mesh.order}), {mesh.n_vertices} vertices, handles in red", fontsize=9)
     fig.tight_layout(rect=(0, 0, 1, 0.92))
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
@@ -174,6 +188,10 @@ def run(config: TetrahedralizeConfig, reporter: Reporter = SilentReporter()) -> 
     """Write WS/mesh.h5 from the capture's object mesh; returns its path."""
     if config.edge_length <= 0:
         raise RslError(f"--edge-length should be positive, found {config.edge_length}.")
+    if config.order not in (1, 2):
+        raise RslError(f"--order should be 1 (linear tets) or 2 (quadratic tets), found {config.order}.")
+    load_capture(config.capture)  # a bad capture is reported before the workspace is touched
+    prepare_workspace(config.workspace)  # writable? (before the compute) and no stale temp files
     mesh, inputs = build_mesh(config, reporter)
     out = Path(config.workspace) / KIND_FILES["mesh"]
     mesh.save(out, Provenance.make(config, inputs))
@@ -182,7 +200,8 @@ def run(config: TetrahedralizeConfig, reporter: Reporter = SilentReporter()) -> 
     q = mesh.quality
     regions = ", ".join(f"{n} {int(np.sum(mesh.tet_region == i))}" for i, n in enumerate(mesh.region_names))
     reporter.summary(
-        f"{out}: {mesh.n_vertices} vertices, {mesh.n_tets} tets ({regions}), {len(mesh.surface_faces)} surface "
+        f"{out}: {mesh.n_vertices} vertices, {mesh.n_tets} {'quadratic ' if mesh.order == 2 else ''}tets "
+        f"({regions}), {len(mesh.surface_faces)} surface "
         f"triangles, {len(mesh.handles)} handles; volume {q['total_volume']:.4g} m³, mass "
         f"{mesh.vertex_masses.sum():.4g} kg; tet volume {q['min_volume']:.3g}–{q['max_volume']:.3g} m³, "
         f"dihedral angles {q['min_dihedral_deg']:.1f}°–{q['max_dihedral_deg']:.1f}°"

@@ -23,6 +23,8 @@ import numpy as np
 from stages.artefacts import KIND_FILES, MeshArtefact, Provenance, SnapshotsArtefact, SubspaceArtefact, \
     read_provenance
 from stages.errors import RslError
+from stages.artefacts import check_same_mesh
+from stages.workspace import prepare_workspace
 from stages.progress import Reporter, SilentReporter
 
 
@@ -48,9 +50,10 @@ class TrainSubspaceConfig:
     validation_fraction: float = 0.15
     """Fraction of the sequences held out for validation (at least one when there are two or more)."""
     cubature_tets: int = 300
-    """Largest number of cubature tets for the reduced elastic energy (0: integrate over every tet)."""
+    """Largest number of cubature points for the reduced elastic energy: quadrature points, one per linear
+    tet, four per quadratic tet (0: integrate over every point)."""
     cubature_tol: float = 0.01
-    """Stop adding cubature tets once the relative reduced-force error is below this."""
+    """Stop adding cubature points once the relative reduced-force error is below this."""
     cubature_poses: int = 40
     """Training snapshots the cubature is fitted on."""
     material: str = ""
@@ -98,7 +101,8 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
     import jax.numpy as jnp
 
     from stages.sim.materials import MODELS, lame
-    from stages.subspace.cubature import ReducedForceSampler, cubature_error, fit_cubature
+    from stages.sim.quadrature import element_order
+    from stages.subspace.cubature import ReducedForceSampler, cubature_error, fit_cubature, mesh_quadrature
     from stages.subspace.train import fit_subspace, reconstruction_error
 
     ws = Path(config.workspace)
@@ -108,8 +112,10 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
         raise RslError(f"--kind {config.kind}: use autoencoder, pca or lbs.")
     if config.dim < 1:
         raise RslError(f"--dim {config.dim}: the latent dimension must be at least 1.")
+    prepare_workspace(ws)  # writable? (before the training) and no stale temp files of a killed run
     mesh = MeshArtefact.load(mesh_path)
     snap = SnapshotsArtefact.load(snap_path)
+    check_same_mesh(mesh_path, snap_path)  # made from this very mesh.h5, whatever the counts
     n = mesh.n_vertices
     if snap.positions.shape[1] != n:
         raise RslError(f"{snap_path}: snapshots have {snap.positions.shape[1]} vertices but {mesh_path} has {n}; "
@@ -167,24 +173,32 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
     poisson = np.median(snap.poisson, axis=0) if snap.poisson.shape[1] == n_reg else \
         np.full(n_reg, np.median(snap.poisson))
     mu_r, lam_r = lame(young, poisson)
-    mu_t, lam_t = np.asarray(mu_r)[mesh.tet_region], np.asarray(lam_r)[mesh.tet_region]
+    order = element_order(mesh.tets)
+    try:
+        quad = mesh_quadrature(mesh.vertices, mesh.tets, mesh.dm_inv, mesh.rest_volumes)
+    except ValueError as e:
+        raise RslError(f"{mesh_path}: {e}; re-run tetrahedralize.") from None
+    region_q = np.asarray(mesh.tet_region)[quad.element]  # the region of each quadrature point
+    mu_q, lam_q = np.asarray(mu_r)[region_q], np.asarray(lam_r)[region_q]
     rng = np.random.default_rng(config.seed)
-    m = mesh.n_tets
+    m = quad.n_points
+    what = "tets" if order == 1 else "quadrature points"
     extra_cub: dict = {}
     if config.cubature_tets > 0 and config.cubature_tets < m:
         pick = rng.choice(len(tr), size=min(config.cubature_poses, len(tr)), replace=False)
         z_fit = np.asarray(sub.encode(jnp.asarray(x_tr[pick])))
-        with reporter.task(f"Cubature (≤ {config.cubature_tets} of {m} tets)", None):
-            sampler = ReducedForceSampler(sub, z_fit, mesh.tets, mesh.dm_inv, mesh.rest_volumes, mu_t, lam_t, model)
-            ids, w, cinfo = fit_cubature(sampler, mesh.tet_region, n_reg, config.cubature_tets,
+        with reporter.task(f"Cubature (≤ {config.cubature_tets} of {m} {what})", None):
+            sampler = ReducedForceSampler(sub, z_fit, quad, mu_q, lam_q, model)
+            ids, w, cinfo = fit_cubature(sampler, region_q, n_reg, config.cubature_tets,
                                          config.cubature_tol, seed=config.seed)
             val_cub = float("nan")
             if len(va):
                 pv = rng.choice(len(va), size=min(config.cubature_poses, len(va)), replace=False)
-                sv = ReducedForceSampler(sub, np.asarray(sub.encode(jnp.asarray(x_va[pv]))), mesh.tets, mesh.dm_inv,
-                                         mesh.rest_volumes, mu_t, lam_t, model)
-                val_cub = cubature_error(sv, mesh.tet_region, n_reg, ids, w)
-        extra_cub = {"cubature_tets": ids.tolist(), "cubature_weights": w.tolist(),
+                sv = ReducedForceSampler(sub, np.asarray(sub.encode(jnp.asarray(x_va[pv]))), quad, mu_q, lam_q,
+                                         model)
+                val_cub = cubature_error(sv, region_q, n_reg, ids, w)
+        # quadrature point ids (for linear tets: tet ids) and weights; the order they index
+        extra_cub = {"cubature_points": ids.tolist(), "cubature_weights": w.tolist(), "cubature_order": order,
                      "cubature_error_rel": cinfo["error_rel"], "cubature_error_val_rel": val_cub}
     r, p = sub.dim, sub.p
     extra = {
@@ -199,8 +213,8 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
     }
     art = SubspaceArtefact(config.kind, r, sub.to_weights(), float(train_err), float(val_err), extra)
     art.save(out, Provenance.make(config, [mesh_path, snap_path]))
-    cub = (f"; cubature {len(extra_cub['cubature_tets'])} of {m} tets, force error "
-           f"{extra_cub['cubature_error_rel']:.1%}" if extra_cub else "; all tets integrated")
+    cub = (f"; cubature {len(extra_cub['cubature_points'])} of {m} {what}, force error "
+           f"{extra_cub['cubature_error_rel']:.1%}" if extra_cub else f"; all {what} integrated")
     val = f"validation error {val_err * 1e3:.2f} mm ({val_err / diag:.2%} of the bbox diagonal)" if len(va) \
         else f"training error {train_err * 1e3:.2f} mm ({train_err / diag:.2%} of the bbox diagonal)"
     lbs = ""

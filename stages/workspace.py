@@ -13,7 +13,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from stages.artefacts import KIND_FILES, ArtefactError, _jsonable, file_sha256, read_provenance
+import os
+
+from stages.artefacts import (KIND_FILES, ArtefactError, HashCache, _jsonable, clean_stale_temps, read_provenance,
+                              resolve_input)
+from stages.errors import RslError
 
 MISSING, OK, STALE, INVALID = "missing", "up to date", "stale", "invalid"
 
@@ -38,24 +42,50 @@ class ArtefactState:
     inputs: list[dict] = field(default_factory=list)
 
 
-def input_changes(inputs: list[dict], hashes: dict[str, str] | None = None) -> list[str]:
+def input_changes(inputs: list[dict], hashes: dict[str, str] | None = None, artefact: Path | None = None,
+                  attrs: dict | None = None, cache: HashCache | None = None) -> list[str]:
     """Reasons (one per input) why recorded inputs no longer match the files on disk; [] if all match.
 
-    ``hashes`` caches path -> sha256 across calls.
+    Relative entries are resolved from the artefact's folder (workspace files) or its capture folder; a folder
+    entry (a camera's frames) is compared by the hash over its files.  ``hashes`` caches path -> sha256 across
+    calls, ``cache`` the hashes of unchanged files across runs (WS/.rsl_hashes.json).
     """
     hashes = {} if hashes is None else hashes
+    cache = cache or HashCache()
     reasons = []
     for item in inputs:
-        p = Path(str(item.get("path", "")))
-        if not p.is_file():
-            reasons.append(f"input {p} is missing")
+        if not isinstance(item, dict):
             continue
-        key = str(p)
+        p = resolve_input(item, artefact, attrs or {}) if artefact is not None else Path(str(item.get("path", "")))
+        shown = item.get("path", p)
+        is_dir = "files" in item
+        if not (p.is_dir() if is_dir else p.is_file()):
+            reasons.append(f"input {shown} is missing")
+            continue
+        key = str(p.resolve())
         if key not in hashes:
-            hashes[key] = file_sha256(p)
+            try:
+                hashes[key] = cache.entry_sha256(p)
+            except OSError as e:
+                reasons.append(f"input {shown} cannot be read ({e.strerror or e})")
+                continue
         if hashes[key] != item.get("sha256"):
-            reasons.append(f"input {p.name} changed")
+            what = f"{shown} (its files)" if is_dir else Path(str(shown)).name
+            reasons.append(f"input {what} changed")
     return reasons
+
+
+def adapt_status(attrs_or_extra: dict) -> str:
+    """``complete`` | ``interrupted`` | ``failed`` of an adapt artefact ('complete' when it does not say)."""
+    extra = attrs_or_extra.get("extra", attrs_or_extra)
+    if isinstance(extra, str):
+        import json
+
+        try:
+            extra = json.loads(extra)
+        except ValueError:
+            extra = {}
+    return str((extra or {}).get("status", "complete")) if isinstance(extra, dict) else "complete"
 
 
 def artefact_state(workspace: str | Path, kind: str, hashes: dict[str, str] | None = None) -> ArtefactState:
@@ -73,9 +103,34 @@ def artefact_state(workspace: str | Path, kind: str, hashes: dict[str, str] | No
     inputs = prov.get("inputs") or []
     if not isinstance(inputs, list):
         return ArtefactState(kind, path, INVALID, ["attribute 'inputs' is not a list"])
-    reasons = input_changes(inputs, hashes)
+    if kind == "adapt" and adapt_status(prov) != "complete":
+        return ArtefactState(kind, path, INVALID, [f"holds a {adapt_status(prov)} run, not a complete one"],
+                             str(prov.get("created", "")), prov.get("config") or {}, inputs)
+    cache = HashCache(workspace)
+    reasons = input_changes(inputs, hashes, path, prov, cache)
+    cache.save()
     return ArtefactState(kind, path, STALE if reasons else OK, reasons, str(prov.get("created", "")),
                          prov.get("config") if isinstance(prov.get("config"), dict) else {}, inputs)
+
+
+def prepare_workspace(workspace: str | Path) -> Path:
+    """Create the workspace if needed, check it is writable before any compute, and remove the temporary
+    files a killed stage left (``.NAME.h5.PID.*.tmp``)."""
+    ws = Path(workspace)
+    try:
+        ws.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise RslError(f"{ws}: cannot create the workspace folder ({e.strerror or e}).") from None
+    if not ws.is_dir():
+        raise RslError(f"{ws}: is not a folder; give a workspace folder with -w.")
+    probe = ws / f".rsl_write_test.{os.getpid()}"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise RslError(f"{ws}: the workspace is not writable ({e.strerror or e}); nothing was computed.") from None
+    clean_stale_temps(ws)
+    return ws
 
 
 def _norm(key: str, value: Any) -> Any:

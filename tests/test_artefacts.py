@@ -93,7 +93,7 @@ def test_round_trip_and_provenance(kind: str, tmp_path: Path) -> None:
     assert prov["rsl_kind"] == kind and prov["schema_version"] == A.SCHEMA_VERSION
     assert prov["rsl_version"] == A.RSL_VERSION and prov["created"].startswith("20")
     assert prov["config"] == {"capture": "cap", "seed": 3}
-    assert prov["inputs"] == [{"path": str(src.resolve()), "sha256": file_sha256(src)}]
+    assert prov["inputs"] == [{"path": "input.txt", "base": "workspace", "sha256": file_sha256(src)}]
     d = describe(path)
     assert d["attrs"]["rsl_kind"] == kind and len(d["datasets"]) >= 1
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]

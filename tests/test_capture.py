@@ -167,11 +167,11 @@ def test_controls_round_trip_and_defaults() -> None:
 @pytest.mark.parametrize("data, message", [
     ([], "should hold a JSON object"),
     ({"handles": {"name": "x"}}, "'handles' should be a list"),
-    ({"handle": []}, "'handle' is not a known field"),
+    ({"handle": []}, "'handle' is not a known key \\(did you mean 'handles'\\?\\)"),
     ({"handles": [{"name": "a", "select": {"ids": [0]}}, {"name": "a", "select": {"ids": [1]}}]},
      "repeats the name 'a'"),
     ({"handles": [{"name": "a", "select": {"box": [[0, 0, 0]]}}]}, "'handles\\[0\\].select.box' should be two"),
-    ({"handles": [{"name": "a", "select": {"sphere": 1}}]}, "unknown kind 'sphere'"),
+    ({"handles": [{"name": "a", "select": {"sphere": 1}}]}, "'handles\\[0\\].select.sphere' is not a known key"),
     ({"handles": [{"name": "a", "select": {"ids": [0]}, "stiffness": "stiff"}]},
      "'handles\\[0\\].stiffness' should be a finite number"),
     ({"handles": [{"name": "a", "select": {"ids": [0]}, "poses": [[0, 0, 0, 0, 0, 0, 0]]}]}, "zero quaternion"),

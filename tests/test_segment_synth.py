@@ -81,7 +81,7 @@ def test_grabcut_seeded_by_mesh(synth_ws):
 
 def test_missing_inputs(synth_ws, tmp_path):
     cap, _ = synth_ws
-    with pytest.raises(RslError, match="mesh.h5: file not found; mesh-seeded segmentation needs"):
+    with pytest.raises(RslError, match="cameras.h5: file not found; mesh-seeded segmentation needs"):
         run(SegmentConfig(cap, tmp_path / "empty_ws", method="grabcut"))
     with pytest.raises(RslError, match="--method 'magic'"):
         run(SegmentConfig(cap, tmp_path / "empty_ws", method="magic"))

@@ -39,9 +39,11 @@ def capture(box_mesh, tmp_path_factory) -> Path:
 
 
 def _resimulate(cap, max_iterations: int = 300) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Positions (T, n, 3) from truth/object.mesh + controls.json + truth material, and (faces, tets)."""
+    """Positions (T, n, 3) from truth/object.mesh + controls.json + truth material under the capture's
+    declared start state ([capture] start), and (faces, tets)."""
     from stages.sim.meshgen import mesh_artefact
-    from stages.sim.scene import frame_inputs, make_scene, simulate
+    from stages.sim.scene import frame_inputs, make_scene
+    from stages.sim.static import simulate_from_start
 
     m = meshio.read(str(cap.truth_dir / "object.mesh"))
     tets = np.asarray(m.cells_dict["tetra"], np.int64)
@@ -50,8 +52,8 @@ def _resimulate(cap, max_iterations: int = 300) -> tuple[np.ndarray, np.ndarray,
     art = mesh_artefact(np.asarray(m.points, np.float64), tets, cap.density, region, tuple(truth.region_names))
     ctl = cap.controls()
     scene = make_scene(art, ctl, cap.material.model, cap.dt, cap.gravity)
-    inputs = [frame_inputs(scene, ctl, f) for f in range(truth.young.shape[0])]
-    X = simulate(scene, inputs, truth.young, truth.poisson, max_iterations=max_iterations)
+    X = simulate_from_start(scene, lambda f: frame_inputs(scene, ctl, f), truth.young, truth.poisson,
+                            truth.young.shape[0], cap.start, max_iterations=max_iterations)
     return X, art.surface_faces, tets
 
 

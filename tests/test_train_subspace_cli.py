@@ -50,12 +50,13 @@ def test_stage_writes_a_usable_subspace(tmp_path):
     art = SubspaceArtefact.load(out)
     assert art.subspace_kind == "autoencoder" and art.dim == 3
     assert 0 < art.val_error_m < 0.05 and art.extra["n_val"] == 12  # one held-out sequence of 12 frames
-    assert 0 < len(art.extra["cubature_tets"]) <= 40 and np.all(np.array(art.extra["cubature_weights"]) > 0)
+    assert 0 < len(art.extra["cubature_points"]) <= 40 and art.extra["cubature_order"] == 1
+    assert np.all(np.array(art.extra["cubature_weights"]) > 0)
     assert art.extra["cubature_error_rel"] < 0.2
     assert "validation error" in rep.messages[-1] and "bbox diagonal" in rep.messages[-1]
     scene = _scene(mesh)
     model = ReducedModel.from_artefacts(art, scene)
-    assert len(model.cubature_tets) == len(art.extra["cubature_tets"])
+    assert len(model.cubature_points) == len(art.extra["cubature_points"])
     hid = scene.handles[0].ids
     inp = FrameInputs((scene.rest[hid],), np.zeros_like(scene.rest), np.zeros((0, 7)))
     Z = model.simulate([inp] * 3, np.array([1e5]), np.array([0.45]))
@@ -67,7 +68,7 @@ def test_cli_pca(tmp_path, rsl):
     proc = rsl("train-subspace", "-w", ws, "--dim", "4", "--kind", "pca", "--cubature-tets", "0")
     assert proc.returncode == 0, proc.stderr
     art = SubspaceArtefact.load(ws / "subspace.h5")
-    assert art.subspace_kind == "pca" and art.dim == 4 and "cubature_tets" not in art.extra
+    assert art.subspace_kind == "pca" and art.dim == 4 and "cubature_points" not in art.extra
     assert "pca subspace r=4" in proc.stdout + proc.stderr
 
 

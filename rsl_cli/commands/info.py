@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from rich.markup import escape
+
 from rsl_cli.console import out
 
 ORDER = 90
@@ -45,28 +47,31 @@ def _artefact_info(path: Path, as_json: bool, check: bool) -> None:
     if as_json:
         out(json.dumps({"path": d["path"], "attrs": attrs,
                         "datasets": [{"name": n, "shape": list(s), "dtype": t} for n, s, t in d["datasets"]]},
-                       indent=1, default=str))
+                       indent=1, default=str), markup=False)
         return
-    out(f"[bold]{path}[/]  kind [cyan]{attrs.get('rsl_kind')}[/]  schema {attrs.get('schema_version')}  "
-        f"rsl {attrs.get('rsl_version')}  created {attrs.get('created')}")
+    out(f"[bold]{escape(str(path))}[/]  kind [cyan]{escape(str(attrs.get('rsl_kind')))}[/]  "
+        f"schema {escape(str(attrs.get('schema_version')))}  rsl {escape(str(attrs.get('rsl_version')))}  "
+        f"created {escape(str(attrs.get('created')))}")
     config = attrs.get("config") or {}
     if config:
         out("[bold]config[/]")
         for k, v in config.items():
-            out(f"  {k} = {json.dumps(v)}")
+            out(f"  {k} = {json.dumps(v)}", markup=False)
     inputs = attrs.get("inputs") or []
     out(f"[bold]inputs[/] ({len(inputs)})")
     for item in inputs:
-        out(f"  {item.get('path')}  sha256 {str(item.get('sha256', ''))[:12]}…")
+        base = f"  (in the {item['base']} folder)" if item.get("base") else ""
+        files = f"  {item['files']} files" if "files" in item else ""
+        out(f"  {item.get('path')}  sha256 {str(item.get('sha256', ''))[:12]}…{files}{base}", markup=False)
     other = {k: v for k, v in attrs.items() if k not in _ROOT_KEYS}
     if other:
         out("[bold]attributes[/]")
         for k, v in other.items():
             text = v if isinstance(v, str) else json.dumps(v, default=str)
-            out(f"  {k} = {text if len(text) <= 200 else text[:200] + '…'}")
+            out(f"  {k} = {text if len(text) <= 200 else text[:200] + '…'}", markup=False)
     out(f"[bold]datasets[/] ({len(d['datasets'])})")
     for name, shape, dtype in d["datasets"]:
-        out(f"  {name:<32} {str(shape):<20} {dtype}")
+        out(f"  {name:<32} {str(shape):<20} {dtype}", markup=False)
 
 
 def _capture_info(root: Path, as_json: bool) -> None:
@@ -91,12 +96,12 @@ def _capture_info(root: Path, as_json: bool) -> None:
     info["markers"] = None if markers is None else list(markers.shape)
     info["truth"] = cap.truth_dir.is_dir()
     if as_json:
-        out(json.dumps(info, indent=1, default=str))
+        out(json.dumps(info, indent=1, default=str), markup=False)
         return
-    out(f"[bold]{root}[/]  capture [cyan]{cap.name}[/]  {cap.fps:g} fps")
+    out(f"[bold]{escape(str(root))}[/]  capture [cyan]{escape(str(cap.name))}[/]  {cap.fps:g} fps")
     for key, value in info.items():
         if key not in ("capture", "name", "fps"):
-            out(f"  {key:<18} {json.dumps(value, default=str)}")
+            out(f"  {key:<18} {json.dumps(value, default=str)}", markup=False)
 
 
 def register_docs(app: typer.Typer) -> None:
@@ -134,7 +139,9 @@ def register_docs(app: typer.Typer) -> None:
                 elif not p.hidden and p.name != "help":
                     flags = ", ".join(f"`{o}`" for o in p.opts + p.secondary_opts)
                     default = "" if p.required or p.default in (None, ()) else f"`{p.default}`"
-                    rows.append((flags, p.help or "", default))
+                    choices = getattr(getattr(p, "type_descriptor", None), "choices", None)  # Literal[...] fields
+                    one_of = f" One of: {', '.join(f'`{c}`' for c in choices)}." if choices else ""
+                    rows.append((flags, (p.help or "") + one_of, default))
             if rows:
                 lines += ["| argument / option | meaning | default |", "| --- | --- | --- |"]
                 lines += [f"| {a} | {' '.join(h.split()).replace('|', chr(92) + '|')} | {d} |" for a, h, d in rows]

@@ -33,6 +33,6 @@ def register(app: typer.Typer) -> None:
             from rsl_cli.console import out
 
             for step in plan(capture, workspace, until=until, only=only, force=force, overrides=overrides):
-                out(f"{step.stage.name:<16} {step.action:<5} {step.reason}")
+                out(f"{step.stage.name:<16} {step.action:<5} {step.reason}", markup=False)
             return
         run_pipeline(capture, workspace, RichReporter(), until=until, only=only, force=force, overrides=overrides)

@@ -4,6 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from rsl_cli.options import workspace_option
@@ -25,18 +26,27 @@ def register(app: typer.Typer) -> None:
             raise RslError(f"{workspace}: workspace folder not found.")
         hashes: dict[str, str] = {}
         states = {s.produces: artefact_state(workspace, s.produces, hashes) for s in STAGES}
-        table = Table(title=f"workspace {workspace}", title_justify="left")
+        table = Table(title=f"workspace {escape(str(workspace))}", title_justify="left")
         for col in ("stage", "artefact", "state", "created", "why"):
             table.add_column(col)
+        effective: dict[str, str] = {}
         for s in STAGES:
             st = states[s.produces]
             state, why = st.state, "; ".join(st.reasons)
-            if state == "up to date":
-                bad = [k for k in s.reads if states[k].state == STALE]
+            if state == "up to date":  # stale as soon as an artefact it reads is stale (transitively)
+                bad = [k for k in s.reads if effective.get(k, states[k].state) in (STALE, "invalid")]
                 if bad:
-                    state, why = STALE, f"reads {states[bad[0]].path.name}, which is stale"
-            table.add_row(s.name, st.path.name, f"[{_STYLE[state]}]{state}[/]", (st.created or "")[:19], why)
+                    state, why = STALE, f"reads {states[bad[0]].path.name}, which is {effective.get(bad[0])}"
+            effective[s.produces] = state
+            table.add_row(s.name, escape(st.path.name), f"[{_STYLE[state]}]{state}[/]", (st.created or "")[:19],
+                          escape(why))
         _print(table)
+        partial = workspace / "adapt.partial.h5"
+        if partial.is_file():
+            from rsl_cli.console import out
+
+            out(f"{partial}: the frames of an unfinished `rsl adapt` (kept apart; adapt.h5 is never replaced "
+                f"by an unfinished run).", markup=False)
 
 
 def _print(table: Table) -> None:

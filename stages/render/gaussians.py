@@ -6,6 +6,8 @@ positions x (n, 3):
 
     centre   μ_g = Σₖ βₖ x[tet_h, k]
     F_h      = D_s(x) D_m⁻¹          (deformation gradient of the host tet)
+    quadratic tets (10 nodes): μ_g = Σ_a N_a(β) x_a and F_g = D_x J⁻¹ at the Gaussian's own location,
+             D_x = Σ_a x_a ⊗ ∂N_a/∂ξ(β), J = Σ_a X_a ⊗ ∂N_a/∂ξ(β) (X the rest nodes; stages.sim.quadrature)
     Σ_g      = F_h R(q) S² R(q)ᵀ F_hᵀ,  S = diag(exp(log_scales))
     colour   c_g = 0.5 + SH(sh_g, view direction)   (degree 0, optionally 1), clamped ≥ 0
     opacity  o_g = sigmoid(opacity_logit_g)
@@ -39,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from stages.domain.rotations import matrix_to_quat_wxyz
 from stages.render import _torch_ref
 from stages.render.bind_project import bind_project
 from stages.render.projection import CameraTensors, project_gaussians
@@ -64,28 +67,7 @@ def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
 
 def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
     """Rotation matrices (N, 3, 3) → unit quaternions wxyz (N, 4), w ≥ 0 (numpy)."""
-    R = np.asarray(R, np.float64)
-    tr = np.trace(R, axis1=1, axis2=2)
-    q = np.empty((R.shape[0], 4))
-    # Shepperd's method, branch per row on the largest diagonal term.
-    d = np.stack([tr, R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], 1)
-    k = np.argmax(d, 1)
-    for i in range(R.shape[0]):
-        r = R[i]
-        if k[i] == 0:
-            s = 2 * np.sqrt(1 + tr[i])
-            q[i] = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
-        elif k[i] == 1:
-            s = 2 * np.sqrt(1 + r[0, 0] - r[1, 1] - r[2, 2])
-            q[i] = [(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
-        elif k[i] == 2:
-            s = 2 * np.sqrt(1 + r[1, 1] - r[0, 0] - r[2, 2])
-            q[i] = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s]
-        else:
-            s = 2 * np.sqrt(1 + r[2, 2] - r[0, 0] - r[1, 1])
-            q[i] = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
+    return matrix_to_quat_wxyz(R)
 
 
 def sh_to_color(sh: torch.Tensor, dirs: torch.Tensor | None) -> torch.Tensor:
@@ -98,6 +80,26 @@ def sh_to_color(sh: torch.Tensor, dirs: torch.Tensor | None) -> torch.Tensor:
         x, y, z = dirs[:, 0:1], dirs[:, 1:2], dirs[:, 2:3]
         c = c - SH_C1 * y * sh[:, 1] + SH_C1 * z * sh[:, 2] - SH_C1 * x * sh[:, 3]
     return torch.clamp(c + 0.5, min=0.0)
+
+
+_P2_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3))
+
+
+def p2_shape(beta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Quadratic-tet shape values N (G, 10) and reference gradients ∂N/∂ξ (G, 10, 3) at barycentric
+    β (G, 4) (torch twin of stages.sim.quadrature.shape_values / shape_reference_gradients)."""
+    corners = beta * (2 * beta - 1)
+    edges = torch.stack([4 * beta[:, a] * beta[:, b] for a, b in _P2_EDGES], 1)
+    N = torch.cat([corners, edges], 1)
+    zero = torch.zeros_like(beta[:, 0])
+    rows = []  # ∂N_a/∂L (4,) per node
+    for a in range(4):
+        rows.append(torch.stack([4 * beta[:, a] - 1 if c == a else zero for c in range(4)], 1))
+    for a, b in _P2_EDGES:
+        rows.append(torch.stack([4 * beta[:, b] if c == a else (4 * beta[:, a] if c == b else zero)
+                                 for c in range(4)], 1))
+    dN_dL = torch.stack(rows, 1)  # (G, 10, 4)
+    return N, dN_dL[:, :, 1:] - dN_dL[:, :, :1]  # ∂L_0/∂ξ_j = −1, ∂L_{j+1}/∂ξ_j = 1
 
 
 def color_to_sh0(rgb: np.ndarray) -> np.ndarray:
@@ -113,16 +115,25 @@ class RenderOutput:
 
 
 class BoundGaussians(torch.nn.Module):
-    """Gaussians bound to tets; appearance parameters are torch Parameters (float32)."""
+    """Gaussians bound to tets; appearance parameters are torch Parameters (float32).
+
+    tets (m, 4) or quadratic (m, 10); for quadratic tets ``rest`` (n, 3), the rest node positions, is
+    needed (the element map's Jacobian J at each Gaussian)."""
 
     def __init__(self, tets: np.ndarray, dm_inv: np.ndarray, host_tet: np.ndarray, bary: np.ndarray,
                  log_scales: np.ndarray, rotations: np.ndarray, opacity_logit: np.ndarray, sh: np.ndarray,
-                 background: np.ndarray | None = None):
+                 background: np.ndarray | None = None, rest: np.ndarray | None = None):
         super().__init__()
         f32 = lambda a: torch.as_tensor(np.asarray(a, np.float64), dtype=torch.float32)  # noqa: E731
         host_tet = np.asarray(host_tet, np.int64)
-        self.register_buffer("host_vertices", torch.as_tensor(np.asarray(tets, np.int64)[host_tet]))  # (G, 4)
-        self.register_buffer("dm_inv", f32(np.asarray(dm_inv)[host_tet]))  # (G, 3, 3)
+        tets = np.asarray(tets, np.int64)
+        self.quadratic = tets.shape[1] == 10
+        self.register_buffer("host_vertices", torch.as_tensor(tets[host_tet]))  # (G, 4 | 10)
+        self.register_buffer("dm_inv", f32(np.asarray(dm_inv)[host_tet]))  # (G, 3, 3) of the corner tet
+        if self.quadratic:
+            if rest is None:
+                raise ValueError("Gaussians bound to quadratic tets need the rest node positions")
+            self.register_buffer("rest_nodes", f32(np.asarray(rest, np.float64)[tets[host_tet]]))  # (G, 10, 3)
         self.host_tet = host_tet
         self.bary_logits = torch.nn.Parameter(f32(np.log(np.clip(bary, 1e-6, None))))
         self.log_scales = torch.nn.Parameter(f32(log_scales))
@@ -136,7 +147,8 @@ class BoundGaussians(torch.nn.Module):
     def from_artefact(cls, gaussians, mesh) -> "BoundGaussians":
         """From a GaussiansArtefact and the MeshArtefact it is bound to."""
         return cls(mesh.tets, mesh.dm_inv, gaussians.host_tet, gaussians.bary, gaussians.log_scales,
-                   gaussians.rotations, gaussians.opacity_logit, gaussians.sh, gaussians.background)
+                   gaussians.rotations, gaussians.opacity_logit, gaussians.sh, gaussians.background,
+                   rest=mesh.vertices)
 
     def to_artefact(self, fit_psnr: dict | None = None):
         """Current parameters as a GaussiansArtefact (bary renormalised, rotations unit)."""
@@ -166,16 +178,23 @@ class BoundGaussians(torch.nn.Module):
     def _corners(self, positions: torch.Tensor) -> torch.Tensor:
         x = torch.as_tensor(positions).to(self.dtype)
         # index_select: its backward is index_add_, much faster on the CPU than advanced indexing's
-        return x.index_select(0, self.host_vertices.reshape(-1)).reshape(-1, 4, 3)  # (G, 4, 3)
+        k = self.host_vertices.shape[1]
+        return x.index_select(0, self.host_vertices.reshape(-1)).reshape(-1, k, 3)  # (G, k, 3)
 
     def centres(self, positions: torch.Tensor, corners: torch.Tensor | None = None) -> torch.Tensor:
-        """μ = Σₖ βₖ x_k over the host tet's corners, (G, 3)."""
+        """μ = Σₖ βₖ x_k over the host tet's corners (quadratic: Σ_a N_a(β) x_a over its nodes), (G, 3)."""
         p = self._corners(positions) if corners is None else corners
-        return (self.bary()[:, :, None] * p).sum(1)
+        w = p2_shape(self.bary())[0] if self.quadratic else self.bary()
+        return (w[:, :, None] * p).sum(1)
 
     def deformation(self, positions: torch.Tensor, corners: torch.Tensor | None = None) -> torch.Tensor:
-        """F = D_s D_m⁻¹ of each Gaussian's host tet, (G, 3, 3)."""
+        """F = D_s D_m⁻¹ of each Gaussian's host tet (quadratic: D_x J⁻¹ at the Gaussian), (G, 3, 3)."""
         p = self._corners(positions) if corners is None else corners
+        if self.quadratic:
+            dN = p2_shape(self.bary())[1]  # (G, 10, 3)
+            dx = torch.einsum("gai,gaj->gij", p, dN)
+            J = torch.einsum("gai,gaj->gij", self.rest_nodes, dN)
+            return dx @ torch.linalg.inv(J)
         ds = (p[:, 1:4] - p[:, 0:1]).transpose(1, 2)
         return ds @ self.dm_inv
 
@@ -215,7 +234,8 @@ class BoundGaussians(torch.nn.Module):
         if fused and not cam.has_distortion and self.sh.shape[1] == 1:
             x = torch.as_tensor(positions)
             m2d, con, dep, vis = bind_project(x, self.bary_logits, self.log_scales, self.rotations,
-                                              self.host_vertices, self.dm_inv, cam)
+                                              self.host_vertices, self.rest_nodes if self.quadratic else self.dm_inv,
+                                              cam)
             return m2d, con, dep, vis, None
         corners = self._corners(positions)
         means = self.centres(positions, corners)

@@ -157,40 +157,46 @@ def _rotation_svd(F):
 
 
 @nb.njit(cache=True)
-def snh_kernel(x, tets, dm_inv, vol, mu, lam, want, project):
-    """Stable Neo-Hookean per tet (materials.stable_neohookean, μ' = 4μ/3, λ' = λ + 5μ/6):
-    energies V Ψ (m,), gradients (m, 12) and Hessians (m, 12, 12) w.r.t. x_e, projected to PSD
-    when ``project`` (1/True: eigenvalues clamped at 0; 2: replaced by their absolute values).
-    ``want``: ENERGY, GRADIENT or HESSIAN. x (n, 3), tets (m, 4), dm_inv (m, 3, 3)."""
-    m = tets.shape[0]
-    energy = np.empty(m)
-    grad = np.empty((m if want >= 1 else 0, 12))
-    hess = np.empty((m if want >= 2 else 0, 12, 12))
-    G = np.empty((4, 3))
+def snh_point_kernel(x, nodes, grad, weight, mu, lam, want, project, out_index, n_out):
+    """Stable Neo-Hookean at quadrature points (materials.stable_neohookean, μ' = 4μ/3, λ' = λ + 5μ/6).
+
+    Point p has nodes (k,) = nodes[p] (k = 4 or 10), shape gradients G = grad[p] (k, 3), weight
+    w = weight[p] (m³) and F = Σ_a x_a ⊗ G_a.  Its energy w Ψ(F), gradient w P G_a (3k,) and Hessian
+    (3k, 3k) are added into row out_index[p] of energies (n_out,), gradients (n_out, 3k) and Hessians
+    (n_out, 3k, 3k) — out_index = the element of each point sums them per element.  The Hessian is
+    projected to PSD when ``project`` (1/True: eigenvalues clamped at 0; 2: replaced by their
+    absolute values).  ``want``: ENERGY, GRADIENT or HESSIAN.  x (n, 3); mu, lam (q,) Pa."""
+    q = nodes.shape[0]
+    k = nodes.shape[1]
+    nd = 3 * k
+    energy = np.zeros(n_out)
+    gout = np.zeros((n_out if want >= 1 else 0, nd))
+    hout = np.zeros((n_out if want >= 2 else 0, nd, nd))
     F = np.empty((3, 3))
     C = np.empty((3, 3))  # cof(F) = ∂J/∂F
     U, Vr, A, Qs, work = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     sig, Ji, w3, wv = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     lams9 = np.empty(9)
     Q = np.empty((9, 9))  # row k: vec(Q_k), row-major vec
-    wk = np.empty(12)
+    wk = np.empty(nd)
     HF = np.empty((9, 9))
-    T = np.empty((9, 12))
+    T = np.empty((9, nd))
     O = np.empty((3, 3, 9))  # O[i, j] = vec(u_i v_jᵀ)
     s2 = 1.0 / math.sqrt(2.0)
     log4 = math.log(4.0)
-    for e in range(m):
-        for j in range(3):
-            G[1, j], G[2, j], G[3, j] = dm_inv[e, 0, j], dm_inv[e, 1, j], dm_inv[e, 2, j]
-            G[0, j] = -(G[1, j] + G[2, j] + G[3, j])
-        t0, t1, t2, t3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+    for p in range(q):
+        G = grad[p]
+        o = out_index[p]
         ic = 0.0
         for i in range(3):
             for j in range(3):
-                F[i, j] = x[t0, i] * G[0, j] + x[t1, i] * G[1, j] + x[t2, i] * G[2, j] + x[t3, i] * G[3, j]
-                ic += F[i, j] * F[i, j]
-        mus = 4.0 / 3.0 * mu[e]
-        lams = lam[e] + 5.0 / 6.0 * mu[e]
+                acc = 0.0
+                for a in range(k):
+                    acc += x[nodes[p, a], i] * G[a, j]
+                F[i, j] = acc
+                ic += acc * acc
+        mus = 4.0 / 3.0 * mu[p]
+        lams = lam[p] + 5.0 / 6.0 * mu[p]
         alpha = 1.0 + 0.75 * mus / lams
         for i in range(3):  # columns: f1×f2, f2×f0, f0×f1
             i1, i2 = (i + 1) % 3, (i + 2) % 3
@@ -200,47 +206,47 @@ def snh_kernel(x, tets, dm_inv, vol, mu, lam, want, project):
         J = F[0, 0] * C[0, 0] + F[1, 0] * C[1, 0] + F[2, 0] * C[2, 0]
         rest = 0.5 * lams * (1.0 - alpha) ** 2 - 0.5 * mus * log4
         psi = 0.5 * mus * (ic - 3.0) + 0.5 * lams * (J - alpha) ** 2 - 0.5 * mus * math.log(ic + 1.0) - rest
-        V = vol[e]
-        energy[e] = V * psi
+        V = weight[p]
+        energy[o] += V * psi
         if want < 1:
             continue
         d2 = 0.5 * mus * (1.0 - 1.0 / (ic + 1.0))  # ∂Ψ/∂I₂
         dJ = lams * (J - alpha)  # ∂Ψ/∂J
         d22 = 0.5 * mus / (ic + 1.0) ** 2  # ∂²Ψ/∂I₂²
-        for a in range(4):
+        for a in range(k):
             for i in range(3):
                 acc = 0.0
                 for j in range(3):
                     acc += (2.0 * d2 * F[i, j] + dJ * C[i, j]) * G[a, j]
-                grad[e, 3 * a + i] = V * acc
+                gout[o, 3 * a + i] += V * acc
         if want < 2:
             continue
-        H = hess[e]
+        Ho = hout[o]
         if not project:
             # exact: ∂²Ψ/∂F_ij∂F_kl = 2Ψ_I₂ δ_ik δ_jl + 4Ψ_I₂I₂ F_ij F_kl + λ' C_ij C_kl + Ψ_J ε_ikp ε_jlq F_pq
             for i in range(3):
                 for j in range(3):
                     r = 3 * i + j
-                    for k in range(3):
-                        for l in range(3):
-                            h = 4.0 * d22 * F[i, j] * F[k, l] + lams * C[i, j] * C[k, l]
-                            if i == k and j == l:
+                    for kk in range(3):
+                        for ll in range(3):
+                            h = 4.0 * d22 * F[i, j] * F[kk, ll] + lams * C[i, j] * C[kk, ll]
+                            if i == kk and j == ll:
                                 h += 2.0 * d2
-                            elif i != k and j != l:
-                                pp, qq = 3 - i - k, 3 - j - l
-                                sgn = (1.0 if k == (i + 1) % 3 else -1.0) * (1.0 if l == (j + 1) % 3 else -1.0)
+                            elif i != kk and j != ll:
+                                pp, qq = 3 - i - kk, 3 - j - ll
+                                sgn = (1.0 if kk == (i + 1) % 3 else -1.0) * (1.0 if ll == (j + 1) % 3 else -1.0)
                                 h += dJ * sgn * F[pp, qq]
-                            HF[r, 3 * k + l] = h
-            for r in range(9):  # T[(i,j), (b,k)] = Σ_l HF[(i,j),(k,l)] G[b,l]
-                for b in range(4):
-                    for k in range(3):
-                        T[r, 3 * b + k] = (HF[r, 3 * k] * G[b, 0] + HF[r, 3 * k + 1] * G[b, 1]
-                                           + HF[r, 3 * k + 2] * G[b, 2])
-            for a in range(4):  # H[(a,i),(b,k)] = V Σ_j G[a,j] T[(i,j),(b,k)]
+                            HF[r, 3 * kk + ll] = h
+            for r in range(9):  # T[(i,j), (b,kk)] = Σ_l HF[(i,j),(kk,l)] G[b,l]
+                for b in range(k):
+                    for kk in range(3):
+                        T[r, 3 * b + kk] = (HF[r, 3 * kk] * G[b, 0] + HF[r, 3 * kk + 1] * G[b, 1]
+                                            + HF[r, 3 * kk + 2] * G[b, 2])
+            for a in range(k):  # H[(a,i),(b,kk)] = V Σ_j G[a,j] T[(i,j),(b,kk)]
                 for i in range(3):
-                    for c in range(12):
-                        H[3 * a + i, c] = V * (G[a, 0] * T[3 * i, c] + G[a, 1] * T[3 * i + 1, c]
-                                               + G[a, 2] * T[3 * i + 2, c])
+                    for c in range(nd):
+                        Ho[3 * a + i, c] += V * (G[a, 0] * T[3 * i, c] + G[a, 1] * T[3 * i + 1, c]
+                                                 + G[a, 2] * T[3 * i + 2, c])
             continue
         _rotation_svd_into(F, U, sig, Vr, work, wv)
         Ji[0], Ji[1], Ji[2] = sig[1] * sig[2], sig[0] * sig[2], sig[0] * sig[1]
@@ -257,52 +263,65 @@ def snh_kernel(x, tets, dm_inv, vol, mu, lam, want, project):
                 for r in range(3):
                     for c in range(3):
                         O[i, j, 3 * r + c] = U[r, i] * Vr[c, j]
-        for k in range(3):
-            lams9[k] = w3[k]
+        for m9 in range(3):
+            lams9[m9] = w3[m9]
             for z in range(9):
-                Q[k, z] = Qs[0, k] * O[0, 0, z] + Qs[1, k] * O[1, 1, z] + Qs[2, k] * O[2, 2, z]
-        for p in range(3):
-            i, j = (0, 1) if p == 0 else ((0, 2) if p == 1 else (1, 2))
+                Q[m9, z] = Qs[0, m9] * O[0, 0, z] + Qs[1, m9] * O[1, 1, z] + Qs[2, m9] * O[2, 2, z]
+        for pr in range(3):
+            i, j = (0, 1) if pr == 0 else ((0, 2) if pr == 1 else (1, 2))
             kk = 3 - i - j
-            lams9[3 + p] = 2.0 * d2 + dJ * sig[kk]  # twist
-            lams9[6 + p] = 2.0 * d2 - dJ * sig[kk]  # flip
+            lams9[3 + pr] = 2.0 * d2 + dJ * sig[kk]  # twist
+            lams9[6 + pr] = 2.0 * d2 - dJ * sig[kk]  # flip
             for z in range(9):
-                Q[3 + p, z] = s2 * (O[i, j, z] - O[j, i, z])
-                Q[6 + p, z] = s2 * (O[i, j, z] + O[j, i, z])
-        for r in range(12):
-            for c in range(12):
-                H[r, c] = 0.0
-        for k in range(9):
-            lk = lams9[k]
+                Q[3 + pr, z] = s2 * (O[i, j, z] - O[j, i, z])
+                Q[6 + pr, z] = s2 * (O[i, j, z] + O[j, i, z])
+        for m9 in range(9):
+            lk = lams9[m9]
             if project and lk <= 0.0:
                 if project != 2:
                     continue
                 lk = -lk  # project == 2: absolute-value projection (Chen et al. 2024)
             # w = B vec(Q_k): w[(a,i)] = Σ_j Q_k[i, j] G[a, j]
-            for a in range(4):
+            for a in range(k):
                 for i in range(3):
-                    wk[3 * a + i] = Q[k, 3 * i] * G[a, 0] + Q[k, 3 * i + 1] * G[a, 1] + Q[k, 3 * i + 2] * G[a, 2]
+                    wk[3 * a + i] = (Q[m9, 3 * i] * G[a, 0] + Q[m9, 3 * i + 1] * G[a, 1]
+                                     + Q[m9, 3 * i + 2] * G[a, 2])
             c0 = V * lk
-            for r in range(12):
+            for r in range(nd):  # upper triangle here, the lower one after the loop over points
                 cr = c0 * wk[r]
-                for c in range(r, 12):
-                    H[r, c] += cr * wk[c]
-        for r in range(12):
-            for c in range(r):
-                H[r, c] = H[c, r]
-    return energy, grad, hess
+                for c in range(r, nd):
+                    Ho[r, c] += cr * wk[c]
+    if want >= 2 and project:
+        for o in range(n_out):
+            for r in range(nd):
+                for c in range(r):
+                    hout[o, r, c] = hout[o, c, r]
+    return energy, gout, hout
+
+
+def snh_kernel(x, tets, dm_inv, vol, mu, lam, want, project):
+    """Stable Neo-Hookean per linear tet: energies V Ψ (m,), gradients (m, 12) and Hessians (m, 12, 12)
+    w.r.t. x_e (:func:`snh_point_kernel` with one point per tet, G from Dm⁻¹).  x (n, 3),
+    tets (m, 4), dm_inv (m, 3, 3), vol (m,), mu, lam (m,)."""
+    tets = np.ascontiguousarray(tets, np.int64)
+    return snh_point_kernel(np.ascontiguousarray(x, np.float64), tets, shape_gradients(np.asarray(dm_inv, np.float64)),
+                            np.ascontiguousarray(vol, np.float64), np.ascontiguousarray(mu, np.float64),
+                            np.ascontiguousarray(lam, np.float64), want, int(project), np.arange(len(tets)), len(tets))
 
 
 # =========================================================================== JAX twin
-def _element_energy(material):
+def _point_energy(material):
     psi = energy_density(material)
 
-    def f(xe, g, vol, mu, lam):
-        """V Ψ(F) of one tet from its vertices xe (4, 3) and shape gradients g (4, 3)."""
+    def f(xe, g, w, mu, lam):
+        """w Ψ(F) of one quadrature point from its element's nodes xe (k, 3) and shape gradients g (k, 3)."""
         F = xe.T @ g
-        return vol * psi(F, mu, lam)
+        return w * psi(F, mu, lam)
 
     return f
+
+
+_element_energy = _point_energy  # one point per linear tet: V Ψ(F)
 
 
 def _project_psd(h, how=True):
@@ -311,63 +330,104 @@ def _project_psd(h, how=True):
     return (q * (jnp.abs(w) if how == "abs" else jnp.maximum(w, 0.0))) @ q.T
 
 
-def element_terms_jax(x, tets, dm_inv, vol, mu, lam, material: str, project: bool = True):
-    """JAX twin of :func:`snh_kernel` for any material: (energies (m,), gradients (m, 12),
-    Hessians (m, 12, 12)); the Hessian is Bᵀ proj(∂²Ψ/∂F²) B V with proj an eigenvalue clamp
-    (project=True), the absolute value of the eigenvalues (project="abs") or none (False)."""
-    return _element_terms_jit(jnp.asarray(x), jnp.asarray(tets), jnp.asarray(dm_inv), jnp.asarray(vol),
-                              jnp.asarray(mu), jnp.asarray(lam), material, project)
-
-
-def _element_terms_impl(x, tets, dm_inv, vol, mu, lam, material, project):
+def _point_terms_impl(x, nodes, g, weight, mu, lam, material, project):
+    """Per point: energies (q,), gradients (q, 3k), Hessians (q, 3k, 3k) (Bᵀ proj(∂²Ψ/∂F²) B w)."""
     psi = energy_density(material)
-    xe = x[tets]  # (m, 4, 3)
-    g = jnp.concatenate([-jnp.sum(dm_inv, axis=1, keepdims=True), dm_inv], axis=1)  # (m, 4, 3)
-    fe = _element_energy(material)
-    energy = jax.vmap(fe)(xe, g, vol, mu, lam)
-    grad = jax.vmap(jax.grad(fe))(xe, g, vol, mu, lam).reshape(-1, 12)
+    xe = x[nodes]  # (q, k, 3)
+    nd = 3 * nodes.shape[1]
+    fe = _point_energy(material)
+    energy = jax.vmap(fe)(xe, g, weight, mu, lam)
+    grad = jax.vmap(jax.grad(fe))(xe, g, weight, mu, lam).reshape(-1, nd)
 
     def hess_one(xe1, g1, v, m1, l1):
         F = xe1.T @ g1
         hf = jax.hessian(psi)(F, m1, l1).reshape(9, 9)  # row-major vec(F)
         if project:
             hf = _project_psd(hf, project)
-        # B (9, 12): ∂F_ij/∂x_{a,k} = δ_ik G_aj
-        B = jnp.einsum("ik,aj->ijak", jnp.eye(3), g1).reshape(9, 12)
+        # B (9, 3k): ∂F_ij/∂x_{a,k} = δ_ik G_aj
+        B = jnp.einsum("ik,aj->ijak", jnp.eye(3), g1).reshape(9, nd)
         return v * B.T @ hf @ B
 
-    hess = jax.vmap(hess_one)(xe, g, vol, mu, lam)
+    hess = jax.vmap(hess_one)(xe, g, weight, mu, lam)
     return energy, grad, hess
 
 
-_element_terms_jit = jax.jit(_element_terms_impl, static_argnums=(6, 7))
+_point_terms_jit = jax.jit(_point_terms_impl, static_argnums=(6, 7))
 
 
-def _element_eg_impl(x, tets, dm_inv, vol, mu, lam, material):
-    xe = x[tets]
-    g = jnp.concatenate([-jnp.sum(dm_inv, axis=1, keepdims=True), dm_inv], axis=1)
-    fe = _element_energy(material)
-    energy = jax.vmap(fe)(xe, g, vol, mu, lam)
-    grad = jax.vmap(jax.grad(fe))(xe, g, vol, mu, lam).reshape(-1, 12)
+def _point_eg_impl(x, nodes, g, weight, mu, lam, material):
+    xe = x[nodes]
+    fe = _point_energy(material)
+    energy = jax.vmap(fe)(xe, g, weight, mu, lam)
+    grad = jax.vmap(jax.grad(fe))(xe, g, weight, mu, lam).reshape(-1, 3 * nodes.shape[1])
     return energy, grad
 
 
-_element_eg_jit = jax.jit(_element_eg_impl, static_argnums=(6,))
+_point_eg_jit = jax.jit(_point_eg_impl, static_argnums=(6,))
+
+
+def point_terms_jax(x, nodes, grad, weight, mu, lam, material: str, project: bool = True):
+    """JAX twin of :func:`snh_point_kernel` for any material, per quadrature point (not summed):
+    (energies (q,), gradients (q, 3k), Hessians (q, 3k, 3k)); the Hessian is Bᵀ proj(∂²Ψ/∂F²) B w
+    with proj an eigenvalue clamp (project=True), |eigenvalues| (project="abs") or none (False)."""
+    return _point_terms_jit(jnp.asarray(x), jnp.asarray(nodes), jnp.asarray(grad), jnp.asarray(weight),
+                            jnp.asarray(mu), jnp.asarray(lam), material, project)
+
+
+def element_terms_jax(x, tets, dm_inv, vol, mu, lam, material: str, project: bool = True):
+    """JAX twin of :func:`snh_kernel` for any material, per linear tet with Dm⁻¹: (energies (m,),
+    gradients (m, 12), Hessians (m, 12, 12))."""
+    dm_inv = jnp.asarray(dm_inv)
+    g = jnp.concatenate([-jnp.sum(dm_inv, axis=1, keepdims=True), dm_inv], axis=1)  # (m, 4, 3)
+    return point_terms_jax(x, tets, g, vol, mu, lam, material, project)
+
+
+def _segment_sum(values: np.ndarray, index: np.ndarray | None, n_out: int) -> np.ndarray:
+    """Σ of rows of values (q, ...) with the same index (q,) -> (n_out, ...); index None: as they are."""
+    if index is None:
+        return values
+    q = len(index)
+    if q and q % n_out == 0 and q // n_out > 0:
+        per = q // n_out
+        if np.array_equal(index, np.repeat(np.arange(n_out), per)):  # element-major, equal counts
+            return values.reshape((n_out, per) + values.shape[1:]).sum(axis=1)
+    out = np.zeros((n_out,) + values.shape[1:])
+    np.add.at(out, index, values)
+    return out
+
+
+def point_terms(x, nodes, grad, weight, mu, lam, material: str, want: int = HESSIAN, project: bool = True,
+                backend: str = "auto", out_index: np.ndarray | None = None, n_out: int | None = None):
+    """(energies, gradients (·, 3k), Hessians (·, 3k, 3k)) of quadrature points in numpy, summed into
+    rows out_index (q,) of n_out (default: one row per point): numba for stable Neo-Hookean (backend
+    "auto"/"numba"), else the JAX twin (backend "jax", and every other material).
+    nodes (q, k), grad (q, k, 3) 1/m, weight (q,) m³, mu, lam (q,) Pa."""
+    if backend == "numba" and material != "stable_neohookean":
+        raise ValueError(f"the numba kernel covers stable_neohookean only, not {material!r}")
+    nodes = np.asarray(nodes)
+    nd = 3 * nodes.shape[1]
+    if material == "stable_neohookean" and backend in ("auto", "numba"):
+        code = 2 if project == "abs" else int(bool(project))
+        if out_index is None:
+            out_index, n_out = np.arange(len(nodes)), len(nodes)
+        return snh_point_kernel(np.ascontiguousarray(x, np.float64), np.ascontiguousarray(nodes, np.int64),
+                                np.ascontiguousarray(grad, np.float64), np.ascontiguousarray(weight, np.float64),
+                                np.ascontiguousarray(mu, np.float64), np.ascontiguousarray(lam, np.float64),
+                                want, code, np.ascontiguousarray(out_index, np.int64), int(n_out))
+    n_out = len(nodes) if out_index is None else int(n_out)
+    args = (jnp.asarray(x), jnp.asarray(nodes), jnp.asarray(grad), jnp.asarray(weight), jnp.asarray(mu),
+            jnp.asarray(lam), material)
+    if want < HESSIAN:
+        e, g = _point_eg_jit(*args)
+        return (_segment_sum(np.asarray(e), out_index, n_out), _segment_sum(np.asarray(g), out_index, n_out),
+                np.empty((0, nd, nd)))
+    e, g, h = _point_terms_jit(*args, project)
+    return tuple(_segment_sum(np.asarray(a), out_index, n_out) for a in (e, g, h))
 
 
 def element_terms(x, tets, dm_inv, vol, mu, lam, material: str, want: int = HESSIAN, project: bool = True,
                   backend: str = "auto"):
-    """Per-tet (energies, gradients, Hessians) in numpy: numba for stable Neo-Hookean (backend
-    "auto"/"numba"), else the JAX twin (backend "jax", and every other material)."""
-    if backend == "numba" and material != "stable_neohookean":
-        raise ValueError(f"the numba kernel covers stable_neohookean only, not {material!r}")
-    if material == "stable_neohookean" and backend in ("auto", "numba"):
-        code = 2 if project == "abs" else int(bool(project))
-        return snh_kernel(np.ascontiguousarray(x, np.float64), tets, dm_inv, vol, np.asarray(mu, np.float64),
-                          np.asarray(lam, np.float64), want, code)
-    if want < HESSIAN:
-        e, g = _element_eg_jit(jnp.asarray(x), jnp.asarray(tets), jnp.asarray(dm_inv), jnp.asarray(vol),
-                               jnp.asarray(mu), jnp.asarray(lam), material)
-        return np.asarray(e), np.asarray(g), np.empty((0, 12, 12))
-    e, g, h = element_terms_jax(x, tets, dm_inv, vol, mu, lam, material, project)
-    return np.asarray(e), np.asarray(g), np.asarray(h)
+    """Per linear tet (energies, gradients (m, 12), Hessians (m, 12, 12)) in numpy from Dm⁻¹ and V:
+    :func:`point_terms` with one point per tet."""
+    return point_terms(x, tets, shape_gradients(np.asarray(dm_inv, np.float64)), vol, mu, lam, material, want,
+                       project, backend)

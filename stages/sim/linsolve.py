@@ -1,8 +1,8 @@
 """Sparse assembly on a fixed pattern and the sparse direct solvers of Newton and the adjoint.
 
-The global Hessian is block-sparse with 3×3 blocks between vertices that share a tet, plus the
-3×3 diagonal block of every vertex. :class:`SparsePattern` computes the CSR pattern once per mesh
-and the map from every element entry (m, 12, 12) and vertex-block entry (n, 3, 3) to its slot in
+The global Hessian is block-sparse with 3×3 blocks between nodes that share an element (4 or 10
+nodes), plus the 3×3 diagonal block of every node. :class:`SparsePattern` computes the CSR pattern
+once per mesh and the map from every element entry (m, 3k, 3k) and vertex-block entry (n, 3, 3) to its slot in
 the CSR data array, so assembly is a scatter-add (numba, with a ``np.bincount`` twin).
 
 Solvers (``solver=`` name): "cholmod" (scikit-sparse; symbolic analysis done once per pattern and
@@ -46,9 +46,10 @@ class SparsePattern:
     def __init__(self, tets: np.ndarray, n_vertices: int):
         tets = np.asarray(tets, np.int64)
         m, n = len(tets), int(n_vertices)
-        dof = (3 * tets[:, :, None] + np.arange(3)).reshape(m, 12)  # (m, 12) global dofs
-        er = np.broadcast_to(dof[:, :, None], (m, 12, 12)).reshape(-1)
-        ec = np.broadcast_to(dof[:, None, :], (m, 12, 12)).reshape(-1)
+        nd = 3 * tets.shape[1]  # 12 (linear tets) or 30 (quadratic tets)
+        dof = (3 * tets[:, :, None] + np.arange(3)).reshape(m, nd)  # (m, 3k) global dofs
+        er = np.broadcast_to(dof[:, :, None], (m, nd, nd)).reshape(-1)
+        ec = np.broadcast_to(dof[:, None, :], (m, nd, nd)).reshape(-1)
         vd = (3 * np.arange(n)[:, None] + np.arange(3)).reshape(n, 3)
         vr = np.broadcast_to(vd[:, :, None], (n, 3, 3)).reshape(-1)
         vc = np.broadcast_to(vd[:, None, :], (n, 3, 3)).reshape(-1)
@@ -60,15 +61,21 @@ class SparsePattern:
         self.indices = cols.astype(np.int32)
         self.indptr = np.searchsorted(rows, np.arange(N + 1)).astype(np.int32)
         self.nnz = len(uniq)
-        self.elem_map = inv[: m * 144].reshape(m, 144).astype(np.int64)
-        self.vert_map = inv[m * 144:].reshape(n, 9).astype(np.int64)
+        self.elem_map = inv[: m * nd * nd].reshape(m, nd * nd).astype(np.int64)
+        self.vert_map = inv[m * nd * nd:].reshape(n, 9).astype(np.int64)
+        self.diagonal = np.searchsorted(uniq, np.arange(N) * (N + 1))  # CSR slot of each diagonal entry
 
     def assemble(self, elem_hess: np.ndarray, vert_blocks: np.ndarray) -> np.ndarray:
-        """CSR data of Σ_e (m, 12, 12) + Σ_i (n, 3, 3) blocks (numba scatter)."""
+        """CSR data of Σ_e (m, 3k, 3k) + Σ_i (n, 3, 3) blocks (numba scatter)."""
         data = np.zeros(self.nnz)
-        _scatter(data, self.elem_map, np.ascontiguousarray(elem_hess).reshape(-1, 144), self.vert_map,
-                 np.ascontiguousarray(vert_blocks).reshape(-1, 9))
+        _scatter(data, self.elem_map, np.ascontiguousarray(elem_hess).reshape(len(self.elem_map), -1),
+                 self.vert_map, np.ascontiguousarray(vert_blocks).reshape(-1, 9))
         return data
+
+    def rows_cols(self) -> tuple[np.ndarray, np.ndarray]:
+        """(row, column) of every CSR slot, (nnz,) each."""
+        rows = np.repeat(np.arange(self.shape[0]), np.diff(self.indptr))
+        return rows, self.indices.astype(np.int64)
 
     def assemble_reference(self, elem_hess: np.ndarray, vert_blocks: np.ndarray) -> np.ndarray:
         """Plain twin of :meth:`assemble` (np.bincount)."""
@@ -83,7 +90,7 @@ class SparsePattern:
 @nb.njit(cache=True)
 def _scatter(data, elem_map, elem_vals, vert_map, vert_vals):
     for e in range(elem_map.shape[0]):
-        for k in range(144):
+        for k in range(elem_map.shape[1]):
             data[elem_map[e, k]] += elem_vals[e, k]
     for i in range(vert_map.shape[0]):
         for k in range(9):

@@ -17,7 +17,16 @@ def signed_volumes(x: np.ndarray, tets: np.ndarray) -> np.ndarray:
 
 def rest_quantities(vertices: np.ndarray, tets: np.ndarray, density: float
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(rest volumes (m,), Dm⁻¹ (m,3,3), lumped vertex masses (n,)) — each tet gives ρV/4 to its vertices."""
+    """(rest volumes (m,), Dm⁻¹ (m,3,3), lumped vertex masses (n,)) — each tet gives ρV/4 to its vertices.
+    Quadratic tets (m, 10): V = Σ of the element's quadrature weights (curved elements included), Dm⁻¹
+    of the corner tet, HRZ lumped masses (stages.sim.quadrature)."""
+    tets = np.asarray(tets)
+    if tets.shape[-1] == 10:
+        from .quadrature import build_quadrature, element_volumes, lumped_masses
+
+        vol = element_volumes(build_quadrature(vertices, tets), len(tets))
+        dm_inv = np.linalg.inv(shape_matrices(vertices, tets[:, :4]))
+        return vol, dm_inv, lumped_masses(vertices, tets, density, vol)
     dm = shape_matrices(vertices, tets)
     vol = np.linalg.det(dm) / 6.0
     dm_inv = np.linalg.inv(dm)
@@ -31,3 +40,13 @@ def deformation_gradients(x, tets, dm_inv):
     p = x[tets]
     ds = (p[:, 1:4] - p[:, 0:1]).transpose(0, 2, 1)  # columns x_i − x_0
     return ds @ dm_inv
+
+
+TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])  # outward faces of a positive tet
+
+
+def boundary_faces(tets: np.ndarray) -> np.ndarray:
+    """Outward boundary triangles (k, 3) of positively oriented linear tets (m, 4): faces used by one tet."""
+    faces = np.asarray(tets)[:, TET_FACES].reshape(-1, 3)
+    _, inv, cnt = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+    return faces[cnt[inv.reshape(-1)] == 1]

@@ -42,12 +42,49 @@ def surface_faces(tets: np.ndarray) -> np.ndarray:
 
 
 def mesh_artefact(vertices: np.ndarray, tets: np.ndarray, density: float, tet_region: np.ndarray | None = None,
-                  region_names: tuple[str, ...] = ("body",)):
-    """A MeshArtefact (in memory) with rest quantities computed from vertices and tets."""
+                  region_names: tuple[str, ...] = ("body",), order: int | None = None):
+    """A MeshArtefact (in memory) with rest quantities computed from vertices and tets (m, 4) or (m, 10).
+    order=2 with linear tets adds straight mid-edge nodes (stages.sim.quadrature.quadratic_tets);
+    order None keeps the tets as they are."""
     from ..artefacts import MeshArtefact
+    from .quadrature import element_order, quadratic_surface, quadratic_tets
 
+    vertices, tets = np.asarray(vertices, np.float64), np.asarray(tets, np.int64)
+    if order not in (None, 1, 2):
+        raise ValueError(f"order is 1 or 2, not {order}")
+    if order == 2 and element_order(tets) == 1:
+        vertices, tets = quadratic_tets(vertices, tets)
+    elif order == 1 and element_order(tets) == 2:
+        raise ValueError("order=1 asked for quadratic tets")
     vol, dm_inv, masses = rest_quantities(vertices, tets, density)
     region = np.zeros(len(tets), np.int64) if tet_region is None else np.asarray(tet_region, np.int64)
-    return MeshArtefact(vertices=np.asarray(vertices, np.float64), tets=np.asarray(tets, np.int64),
-                        surface_faces=surface_faces(tets), tet_region=region, region_names=list(region_names),
-                        rest_volumes=vol, dm_inv=dm_inv, vertex_masses=masses, density=float(density))
+    faces = surface_faces(tets) if element_order(tets) == 1 else quadratic_surface(tets)
+    return MeshArtefact(vertices=vertices, tets=tets, surface_faces=faces, tet_region=region,
+                        region_names=list(region_names), rest_volumes=vol, dm_inv=dm_inv, vertex_masses=masses,
+                        density=float(density))
+
+
+def refine_tets(vertices: np.ndarray, tets: np.ndarray, tet_region: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split every linear tet (m, 4) into 8 through its edge midpoints (Bey 1995): (vertices (n + e, 3),
+    tets (8m, 4), tet_region (8m,)); the first n vertices are the original ones, so positions of the
+    coarse mesh are a prefix of the fine mesh's."""
+    vertices = np.asarray(vertices, np.float64)
+    tets = np.asarray(tets, np.int64)
+    n = len(vertices)
+    edges = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
+    e = np.sort(tets[:, edges].reshape(-1, 2), axis=1)
+    uniq, inv = np.unique(e, axis=0, return_inverse=True)
+    mid = 0.5 * (vertices[uniq[:, 0]] + vertices[uniq[:, 1]])
+    m = inv.reshape(-1, 6) + n  # midpoint ids: 01 02 03 12 13 23
+    a, b, c, d = tets.T
+    m01, m02, m03, m12, m13, m23 = m.T
+    children = [
+        (a, m01, m02, m03), (m01, b, m12, m13), (m02, m12, c, m23), (m03, m13, m23, d),
+        (m01, m02, m03, m13), (m01, m02, m12, m13), (m02, m03, m13, m23), (m02, m12, m13, m23),
+    ]
+    new = np.stack([np.stack(ch, axis=1) for ch in children], axis=1).reshape(-1, 4)
+    verts = np.vstack([vertices, mid])
+    neg = signed_volumes(verts, new) < 0  # keep positive orientation
+    new[neg] = new[neg][:, [0, 2, 1, 3]]
+    return verts, new, np.repeat(np.asarray(tet_region), 8)

@@ -34,7 +34,10 @@ class SceneData:
 
     LEAVES = ("rest", "tets", "dm_inv", "volumes", "masses", "tet_region", "gravity", "dt",
               "handle_ids", "handle_stiffness", "obstacle_normal", "obstacle_offset", "obstacle_radius",
-              "obstacle_half", "friction", "contact_stiffness", "contact_margin", "friction_eps")
+              "obstacle_half", "friction", "contact_stiffness", "contact_margin", "friction_eps",
+              "quad_nodes", "quad_grad", "quad_weight", "quad_element")
+    # quad_*: the quadrature points (stages.sim.quadrature.Quadrature) of quadratic tets; None for linear
+    # tets, whose one point per tet is (tets, Dm⁻¹, volumes). A hard handle has handle_stiffness 0.
 
     def __init__(self, leaves: dict, material: str, shapes: tuple, n_regions: int):
         for k in self.LEAVES:
@@ -70,7 +73,8 @@ def scene_data(scene) -> SceneData:
         masses=jnp.asarray(scene.masses, f), tet_region=jnp.asarray(scene.tet_region, np.int32),
         gravity=jnp.asarray(scene.gravity, f), dt=jnp.asarray(scene.dt, f),
         handle_ids=tuple(jnp.asarray(h.ids, np.int32) for h in scene.handles),
-        handle_stiffness=tuple(jnp.asarray(h.stiffness, f) for h in scene.handles),
+        handle_stiffness=tuple(jnp.asarray(0.0 if getattr(h, "hard", False) else h.stiffness, f)
+                               for h in scene.handles),
         obstacle_normal=jnp.asarray(np.array([o.normal if o.normal is not None else np.zeros(3) for o in obs],
                                              f).reshape(-1, 3)),
         obstacle_offset=jnp.asarray(np.array([o.offset for o in obs], f)),
@@ -80,7 +84,12 @@ def scene_data(scene) -> SceneData:
         friction=jnp.asarray(scene.friction, f), contact_stiffness=jnp.asarray(scene.contact_stiffness, f),
         contact_margin=jnp.asarray(getattr(scene, "contact_margin", 0.0), f),
         friction_eps=jnp.asarray(getattr(scene, "friction_eps", 1e-5), f),
+        quad_nodes=None, quad_grad=None, quad_weight=None, quad_element=None,
     )
+    quad = getattr(scene, "quad", None)
+    if quad is not None and np.shape(scene.tets)[-1] == 10:
+        leaves.update(quad_nodes=jnp.asarray(quad.nodes, np.int32), quad_grad=jnp.asarray(quad.grad, f),
+                      quad_weight=jnp.asarray(quad.weight, f), quad_element=jnp.asarray(quad.element, np.int32))
     data = SceneData(leaves, scene.material, tuple(o.shape for o in obs), int(scene.n_regions))
     try:
         _DATA_CACHE[scene] = data
@@ -91,7 +100,7 @@ def scene_data(scene) -> SceneData:
 
 # =========================================================================== material parameters
 def tet_lame(scene, young, poisson):
-    """(μ_e, λ_e) per tet, (m,) each, from per-region θ: young (R,) Pa, poisson (R,)."""
+    """(μ_e, λ_e) per element, (m,) each, from per-region θ: young (R,) Pa, poisson (R,)."""
     s = scene_data(scene)
     mu, lam = lame(jnp.asarray(young, jnp.float64), jnp.asarray(poisson, jnp.float64))
     return mu[s.tet_region], lam[s.tet_region]
@@ -99,11 +108,16 @@ def tet_lame(scene, young, poisson):
 
 # =========================================================================== energies
 def elastic_energy(x, scene, mu_tet, lam_tet):
-    """Σ_e V_e Ψ(F_e; μ_e, λ_e), x (n, 3) m -> J."""
+    """Σ_q w_q Ψ(F_q; μ, λ of the point's element) over the quadrature points, x (n, 3) m -> J;
+    mu_tet, lam_tet (m,) per element.  Linear tets: one point per tet, Σ_e V_e Ψ(Ds Dm⁻¹).
+    Quadratic tets: F_q = Σ_a x_a ⊗ ∇N_a(ξ_q) (stages.sim.quadrature)."""
     s = scene_data(scene)
-    F = deformation_gradients(x, s.tets, s.dm_inv)  # (m, 3, 3)
-    psi = jax.vmap(energy_density(s.material))(F, mu_tet, lam_tet)
-    return jnp.sum(s.volumes * psi)
+    psi = jax.vmap(energy_density(s.material))
+    if s.quad_nodes is None:
+        F = deformation_gradients(x, s.tets, s.dm_inv)  # (m, 3, 3)
+        return jnp.sum(s.volumes * psi(F, mu_tet, lam_tet))
+    F = jnp.einsum("qki,qkj->qij", x[s.quad_nodes], s.quad_grad)  # (q, 3, 3)
+    return jnp.sum(s.quad_weight * psi(F, mu_tet[s.quad_element], lam_tet[s.quad_element]))
 
 
 def _quat_matrix(q):

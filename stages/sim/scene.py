@@ -25,9 +25,10 @@ import numpy as np
 
 from ..errors import RslError
 from . import potential as pot
-from .elements import GRADIENT, HESSIAN, element_terms
+from .elements import GRADIENT, HESSIAN, point_terms
 from .linsolve import LinearSolver, NotPositiveDefinite, SparsePattern, resolve_solver
 from .materials import MODELS, lame
+from .quadrature import Quadrature, build_quadrature, element_order, linear_quadrature
 
 jax.config.update("jax_enable_x64", True)
 
@@ -37,7 +38,8 @@ jax.config.update("jax_enable_x64", True)
 class HandleSpec:
     name: str
     ids: np.ndarray  # (k,) vertex ids
-    stiffness: float  # N/m per vertex
+    stiffness: float  # N/m per vertex (ignored when hard)
+    hard: bool = False  # Dirichlet: the vertices sit exactly at their targets (no spring term in Φ)
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,9 +62,9 @@ class ObstacleSpec:
 class Scene:
     """Everything constant over a sequence (numpy float64)."""
 
-    rest: np.ndarray  # (n, 3) m
-    tets: np.ndarray  # (m, 4)
-    dm_inv: np.ndarray  # (m, 3, 3)
+    rest: np.ndarray  # (n, 3) m, all nodes (corners and, for quadratic tets, mid-edge nodes)
+    tets: np.ndarray  # (m, 4) linear or (m, 10) quadratic tets (stages.sim.quadrature)
+    dm_inv: np.ndarray  # (m, 3, 3) of the corner tets
     volumes: np.ndarray  # (m,) m³
     masses: np.ndarray  # (n,) kg
     tet_region: np.ndarray  # (m,) region index
@@ -78,10 +80,23 @@ class Scene:
     contact_stiffness: float  # κ, N/m per vertex
     contact_margin: float = 0.0  # d̂, m: the penalty acts below this distance
     friction_eps: float = 1e-5  # m, smoothing of the friction norm
+    quad: Quadrature | None = None  # quadrature points of the elastic energy (built from the rest when None)
+
+    def __post_init__(self):
+        if self.quad is None:
+            tets = np.asarray(self.tets, np.int64)
+            q = (linear_quadrature(tets, self.dm_inv, self.volumes) if element_order(tets) == 1
+                 else build_quadrature(self.rest, tets))
+            object.__setattr__(self, "quad", q)
 
     @property
     def n_vertices(self) -> int:
         return int(self.rest.shape[0])
+
+    @property
+    def order(self) -> int:
+        """1 for linear, 2 for quadratic tets."""
+        return element_order(self.tets)
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,7 +123,7 @@ def make_scene(mesh, controls, material: str, dt: float, gravity, contact_stiffn
     """Scene from a MeshArtefact and Controls. Handles use the mesh's stored vertex sets when it has
     them, else the controls' selections. Default κ = 100 M max(|g|, 9.81) / d̂ (the whole weight on one
     vertex sinks d̂/100) and d̂ = 10⁻³ × the bounding-box diagonal."""
-    from ..capture import select_handles  # capture imports nothing from sim
+    from stages.domain.controls import select_handles
 
     if material not in MODELS:
         raise RslError(f"unknown material model {material!r}; use one of {', '.join(MODELS)}.")
@@ -118,7 +133,8 @@ def make_scene(mesh, controls, material: str, dt: float, gravity, contact_stiffn
     missing = [h for h in controls.handles if h.name not in ids_by_name]
     if missing:
         ids_by_name.update(select_handles(controls, rest))
-    handles = tuple(HandleSpec(h.name, np.asarray(ids_by_name[h.name], np.int64), float(h.stiffness))
+    handles = tuple(HandleSpec(h.name, np.asarray(ids_by_name[h.name], np.int64), float(h.stiffness),
+                               bool(getattr(h, "hard", False)))
                     for h in controls.handles)
     load_ids = dict(getattr(mesh, "loads", {}) or {})  # mesh.h5 maps surface ids to tet-mesh vertices
     loads = tuple(LoadSpec(ld.name, np.asarray(load_ids[ld.name] if ld.name in load_ids
@@ -136,8 +152,14 @@ def make_scene(mesh, controls, material: str, dt: float, gravity, contact_stiffn
     kappa = (100.0 * masses.sum() * max(np.linalg.norm(g), 9.81) / max(margin, 1e-9)
              if contact_stiffness is None else float(contact_stiffness))
     names = tuple(mesh.region_names)
-    return Scene(rest=rest, tets=tets, dm_inv=np.ascontiguousarray(mesh.dm_inv, np.float64),
-                 volumes=np.ascontiguousarray(mesh.rest_volumes, np.float64), masses=masses,
+    dm_inv = np.ascontiguousarray(mesh.dm_inv, np.float64)
+    volumes = np.ascontiguousarray(mesh.rest_volumes, np.float64)
+    try:
+        quad = (linear_quadrature(tets, dm_inv, volumes) if element_order(tets) == 1
+                else build_quadrature(rest, tets))
+    except ValueError as e:
+        raise RslError(f"the mesh cannot be simulated: {e}.") from None
+    return Scene(rest=rest, tets=tets, dm_inv=dm_inv, volumes=volumes, quad=quad, masses=masses,
                  tet_region=np.ascontiguousarray(mesh.tet_region, np.int64), n_regions=len(names),
                  region_names=names, material=material, dt=float(dt), gravity=g, handles=handles,
                  loads=loads, obstacles=tuple(obstacles), friction=float(controls.friction),
@@ -146,7 +168,7 @@ def make_scene(mesh, controls, material: str, dt: float, gravity, contact_stiffn
 
 def frame_inputs(scene: Scene, controls, frame: int) -> FrameInputs:
     """Handle targets (rigidly moved rest positions), per-vertex load forces and obstacle poses at a frame."""
-    from ..capture import apply_pose
+    from stages.domain.controls import apply_pose
 
     targets = tuple(apply_pose(h.poses.at(frame), scene.rest[hs.ids])
                     for h, hs in zip(controls.handles, scene.handles))
@@ -163,7 +185,8 @@ class _SceneCache:
         self._scene = weakref.ref(scene)
         self._pattern: SparsePattern | None = None
         self.solvers: dict[str, LinearSolver] = {}
-        self.dof: np.ndarray | None = None  # (12m,) global dof of each element-gradient entry
+        self.dof: np.ndarray | None = None  # (3km,) global dof of each element-gradient entry
+        self._fixed: tuple | None = None  # (fixed dof mask (3n,) | None, CSR slots to zero, diagonal slots)
 
     @property
     def pattern(self) -> SparsePattern:
@@ -172,6 +195,20 @@ class _SceneCache:
             scene = self._scene()
             self._pattern = SparsePattern(scene.tets, scene.n_vertices)
         return self._pattern
+
+    def fixed(self):
+        """(mask (3n,) of the DOFs of hard handles or None, CSR slots in their rows/columns, their diagonal
+        slots)."""
+        if self._fixed is None:
+            scene = self._scene()
+            mask = fixed_dofs(scene)
+            if mask is None:
+                self._fixed = (None, None, None)
+            else:
+                rows, cols = self.pattern.rows_cols()
+                slots = np.flatnonzero(mask[rows] | mask[cols])
+                self._fixed = (mask, slots, self.pattern.diagonal[np.flatnonzero(mask)])
+        return self._fixed
 
     def solver(self, name: str) -> LinearSolver:
         kind = resolve_solver(name)
@@ -191,7 +228,7 @@ def _cache(scene: Scene) -> _SceneCache:
 
 
 def _region_lame(scene: Scene, young, poisson) -> tuple[np.ndarray, np.ndarray]:
-    """(μ_e, λ_e) per tet (numpy) from per-region (R,) θ."""
+    """(μ_e, λ_e) per element (numpy) from per-region (R,) θ."""
     young = np.broadcast_to(np.asarray(young, np.float64), (scene.n_regions,))
     poisson = np.broadcast_to(np.asarray(poisson, np.float64), (scene.n_regions,))
     mu, lam = lame(young, poisson)
@@ -226,6 +263,8 @@ def _vertex_terms(scene: Scene, inputs: FrameInputs, x, y, x_prev, want: int, pr
         blocks = np.zeros((scene.n_vertices, 3, 3))
         blocks += (inv_dt2 * scene.masses)[:, None, None] * np.eye(3)
     for h, target in zip(scene.handles, inputs.handle_targets):
+        if h.hard:  # Dirichlet: no energy term, its DOFs are held at the target
+            continue
         dh = x[h.ids] - target
         energy += 0.5 * h.stiffness * np.sum(dh * dh)
         if grad is not None:
@@ -264,12 +303,19 @@ def _frictionless(s: pot.SceneData) -> pot.SceneData:
 
 # =========================================================================== energy / forces
 def _elastic(scene: Scene, x, mu, lam, want: int, project: bool, kernels: str):
-    return element_terms(x, scene.tets, scene.dm_inv, scene.volumes, mu, lam, scene.material, want, project,
-                         kernels)
+    """Per element (energies (m,), gradients (m, 3k), Hessians (m, 3k, 3k)): the sums over the
+    element's quadrature points; mu, lam (m,) per element."""
+    q = scene.quad
+    if scene.order == 1:  # one point per tet, element-ordered
+        mu_q, lam_q = mu, lam
+    else:
+        mu_q, lam_q = np.ascontiguousarray(mu[q.element]), np.ascontiguousarray(lam[q.element])
+    return point_terms(x, q.nodes, q.grad, q.weight, mu_q, lam_q, scene.material, want, project, kernels,
+                       q.element, len(scene.tets))
 
 
 def _scatter_grad(scene: Scene, elem_grad: np.ndarray) -> np.ndarray:
-    """Σ_e element gradients (m, 12) into the flat vertex gradient (3n,)."""
+    """Σ_e element gradients (m, 3k) into the flat vertex gradient (3n,)."""
     cache = _cache(scene)
     if cache.dof is None:
         cache.dof = (3 * scene.tets[:, :, None] + np.arange(3)).reshape(-1)
@@ -298,6 +344,81 @@ def hessian(scene: Scene, inputs: FrameInputs, x, x_prev, young, poisson, projec
     _, _, hv = _vertex_terms(scene, inputs, x, x, x_prev, HESSIAN, project)
     pattern = _cache(scene).pattern
     return pattern.matrix(pattern.assemble(he, hv))
+
+
+# =========================================================================== hard (Dirichlet) handles
+def fixed_dofs(scene: Scene) -> np.ndarray | None:
+    """(3n,) bool: the DOFs held by hard handles (None when the scene has none)."""
+    hard = [h.ids for h in scene.handles if h.hard]
+    if not hard:
+        return None
+    mask = np.zeros((scene.n_vertices, 3), bool)
+    mask[np.concatenate(hard)] = True
+    return mask.reshape(-1)
+
+
+def apply_hard_targets(scene: Scene, inputs: FrameInputs, x) -> np.ndarray:
+    """A copy of x (n, 3) with the vertices of every hard handle at their targets."""
+    x = np.array(x, np.float64)
+    for h, target in zip(scene.handles, inputs.handle_targets):
+        if h.hard:
+            x[h.ids] = target
+    return x
+
+
+def _constrain(cache: _SceneCache, data: np.ndarray) -> np.ndarray:
+    """CSR data with the rows and columns of fixed DOFs zeroed and their diagonal set to the mean
+    |diagonal| (so H Δx = −g with g = 0 there gives Δx = 0 there); in place, returned."""
+    mask, slots, diag = cache.fixed()
+    if mask is None:
+        return data
+    scale = float(np.mean(np.abs(data[cache.pattern.diagonal]))) or 1.0
+    data[slots] = 0.0
+    data[diag] = scale
+    return data
+
+
+def solve_free(scene: Scene, H, rhs: np.ndarray, solver: str = "auto") -> np.ndarray:
+    """The solution a (3n,) of H_ff a_f = rhs_f with a = 0 on the DOFs of hard handles (all DOFs free
+    when there are none); H a scipy CSR matrix on the scene's pattern (:func:`hessian`), symmetric.
+    Cholesky when H_ff is positive definite, else LU."""
+    cache = _cache(scene)
+    rhs = np.array(rhs, np.float64).reshape(-1)
+    mask = cache.fixed()[0]
+    data = np.array(H.data, np.float64)
+    if not (H.indptr is cache.pattern.indptr or np.array_equal(H.indptr, cache.pattern.indptr)):
+        raise ValueError("Hessian pattern does not match the scene")
+    if mask is not None:
+        rhs[mask] = 0.0
+        _constrain(cache, data)
+    return _solve_data(cache.solver(solver), cache, data, rhs)
+
+
+def handle_reactions(scene: Scene, inputs: FrameInputs, x, x_prev, x_prev2, young, poisson,
+                     kernels: str = "auto") -> np.ndarray:
+    """The total force (h, 3) N each handle exerts on the object at the solved state x (n, 3).
+    Spring handle: Σ_i k (x̄_i − x_i).  Hard handle: Σ_i r_i over its vertices, r = ∇_x Φ without the
+    handle terms (elastic, inertia with y = 2x_prev − x_prev2, gravity, loads, contact, friction lagged
+    at x_prev); at a solved step the free vertices have r = 0, so this is the force that keeps the
+    held vertices where they are (for a spring handle the same expression gives k Σ (x̄ − x))."""
+    x = np.asarray(x, np.float64)
+    out = np.zeros((len(scene.handles), 3))
+    if any(h.hard for h in scene.handles):
+        x_prev = np.asarray(x_prev, np.float64)
+        y = 2.0 * x_prev - np.asarray(x_prev2, np.float64)
+        mu, lam = _region_lame(scene, young, poisson)
+        _, ge, _ = _elastic(scene, x, mu, lam, GRADIENT, True, kernels)
+        _, gv, _ = _vertex_terms(scene, inputs, x, y, x_prev, GRADIENT, True)
+        r = _scatter_grad(scene, ge).reshape(-1, 3) + gv
+        for i, h in enumerate(scene.handles):  # remove the spring pulls: Φ without the handle terms
+            if not h.hard:
+                np.add.at(r, h.ids, -h.stiffness * (x[h.ids] - inputs.handle_targets[i]))
+    for i, (h, target) in enumerate(zip(scene.handles, inputs.handle_targets)):
+        if h.hard:
+            out[i] = r[h.ids].sum(axis=0)
+        else:
+            out[i] = h.stiffness * np.sum(np.asarray(target) - x[h.ids], axis=0)
+    return out
 
 
 # =========================================================================== Newton
@@ -331,9 +452,10 @@ def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_i
     x_prev = np.asarray(x_prev, np.float64)
     x_prev2 = np.asarray(x_prev2, np.float64)
     y = 2.0 * x_prev - x_prev2
-    x = np.array(y if x_init is None else x_init, np.float64)
+    x = apply_hard_targets(scene, inputs, y if x_init is None else x_init)
     mu, lam = _region_lame(scene, young, poisson)
     cache = _cache(scene)
+    fixed = cache.fixed()[0]
     lin = cache.solver(solver)
     tm = timings if timings is not None else {}
     for k in ("elements", "assembly", "solve", "vertex", "line_search"):
@@ -365,6 +487,8 @@ def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_i
         ev, gv, _ = _vertex_terms(scene, inputs, x, y, x_prev, GRADIENT, True)
         t2 = time.perf_counter()
         grad = _scatter_grad(scene, ge) + gv.reshape(-1)
+        if fixed is not None:
+            grad[fixed] = 0.0  # Newton on the free DOFs
         e_x = float(np.sum(ee)) + ev
         gnorm = float(np.linalg.norm(grad))
         if not np.isfinite(gnorm):
@@ -387,7 +511,7 @@ def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_i
             t1 = time.perf_counter()
             _, _, hv = _vertex_terms(scene, inputs, x, y, x_prev, HESSIAN, proj)
             t2 = time.perf_counter()
-            data = cache.pattern.assemble(he, hv)
+            data = _constrain(cache, cache.pattern.assemble(he, hv))
             t3 = time.perf_counter()
             tm["elements"] += t1 - t0
             tm["vertex"] += t2 - t1
@@ -524,6 +648,7 @@ def window_adjoint(scene: Scene, inputs: Sequence[FrameInputs], young, poisson, 
     s = _data_for(scene)
     cache = _cache(scene)
     lin = cache.solver(solver)
+    fixed = cache.fixed()[0]
 
     def prev(k, j):  # x_{k−j} with the two frames before the window
         i = k - j
@@ -540,6 +665,9 @@ def window_adjoint(scene: Scene, inputs: Sequence[FrameInputs], young, poisson, 
         if k + 2 < w:
             rhs -= c2[k + 2]
         H = hessian(scene, inputs[k], X[k], prev(k, 1), young[k], poisson[k], project=False, kernels=kernels)
+        if fixed is not None:  # x_k on hard-handle DOFs is an input (the target): a_k = 0 there
+            rhs[fixed] = 0.0
+            H.data = _constrain(cache, np.array(H.data))
         a = _solve_symmetric(lin, cache, H, rhs)
         d_xp, d_xpp, d_e, d_nu = _residual_vjp(jnp.asarray(X[k]), jnp.asarray(prev(k, 1)), jnp.asarray(prev(k, 2)),
                                                jnp.asarray(young[k]), jnp.asarray(poisson[k]), s, inputs[k],
@@ -559,6 +687,10 @@ def _solve_symmetric(lin: LinearSolver, cache: _SceneCache, H, rhs: np.ndarray) 
     data = np.asarray(H.data)
     if not (H.indptr is cache.pattern.indptr or np.array_equal(H.indptr, cache.pattern.indptr)):
         raise ValueError("Hessian pattern does not match the scene")
+    return _solve_data(lin, cache, data, rhs)
+
+
+def _solve_data(lin: LinearSolver, cache: _SceneCache, data: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     try:
         lin.factor(data)
         return lin.solve(rhs)

@@ -94,6 +94,40 @@ def tet_stress(x: np.ndarray, tets: np.ndarray, dm_inv: np.ndarray, mu: np.ndarr
     return {"F": F, "J": np.linalg.det(F), "P": P, "sigma": sigma, "von_mises": von_mises(sigma)}
 
 
+def point_stress(x: np.ndarray, quad, mu: np.ndarray, lam: np.ndarray, model: str = "stable_neohookean"
+                 ) -> dict[str, np.ndarray]:
+    """Stress state at every quadrature point (stages.sim.quadrature.Quadrature ``quad``; linear tets:
+    one point per tet, quadratic tets: 4) at positions x (n, 3) m: F_q = Σ_a x_a ⊗ ∇N_a(ξ_q).
+
+    Returns ``F`` (q,3,3), ``J`` (q,), ``P`` (q,3,3) Pa, ``sigma`` = J⁻¹ P Fᵀ (q,3,3) Pa and
+    ``von_mises`` (q,) Pa.  μ, λ: (q,) Pa per point (e.g. per element indexed by quad.element).
+    """
+    x = np.asarray(x, np.float64)
+    F = np.einsum("qki,qkj->qij", x[quad.nodes], quad.grad)
+    P = first_piola(F, mu, lam, model)
+    sigma = cauchy_stress(F, P)
+    return {"F": F, "J": np.linalg.det(F), "P": P, "sigma": sigma, "von_mises": von_mises(sigma)}
+
+
+def element_average(values: np.ndarray, quad, n_elements: int) -> np.ndarray:
+    """Weight-averaged value per element, Σ_q w_q a_q / Σ_q w_q over its points; values (q, ...) -> (m, ...)."""
+    values = np.asarray(values, np.float64)
+    flat = values.reshape(len(values), -1)
+    num = np.zeros((n_elements, flat.shape[1]))
+    np.add.at(num, quad.element, flat * quad.weight[:, None])
+    den = np.bincount(quad.element, weights=quad.weight, minlength=n_elements)
+    return (num / den[:, None]).reshape((n_elements,) + values.shape[1:])
+
+
+def point_nodal_forces(P: np.ndarray, quad, n_vertices: int) -> np.ndarray:
+    """Internal nodal forces f_a = −Σ_q w_q P_q ∇N_a(ξ_q), (n, 3) N, from the first Piola–Kirchhoff
+    stress P (q, 3, 3) Pa of every quadrature point (the negative gradient of Σ_q w_q Ψ(F_q))."""
+    fq = -np.einsum("q,qij,qaj->qai", quad.weight, np.asarray(P, np.float64), quad.grad)  # (q, k, 3)
+    f = np.zeros((n_vertices, 3))
+    np.add.at(f, quad.nodes.reshape(-1), fq.reshape(-1, 3))
+    return f
+
+
 def principal_stresses(sigma: np.ndarray) -> np.ndarray:
     """Eigenvalues of the symmetric Cauchy stress, descending, (..., 3) Pa."""
     sym = 0.5 * (sigma + np.swapaxes(sigma, -1, -2))
@@ -105,8 +139,8 @@ def vertex_average(values: np.ndarray, tets: np.ndarray, volumes: np.ndarray, n_
                    ) -> np.ndarray:
     """Volume-weighted average onto vertices: a_i = Σ_{e∋i} V_e a_e / Σ_{e∋i} V_e.
 
-    values (m, ...) per tet, tets (m, 4), volumes (m,) m³ -> (n, ...).  A vertex
-    that belongs to no tet gets 0.
+    values (m, ...) per element, tets (m, 4) or (m, 10) (every node of an element gets its value),
+    volumes (m,) m³ -> (n, ...).  A vertex that belongs to no element gets 0.
     """
     values = np.asarray(values, np.float64)
     vol = np.asarray(volumes, np.float64)
@@ -114,7 +148,7 @@ def vertex_average(values: np.ndarray, tets: np.ndarray, volumes: np.ndarray, n_
     weighted = (values.reshape(len(vol), -1) * vol[:, None])
     num = np.zeros((n_vertices, weighted.shape[1]))
     den = np.zeros(n_vertices)
-    for k in range(4):
+    for k in range(np.shape(tets)[1]):
         np.add.at(num, tets[:, k], weighted)
         np.add.at(den, tets[:, k], vol)
     out = np.divide(num, den[:, None], out=np.zeros_like(num), where=den[:, None] > 0)
@@ -183,19 +217,51 @@ class SetForce:
     n_vertices: int  # handle vertices, or vertices in contact with the obstacle
 
 
+def hard_handle_forces(scene, inputs, x: np.ndarray, x_prev: np.ndarray, x_prev2: np.ndarray,
+                       f_int: np.ndarray) -> np.ndarray:
+    """Per-vertex force (n, 3) N that would hold every vertex in place: ∇_x Φ without handle terms,
+    r_i = m_i (x_i − y_i)/Δt² − m_i g − f_load,i − f_int,i − f_contact,i, y = 2 x_prev − x_prev2
+    (stages.sim.scene.handle_reactions).  At a solved step it vanishes on the free vertices; on the
+    vertices of a hard (Dirichlet) handle it is the force the handle exerts on the body."""
+    x = np.asarray(x, np.float64)
+    y = 2.0 * np.asarray(x_prev, np.float64) - np.asarray(x_prev2, np.float64)
+    m = np.asarray(scene.masses, np.float64)[:, None]
+    r = m * (x - y) / scene.dt ** 2 - m * np.asarray(scene.gravity)[None, :] - np.asarray(inputs.load_forces) \
+        - np.asarray(f_int, np.float64)
+    if scene.obstacles:
+        s, all_inputs = _contact_inputs(scene, inputs)
+        xp = jnp.asarray(x_prev, jnp.float64) if scene.friction > 0.0 else None
+        r -= np.asarray(_contact_forces(jnp.asarray(x, jnp.float64), xp, s, all_inputs))
+    return r
+
+
+def _hard_forces_or_fail(scene, inputs, x, x_prev, x_prev2, f_int):
+    if not any(getattr(h, "hard", False) for h in scene.handles):
+        return None
+    if x_prev2 is None or f_int is None:
+        raise ValueError("the force of a hard handle needs x_prev2 and f_int (the inertia and elastic terms)")
+    return hard_handle_forces(scene, inputs, x, x_prev, x_prev2, f_int)
+
+
 def set_forces(scene, inputs, x: np.ndarray, x_prev: np.ndarray, f_int: np.ndarray,
-               contact_distance: float = 1.0e-3) -> list[SetForce]:
+               contact_distance: float = 1.0e-3, x_prev2: np.ndarray | None = None) -> list[SetForce]:
     """Forces of every handle and obstacle of a stages.sim Scene at positions x (n, 3) m.
 
     f_int (n, 3) N: internal nodal forces (:func:`nodal_forces`).  Handles sum over their vertex
-    set; ``applied`` = Σ k (x̄ − x), the springs' pull.  Obstacles sum over the vertices whose signed
-    distance is below the contact margin d̂ + ``contact_distance`` (m); ``applied`` = −∂E_c/∂x summed,
-    the penalty contact force (with the lagged friction from x_prev (n, 3) when friction is on).
+    set; ``applied`` = Σ k (x̄ − x), the springs' pull, or for a hard handle the force holding its
+    vertices (:func:`hard_handle_forces`, which needs x_prev2 = x_{t−2} (n, 3) for the inertia).
+    Obstacles sum over the vertices whose signed distance is below the contact margin d̂ +
+    ``contact_distance`` (m); ``applied`` = −∂E_c/∂x summed, the penalty contact force (with the
+    lagged friction from x_prev (n, 3) when friction is on).
     """
     out = []
+    hard = _hard_forces_or_fail(scene, inputs, x, x_prev, x_prev2, f_int)
     for h, target in zip(scene.handles, inputs.handle_targets):
         vec, mag = force_sum(f_int, h.ids)
-        applied = h.stiffness * np.sum(np.asarray(target) - x[h.ids], axis=0)
+        if getattr(h, "hard", False):
+            applied = hard[h.ids].sum(axis=0)
+        else:
+            applied = h.stiffness * np.sum(np.asarray(target) - x[h.ids], axis=0)
         out.append(SetForce(h.name, "handle", vec, mag, applied, int(len(h.ids))))
     for o, ob in enumerate(scene.obstacles):
         ids, applied = contact_force(scene, inputs, o, x, x_prev, contact_distance)
@@ -242,11 +308,17 @@ def contact_force(scene, inputs, o: int, x: np.ndarray, x_prev: np.ndarray, cont
     return ids, f.sum(axis=0)
 
 
-def applied_forces(scene, inputs, x: np.ndarray, x_prev: np.ndarray) -> np.ndarray:
-    """Per-vertex force (n, 3) N that the handles (k (x̄ − x)) and obstacles (−∂E_c/∂x) exert on the body."""
+def applied_forces(scene, inputs, x: np.ndarray, x_prev: np.ndarray, x_prev2: np.ndarray | None = None,
+                   f_int: np.ndarray | None = None) -> np.ndarray:
+    """Per-vertex force (n, 3) N that the handles (k (x̄ − x); hard handles: :func:`hard_handle_forces`,
+    which needs x_prev2 and f_int) and obstacles (−∂E_c/∂x) exert on the body."""
     f = np.zeros_like(np.asarray(x, np.float64))
+    hard = _hard_forces_or_fail(scene, inputs, x, x_prev, x_prev2, f_int)
     for h, target in zip(scene.handles, inputs.handle_targets):
-        np.add.at(f, h.ids, h.stiffness * (np.asarray(target) - x[h.ids]))
+        if getattr(h, "hard", False):
+            np.add.at(f, h.ids, hard[h.ids])
+        else:
+            np.add.at(f, h.ids, h.stiffness * (np.asarray(target) - x[h.ids]))
     if scene.obstacles:
         s, all_inputs = _contact_inputs(scene, inputs)
         xp = jnp.asarray(x_prev, jnp.float64) if scene.friction > 0.0 else None

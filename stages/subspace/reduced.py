@@ -3,7 +3,7 @@
 A frame solves h(z) = ∂E/∂z = J(z)ᵀ r(φ(z)) = 0 by Newton with a backtracking line search, where
 
     E(z) = ½/Δt² (q − q_y)ᵀ G (q − q_y) − qᵀ Uᵀ(M g + f)                    inertia, gravity, loads
-           + Σ_{e∈C} w_e V_e Ψ(F_e(φ_C(z)))                                    elastic (cubature)
+           + Σ_{q∈C} w_q V_q Ψ(F_q(φ_C(z)))                                    elastic (cubature)
            + ½ qᵀ (Σ_h k_h U_hᵀU_h) q − qᵀ Σ_h k_h U_hᵀ(x̂_h − x̄_h)              handle springs (exact)
            + contact(φ_S(z); φ_S(z_{t−1}))                                   stages.sim.potential terms
 
@@ -11,17 +11,18 @@ with q = q(z) the decoder's PCA coefficients (x = x̄ + U q), q_y = 2 q(z_{t−1
 y = 2φ(z_{t−1}) − φ(z_{t−2}) = x̄ + U q_y exactly) and G = Uᵀ M U.  Inertia, gravity and loads are
 thus exact and cost O(p²) whatever the mesh (the handle springs ½k‖x_h − x̂_h‖², x̂_h the targets,
 are quadratic in q too, so their Hessian is precomputed and their targets projected once per frame):
-only the vertices touched by the cubature tets C and, when the scene has obstacles, the surface S
-are decoded (rows of U).  The elastic and contact terms are stages.sim.potential's own functions
-evaluated on a restricted SceneData (local vertex ids, volumes w_e V_e, zero masses).
+only the nodes of the elements of the cubature points C (quadrature points, stages.sim.quadrature:
+one per linear tet, four per quadratic tet; F_q = x[nodes_q]ᵀ grad_q) and, when the scene has
+obstacles, the surface S are decoded (rows of U).  The contact terms are stages.sim.potential's own
+functions evaluated on a restricted SceneData (local vertex ids, zero masses).
 
 ``reference=True`` instead evaluates the full incremental potential of stages.sim.potential on
-φ(z) over every tet and vertex: the literal Eq. 3, which tests hold the fast path to.
+φ(z) over every element and vertex: the literal Eq. 3, which tests hold the fast path to.
 
 Newton uses the exact reduced Hessian ∂²E/∂z² = Jqᵀ H_q Jq + Σ_k (∂E/∂q_k) ∂²q_k/∂z² (the decoder
 curvature term, zero for PCA), never a 3n×3n matrix; when it is not positive definite a multiple
-of the identity is added.  Without obstacles it is assembled (``_H_jit``): F_e = F0_e + D_e q is
-linear in q, so H_q = G/Δt² + K_h + Σ_{e∈C} D_eᵀ (w_e V_e ∂²Ψ/∂F²) D_e with the constant D_e (9, p)
+of the identity is added.  Without obstacles it is assembled (``_H_jit``): F_q = F0_q + D_q q is
+linear in q, so H_q = G/Δt² + K_h + Σ_{q∈C} D_qᵀ (w_q V_q ∂²Ψ/∂F²) D_q with the constant D_q (9, p)
 and 9×9 material Hessians — one (p × 9c)(9c × p) product instead of r forward-over-reverse passes
 (``_EGH_jit``, its twin, which tests hold it to and which scenes with contact use).  The step is
 quasi-Newton: the inverse of the last exact Hessian (kept across iterations and frames) is
@@ -46,7 +47,9 @@ import numpy as np  # noqa: E402
 
 from stages.errors import RslError  # noqa: E402
 from stages.sim import potential as P  # noqa: E402
-from stages.sim.materials import energy_density  # noqa: E402
+from stages.sim.materials import energy_density, lame  # noqa: E402
+from stages.sim.quadrature import element_order, quadratic_surface  # noqa: E402
+from stages.subspace.cubature import scene_quadrature  # noqa: E402
 from stages.subspace.networks import LINEAR_KINDS, SubspaceMap, net_decode  # noqa: E402
 
 
@@ -66,7 +69,10 @@ class ReducedInputs(NamedTuple):
 
 
 def surface_vertices(tets: np.ndarray) -> np.ndarray:
-    """Vertices on the boundary (faces used by one tet only)."""
+    """Vertices on the boundary (faces used by one tet only; for quadratic tets (m, 10) with their
+    mid-edge nodes)."""
+    if element_order(tets) == 2:
+        return np.unique(quadratic_surface(tets))
     f = np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 3, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 1]]])
     key = np.sort(f, axis=1)
     _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
@@ -80,8 +86,9 @@ def _q_of_z(kind: str, net: dict, q_scale, z):
 class ReducedModel:
     """Reduced dynamics of one scene in one subspace (module docstring).
 
-    sub: the map φ; scene: stages.sim.scene.Scene; cubature: (tet ids (c,), weights (c,)) or None for
-    all tets with weight 1; reference: evaluate the full potential on φ(z) (every tet, every vertex).
+    sub: the map φ; scene: stages.sim.scene.Scene (linear or quadratic tets); cubature: (quadrature
+    point ids (c,), weights (c,)) or None for every point with weight 1 (for linear tets point ids are
+    tet ids); reference: evaluate the full potential on φ(z) (every element, every vertex).
     """
 
     def __init__(self, sub: SubspaceMap, scene, cubature: tuple[np.ndarray, np.ndarray] | None = None,
@@ -98,18 +105,23 @@ class ReducedModel:
         g_mat = np.einsum("nip,ni,niq->pq", basis, np.repeat(m[:, None], 3, 1), basis)  # Uᵀ M U
         grav_q = np.einsum("nip,ni->p", basis, m[:, None] * np.asarray(scene.gravity)[None, :])  # Uᵀ M g
         full = P.scene_data(scene)
+        quad = scene_quadrature(scene)
+        self.quadrature = quad
         if cubature is None:
-            tet_ids, weights = np.arange(len(scene.tets)), np.ones(len(scene.tets))
+            ids, weights = np.arange(quad.n_points), np.ones(quad.n_points)
         else:
-            tet_ids, weights = np.asarray(cubature[0], np.int64), np.asarray(cubature[1], np.float64)
-        self.cubature_tets, self.cubature_weights = tet_ids, weights
+            ids, weights = np.asarray(cubature[0], np.int64), np.asarray(cubature[1], np.float64)
+            if len(ids) and (ids.min() < 0 or ids.max() >= quad.n_points):
+                raise RslError(f"the cubature names quadrature point {int(ids.max())} but the mesh has "
+                               f"{quad.n_points}; retrain the subspace on this mesh.")
+        self.cubature_points, self.cubature_weights = ids, weights
         tets = np.asarray(scene.tets)
         # handle springs ½k‖x̄_h + U_h q − target‖² are quadratic in q: Hessian k U_hᵀU_h precomputed
         h_mat = np.zeros((basis.shape[2],) * 2)
         for h in scene.handles:
             uh = basis[np.asarray(h.ids)].reshape(-1, basis.shape[2])
             h_mat += float(h.stiffness) * uh.T @ uh
-        verts = [tets[tet_ids].ravel()]
+        verts = [quad.nodes[ids].ravel()]
         if len(scene.obstacles):
             verts.append(surface_vertices(tets))
         vs = np.unique(np.concatenate(verts)) if verts else np.zeros(0, np.int64)
@@ -117,29 +129,27 @@ class ReducedModel:
         local = np.full(n, -1, np.int64)
         local[vs] = np.arange(len(vs))
         leaves = {k: getattr(full, k) for k in P.SceneData.LEAVES}
-        leaves.update(
-            rest=jnp.asarray(np.asarray(scene.rest)[vs]), tets=jnp.asarray(local[tets[tet_ids]], np.int32),
-            dm_inv=jnp.asarray(np.asarray(scene.dm_inv)[tet_ids]),
-            volumes=jnp.asarray(np.asarray(scene.volumes)[tet_ids] * weights),
-            masses=jnp.zeros(len(vs)), tet_region=jnp.asarray(np.asarray(scene.tet_region)[tet_ids], np.int32),
-            gravity=jnp.zeros(3),
-            handle_ids=(), handle_stiffness=(),
-        )
+        # the contact terms only (the elastic energy is over the cubature points below): the element
+        # leaves stay the full scene's, unused
+        leaves.update(rest=jnp.asarray(np.asarray(scene.rest)[vs]), masses=jnp.zeros(len(vs)),
+                      gravity=jnp.zeros(3), handle_ids=(), handle_stiffness=())
         sub_scene = P.SceneData(leaves, full.material, full.shapes, full.n_regions)
+        nodes_l = local[quad.nodes[ids]]  # (c, k) local vertex ids
+        grad_c = np.asarray(quad.grad[ids], np.float64)  # (c, k, 3)
         self.data = dict(
+            cub_nodes=jnp.asarray(nodes_l, np.int32), cub_grad=jnp.asarray(grad_c),
+            cub_vol=jnp.asarray(np.asarray(quad.weight)[ids] * weights),
+            cub_region=jnp.asarray(np.asarray(scene.tet_region)[quad.element[ids]], np.int32),
             net={k: jnp.asarray(v) for k, v in sub.net.items()}, q_scale=jnp.asarray(sub.q_scale),
             rest_s=jnp.asarray(np.asarray(sub.rest)[vs]), basis_s=jnp.asarray(basis[vs]),
             G=jnp.asarray(g_mat), grav_q=jnp.asarray(grav_q), scene_s=sub_scene, H_handle=jnp.asarray(h_mat),
         )
         if reference:
             self.data.update(rest=jnp.asarray(sub.rest), basis=self._basis_full, scene=full)
-        else:  # F_e(q) = F0_e + D_e q is linear in q: its derivative, for the assembled Hessian
-            dmi = np.asarray(scene.dm_inv)[tet_ids]
-            gsh = np.concatenate([-dmi.sum(axis=1, keepdims=True), dmi], axis=1)  # (c, 4, 3) shape gradients
-            tl = local[tets[tet_ids]]
+        else:  # F_q(q) = F0_q + D_q q is linear in q: its derivative, for the assembled Hessian
             self.data.update(
-                dF=jnp.asarray(np.einsum("eaj,eaip->eijp", gsh, basis[vs][tl]).reshape(len(tet_ids), 9, -1)),
-                F0=jnp.asarray(np.einsum("eaj,eai->eij", gsh, np.asarray(sub.rest)[vs][tl])))
+                dF=jnp.asarray(np.einsum("eaj,eaip->eijp", grad_c, basis[vs][nodes_l]).reshape(len(ids), 9, -1)),
+                F0=jnp.asarray(np.einsum("eaj,eai->eij", grad_c, np.asarray(sub.rest)[vs][nodes_l])))
         # the assembled Hessian (module docstring) covers the elastic and quadratic terms; contact
         # Hessians come from the forward-over-reverse kernel
         self._assembled = not reference and not len(scene.obstacles)
@@ -157,10 +167,21 @@ class ReducedModel:
             raise RslError(f"subspace.h5: weights {', '.join(missing)} are missing; retrain the subspace.")
         sub = SubspaceMap.from_weights(subspace.subspace_kind, subspace.weights)
         cub = None
-        if cubature and "cubature_tets" in subspace.extra:
-            cub = (np.asarray(subspace.extra["cubature_tets"], np.int64),
-                   np.asarray(subspace.extra["cubature_weights"], np.float64))
+        extra = subspace.extra
+        key = "cubature_points" if "cubature_points" in extra else "cubature_tets"  # older files: tet ids
+        if cubature and key in extra:
+            order = element_order(scene.tets)
+            if int(extra.get("cubature_order", 1)) != order:
+                raise RslError(f"subspace.h5: its cubature was fitted on a mesh of order "
+                               f"{int(extra.get('cubature_order', 1))}, this mesh has order {order}; "
+                               "retrain the subspace on this mesh.")
+            cub = (np.asarray(extra[key], np.int64), np.asarray(extra["cubature_weights"], np.float64))
         return cls(sub, scene, cub, reference)
+
+    @property
+    def cubature_tets(self) -> np.ndarray:
+        """The cubature's quadrature point ids (the older name; for linear tets they are tet ids)."""
+        return self.cubature_points
 
     from_artefact = from_artefacts
 
@@ -416,16 +437,27 @@ def _energy_q(q, q1, q2, young, poisson, rin, d, reference: bool):
         def phi(qq):
             return d["rest"] + jnp.einsum("nip,p->ni", d["basis"], qq)
 
-        mu, lam = P.tet_lame(full, young, poisson)
-        return P.incremental_potential(phi(q), 2.0 * phi(q1) - phi(q2), full, rin, mu, lam, phi(q1))
+        return P.step_potential(phi(q), phi(q1), phi(q2), young, poisson, full, rin)
     s = d["scene_s"]
     dq = q - (2.0 * q1 - q2)
     e = 0.5 / s.dt ** 2 * dq @ (d["G"] @ dq) - q @ (d["grav_q"] + rin.load_q + rin.handle_q) \
         + 0.5 * q @ (d["H_handle"] @ q)
     x = d["rest_s"] + jnp.einsum("nip,p->ni", d["basis_s"], q)
     x1 = d["rest_s"] + jnp.einsum("nip,p->ni", d["basis_s"], q1)
-    mu, lam = P.tet_lame(s, young, poisson)
-    return e + P.elastic_energy(x, s, mu, lam) + P.external_energy(x, x, s, rin, x1)
+    return e + _cubature_elastic(x, young, poisson, d, s.material) + P.external_energy(x, x, s, rin, x1)
+
+
+def _cubature_lame(young, poisson, d):
+    """(μ, λ) at each cubature point, from per-region young (R,) Pa and poisson (R,)."""
+    mu, lam = lame(jnp.asarray(young, jnp.float64), jnp.asarray(poisson, jnp.float64))
+    return mu[d["cub_region"]], lam[d["cub_region"]]
+
+
+def _cubature_elastic(x, young, poisson, d, material: str):
+    """Σ_{q∈C} w_q V_q Ψ(F_q), F_q = x[nodes_q]ᵀ grad_q, x (n_s, 3) the decoded vertex subset."""
+    mu, lam = _cubature_lame(young, poisson, d)
+    F = jnp.einsum("cki,ckj->cij", x[d["cub_nodes"]], d["cub_grad"])
+    return jnp.sum(d["cub_vol"] * jax.vmap(energy_density(material))(F, mu, lam))
 
 
 def _q(z, d, kind):
@@ -480,16 +512,16 @@ def _GN_jit(z, z1, z2, y, nu, rin, d, kind, reference):
 
 @partial(jax.jit, static_argnames=("kind",))
 def _H_jit(z, z1, z2, young, poisson, rin, d, kind):
-    """∂²E/∂z² assembled (no obstacles): Jqᵀ (G/Δt² + K_h + Σ_e D_eᵀ w_e V_e ∂²Ψ/∂F² D_e) Jq + the decoder
-    curvature Σ_k (∂E/∂q_k) ∂²q_k/∂z², with Jq = ∂q/∂z (p, r) and D_e = ∂vec F_e/∂q (9, p) constant."""
+    """∂²E/∂z² assembled (no obstacles): Jqᵀ (G/Δt² + K_h + Σ_q D_qᵀ w_q V_q ∂²Ψ/∂F² D_q) Jq + the decoder
+    curvature Σ_k (∂E/∂q_k) ∂²q_k/∂z², with Jq = ∂q/∂z (p, r) and D_q = ∂vec F_q/∂q (9, p) constant."""
     s = d["scene_s"]
     q, q1, q2 = _q(z, d, kind), _q(z1, d, kind), _q(z2, d, kind)
     jq = jax.jacfwd(lambda zz: _q(zz, d, kind))(z)  # (p, r)
-    mu, lam = P.tet_lame(s, young, poisson)
+    mu, lam = _cubature_lame(young, poisson, d)
     F = d["F0"] + (d["dF"] @ q).reshape(-1, 3, 3)
     psi = energy_density(s.material)
     hf = jax.vmap(lambda f, m, l: jax.hessian(psi)(f, m, l).reshape(9, 9))(F, mu, lam)  # (c, 9, 9)
-    b = jnp.einsum("cfg,cgp->cfp", hf * s.volumes[:, None, None], d["dF"])
+    b = jnp.einsum("cfg,cgp->cfp", hf * d["cub_vol"][:, None, None], d["dF"])
     h_q = jnp.einsum("cfp,cfs->ps", d["dF"], b) + d["G"] / s.dt ** 2 + d["H_handle"]  # (p, p)
     h = jq.T @ h_q @ jq
     if kind in LINEAR_KINDS:

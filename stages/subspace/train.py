@@ -12,7 +12,9 @@ harmonic skinning weights w_j (the tet mesh's scalar stiffness / cotangent Lapla
 off the handles, w_j = 1 at handle j's vertex and 0 at the others; clipped ≥ 0, renormalised to a
 partition of unity), and 12 modes per handle, u_{j,a}(x) = w_j(x) e_a ⊗ [x̄ − c_j; 1] (a 3×4 affine
 map per handle), mass-orthonormalised.  Because Σ_j w_j = 1 the span holds every affine map of x̄,
-rigid motions included.
+rigid motions included.  On quadratic tets (m, 10) the handles are corner nodes, the weights are
+solved on the corner tets and each mid-edge node takes the mean of its edge's two corner weights
+(the linear interpolant along the edge, so the partition of unity holds at every node).
 """
 from __future__ import annotations
 
@@ -109,12 +111,29 @@ def harmonic_weights(rest: np.ndarray, tets: np.ndarray, handle_ids: np.ndarray)
     clipped ≥ 0 and renormalised so that every row sums to 1 (a partition of unity).
 
     Vertices the handles cannot reach (a component without a handle) get the uniform 1/k.
+    Quadratic tets (m, 10): solved on the corner tets (handles must be corners), mid-edge nodes
+    interpolated linearly along their edges.
     """
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
+    from stages.sim.quadrature import P2_EDGES, element_order
+
     n, k = len(rest), len(handle_ids)
     handle_ids = np.asarray(handle_ids, np.int64)
+    tets = np.asarray(tets, np.int64)
+    if element_order(tets) == 2:
+        corners = np.unique(tets[:, :4])
+        local = np.full(n, -1, np.int64)
+        local[corners] = np.arange(len(corners))
+        if np.any(local[handle_ids] < 0):
+            raise ValueError("LBS handles of a quadratic mesh must be corner nodes")
+        Wc = harmonic_weights(rest[corners], local[tets[:, :4]], local[handle_ids])
+        W = np.zeros((n, k))
+        W[corners] = Wc
+        for e, (a, b) in enumerate(P2_EDGES):
+            W[tets[:, 4 + e]] = 0.5 * (W[tets[:, a]] + W[tets[:, b]])
+        return W
     if len(np.unique(handle_ids)) != k:
         raise ValueError("handle vertices must be distinct")
     L = stiffness_laplacian(rest, tets).tocsc()
@@ -183,8 +202,14 @@ def lbs_basis(rest: np.ndarray, tets: np.ndarray, masses: np.ndarray, r: int,
     Returns (U, info{"handle_ids" (k,), "handles" (k, 3), "weights" (n, k), "span" (n, 3, P),
     "span_dim" P, "selection"}).
     """
+    from stages.sim.quadrature import element_order
+
     k = max(1, math.ceil(r / 12))
-    ids = farthest_point_samples(rest, k, seed)
+    if element_order(tets) == 2:  # handles at corner nodes
+        corners = np.unique(np.asarray(tets)[:, :4])
+        ids = corners[farthest_point_samples(rest[corners], k, seed)]
+    else:
+        ids = farthest_point_samples(rest, k, seed)
     handles = rest[ids]
     W = harmonic_weights(rest, tets, ids)
     span = mass_orthonormalise(lbs_modes(rest, W, handles), masses, tol)

@@ -19,7 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.artefacts import Camera
+from stages.domain.cameras import Camera
+from stages.domain.rotations import matrix_to_quat_wxyz as matrix_to_quat
+from stages.domain.rotations import quat_wxyz_to_matrix as quat_to_matrix
 from stages.errors import RslError
 
 # id: (name, number of params)
@@ -27,23 +29,6 @@ MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 
           4: ("OPENCV", 8), 5: ("OPENCV_FISHEYE", 8), 6: ("FULL_OPENCV", 12), 7: ("FOV", 5),
           8: ("SIMPLE_RADIAL_FISHEYE", 4), 9: ("RADIAL_FISHEYE", 5), 10: ("THIN_PRISM_FISHEYE", 12)}
 MODEL_IDS = {name: (i, n) for i, (name, n) in MODELS.items()}
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z), w ≥ 0, of a rotation matrix."""
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
-    q = np.array([w, x, y, z])
-    return q if q[0] >= 0 else -q
 
 
 def intrinsics_from_model(model: str, params: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:

@@ -15,23 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def rotvec_to_matrix(r: np.ndarray) -> np.ndarray:
-    """Rodrigues: R = I + sinθ [k]× + (1 − cosθ) [k]×², θ = |r|, k = r/θ; r (3,) -> (3, 3)."""
-    r = np.asarray(r, dtype=np.float64).reshape(3)
-    th = float(np.linalg.norm(r))
-    if th < 1e-12:
-        K = skew(r)
-        return np.eye(3) + K + 0.5 * K @ K
-    K = skew(r / th)
-    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
-
-
-def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`rotvec_to_matrix` (axis·angle, angle in [0, π])."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
+from stages.domain.rotations import (matrix_to_rotvec, mean_rotation, rotation_angle_deg,  # noqa: F401 (re-exported)
+                                     rotvec_to_matrix)
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -51,21 +36,6 @@ def invert(a: tuple) -> tuple:
     """Inverse pose: p ↦ Rᵀ (p − t)."""
     R, t = a
     return R.T, -R.T @ t
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """Angle of a rotation matrix, degrees: arccos((tr R − 1)/2)."""
-    c = (np.trace(R) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
-
-
-def mean_rotation(Rs: list[np.ndarray], weights: np.ndarray | None = None) -> np.ndarray:
-    """Chordal L2 mean: the rotation nearest (Frobenius) to Σ wᵢ Rᵢ (SVD projection)."""
-    w = np.ones(len(Rs)) if weights is None else np.asarray(weights, dtype=np.float64)
-    M = sum(wi * Ri for wi, Ri in zip(w, Rs))
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
 
 
 def distort(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:

@@ -56,21 +56,43 @@ def fill_holes(mask: np.ndarray) -> np.ndarray:
 
 
 def clean_mask(mask: np.ndarray, open_px: int = 1, close_px: int = 2, largest: bool = True,
-               holes: bool = True) -> np.ndarray:
-    """Opening (removes specks), closing (bridges gaps), largest component, holes filled."""
+               holes: bool = True, ignore: np.ndarray | None = None) -> np.ndarray:
+    """Opening (removes specks), closing (bridges gaps), largest component, holes filled.
+
+    ``ignore`` (H, W) bool: pixels an occluder covers, neither object nor background.  They are removed from
+    the result, but connect across: the object cut in two by a gripper in front of it stays whole (the
+    kept component is the component of mask ∪ ignore holding the most mask pixels, and holes of that
+    component are filled before the ignored pixels are taken out).
+    """
     import cv2
 
-    m = np.asarray(mask, np.uint8)
+    ign = None if ignore is None or not np.any(ignore) else np.asarray(ignore, bool)
+    m = np.asarray(mask, bool)
+    if ign is not None:
+        m = m & ~ign
+    m = m.astype(np.uint8)
     if open_px > 0:
         m = cv2.morphologyEx(m, cv2.MORPH_OPEN, disc(open_px))
     if close_px > 0:
         m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, disc(close_px))
     out = m.astype(bool)
+    if ign is None:
+        if largest:
+            out = largest_component(out)
+        if holes:
+            out = fill_holes(out)
+        return out
+    if not out.any():
+        return out
+    bridged = out | ign
     if largest:
-        out = largest_component(out)
+        n, labels = cv2.connectedComponents(bridged.astype(np.uint8), connectivity=8)
+        counts = np.bincount(labels[out], minlength=n)
+        counts[0] = 0
+        bridged = labels == int(np.argmax(counts))
     if holes:
-        out = fill_holes(out)
-    return out
+        bridged = fill_holes(bridged)
+    return bridged & ~ign
 
 
 def temporal_majority(masks: np.ndarray, window: int = 3) -> np.ndarray:
@@ -150,6 +172,24 @@ def chroma_key(frame: np.ndarray, key_rgb: np.ndarray | None = None, threshold: 
         t8, _ = cv2.threshold(d8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
         threshold = max(8.0, t8 * max(d.max(), 1e-9) / 255.0)
     return d > threshold
+
+
+def backdrop_uniformity(image: np.ndarray, width: int = 4) -> tuple[float, np.ndarray]:
+    """(spread, key RGB (3,)) of the image's outer ``width``-pixel frame: spread = the 95th percentile of the
+    distance of the border pixels' shading-free chroma c = 128 (Cr − 128, Cb − 128) / max(Y, 16) (YCrCb, 0–255
+    units; a colour scaled by a shading factor keeps its c) from their median.  A backdrop of one colour
+    (a chroma-key screen, a plain wall), shaded or not, gives a few units; a scene gives tens."""
+    import cv2
+
+    img = np.asarray(image, np.uint8)
+    w = max(1, int(width))
+    border = np.concatenate([img[:w].reshape(-1, 3), img[-w:].reshape(-1, 3),
+                             img[:, :w].reshape(-1, 3), img[:, -w:].reshape(-1, 3)])
+    ycc = cv2.cvtColor(border.reshape(-1, 1, 3), cv2.COLOR_RGB2YCrCb).reshape(-1, 3).astype(np.float64)
+    c = 128.0 * (ycc[:, 1:] - 128.0) / np.maximum(ycc[:, :1], 16.0)
+    med = np.median(c, axis=0)
+    d = np.hypot(c[:, 0] - med[0], c[:, 1] - med[1])
+    return float(np.percentile(d, 95)), np.median(border, axis=0).astype(np.float64)
 
 
 # =========================================================================== grabcut

@@ -1,0 +1,175 @@
+"""Occluders (controls.json ``visual`` of handles and obstacles): parsing, their pixels in a camera, and the
+image loss leaving those pixels out (its gradient is the gradient of the loss with the pixels removed)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stages.artefacts import Camera, GaussiansArtefact
+from stages.capture import CaptureError, load_controls, parse_controls
+from stages.domain.controls import Visual
+from stages.occluders import ignore_mask, visual_world
+from stages.render.mesh_raster import look_at, project_points
+from stages.sim.meshgen import box_tets, mesh_artefact
+
+
+def _camera(res: int = 64, centre=(0.35, -0.25, 0.3), target=(0.05, 0.02, 0.02)) -> Camera:
+    R, t = look_at(np.array(centre), np.array(target), np.array([0.0, 0.0, 1.0]))
+    K = np.array([[1.1 * res, 0, (res - 1) / 2], [0, 1.1 * res, (res - 1) / 2], [0, 0, 1]])
+    return Camera("c0", K, np.zeros(5), R, t, res, res)
+
+
+def _pose(t, axis=(0.3, 0.2, 1.0), angle=0.4) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_rotvec(np.asarray(axis) / np.linalg.norm(axis) * angle).as_quat()  # x y z w
+    return np.concatenate([t, [q[3], q[0], q[1], q[2]]])
+
+
+def _controls(box, poses, where="handles") -> dict:
+    item = {"name": "clamp", "visual": {"box": box}, "poses": poses}
+    if where == "handles":
+        item["select"] = {"box": [[-1, -1, -1], [0.001, 1, 1]]}
+    else:
+        item.update(shape="sphere", radius=0.01)
+    return {where: [item]}
+
+
+# =========================================================================== parsing
+def test_visual_box_and_mesh_parse_and_round_trip(tmp_path: Path) -> None:
+    box = [[0.0, -0.01, -0.01], [0.02, 0.01, 0.03]]
+    poses = [list(_pose([0.01, 0, 0])), list(_pose([0.02, 0, 0]))]
+    for where in ("handles", "obstacles"):
+        ctl = parse_controls(_controls(box, poses, where), tmp_path / "controls.json")
+        item = getattr(ctl, where)[0]
+        assert item.visual.kind == "box"
+        np.testing.assert_array_equal(item.visual.box, box)
+        again = parse_controls(json.loads(json.dumps(ctl.to_json())), tmp_path / "controls.json")
+        np.testing.assert_array_equal(getattr(again, where)[0].visual.box, box)
+    # a mesh beside controls.json, in its own frame
+    (tmp_path / "gripper.obj").write_text("v 0 0 0\nv 0.02 0 0\nv 0 0.02 0\nv 0 0 0.02\n"
+                                          "f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    data = {"obstacles": [{"name": "g", "shape": "sphere", "radius": 0.01, "visual": {"mesh": "gripper.obj"}}]}
+    (tmp_path / "controls.json").write_text(json.dumps(data))
+    ctl = load_controls(tmp_path / "controls.json")
+    v, f = ctl.obstacles[0].visual.triangles()
+    assert v.shape == (4, 3) and f.shape == (4, 3)
+    assert ctl.to_json()["obstacles"][0]["visual"] == {"mesh": "gripper.obj"}
+
+
+@pytest.mark.parametrize("visual, expect", [
+    ({"box": [[0, 0, 0]]}, "'handles[0].visual.box' should be two corners"),
+    ({"box": [[0, 0, 0], [0, 1, 1]]}, "'handles[0].visual.box' has zero extent"),
+    ({"mesh": "nowhere.obj"}, "'handles[0].visual.mesh' names 'nowhere.obj', but"),
+    ({"mesh": "gripper.txt"}, "which is not an obj, ply, stl or off file"),
+    ({"box": [[0, 0, 0], [1, 1, 1]], "mesh": "a.obj"}, "'handles[0].visual' should be an object with exactly one"),
+])
+def test_bad_visuals_are_one_sentence_naming_the_file(tmp_path: Path, visual: dict, expect: str) -> None:
+    data = {"handles": [{"name": "h", "select": {"ids": [0]}, "visual": visual}]}
+    with pytest.raises(CaptureError) as e:
+        parse_controls(data, tmp_path / "controls.json")
+    msg = str(e.value)
+    assert msg.startswith(str(tmp_path / "controls.json")) and expect in msg and msg.endswith(".")
+
+
+# =========================================================================== coverage
+def test_box_visual_covers_the_convex_hull_of_its_projected_corners_and_moves_with_its_pose() -> None:
+    """A box projects onto the convex hull of its 8 projected corners: the rasterized ignore mask (no margin)
+    equals the pixel centres inside that hull (matplotlib's point-in-polygon, an independent twin)."""
+    from matplotlib.path import Path as MplPath
+    from scipy.spatial import ConvexHull
+
+    cam = _camera(res=80)
+    box = [[0.0, -0.012, -0.01], [0.03, 0.015, 0.025]]
+    poses = [list(_pose([0.02, 0.0, 0.01])), list(_pose([0.06, 0.03, 0.0], angle=1.1))]
+    ctl = parse_controls(_controls(box, poses), Path("controls.json"))
+    vis = ctl.handles[0].visual
+    jj, ii = np.meshgrid(np.arange(80), np.arange(80))
+    centres = np.stack([jj.ravel(), ii.ravel()], 1).astype(float)
+    masks = []
+    for t in (0, 1):
+        m = ignore_mask(ctl, t, cam, margin_px=0)
+        v, _ = visual_world(vis, np.asarray(poses[t]))
+        uv, z = project_points(v, cam.K, cam.R, cam.t)
+        assert np.all(z > 0)
+        hull = uv[ConvexHull(uv).vertices]
+        want = MplPath(hull).contains_points(centres).reshape(80, 80)
+        assert 30 < want.sum() < 0.6 * want.size
+        np.testing.assert_array_equal(m, want)
+        masks.append(m)
+    assert (masks[0] != masks[1]).sum() > 20  # the pose moved it
+    # with a margin the mask grows by about the perimeter
+    grown = ignore_mask(ctl, 0, cam, margin_px=2)
+    assert np.all(grown[masks[0]]) and grown.sum() > masks[0].sum() + 20
+    # no visual: nothing ignored
+    plain = parse_controls({"handles": [{"name": "h", "select": {"ids": [0]}}]}, Path("controls.json"))
+    assert not ignore_mask(plain, 0, cam).any()
+
+
+# =========================================================================== the image loss
+@pytest.fixture(scope="module")
+def scene():
+    """A 6×3×3-cell bar with random Gaussians in view of one camera, and a box occluder over one end."""
+    from stages.adapt_loss import ImageLoss
+
+    v, tets = box_tets((6, 3, 3), (0.12, 0.04, 0.04), origin=(-0.01, 0.0, 0.0))
+    mesh = mesh_artefact(v, tets, 1000.0)
+    rng = np.random.default_rng(0)
+    n = 150
+    gauss = GaussiansArtefact(host_tet=rng.integers(0, len(tets), n), bary=rng.dirichlet(np.ones(4), n),
+                              log_scales=np.full((n, 3), np.log(0.006)), rotations=np.tile([1.0, 0, 0, 0], (n, 1)),
+                              opacity_logit=np.full(n, 1.5), sh=rng.normal(0, 1.0, (n, 1, 3)),
+                              background=np.zeros(3))
+    cam = _camera(res=48)
+    loss = ImageLoss(gauss, mesh, [cam])
+    box = [[-0.02, -0.02, -0.02], [0.0, 0.02, 0.02]]  # over the bar's far end, in front of it
+    ctl = parse_controls(_controls(box, [list(_pose([0.09, 0.02, 0.02], angle=0.0))]), Path("controls.json"))
+    ign = ignore_mask(ctl, 0, cam)
+    x = v + 0.002 * np.sin(v[:, [1, 2, 0]] * 80.0)
+    target = np.clip(loss.render(v)[0] + rng.normal(0, 0.05, (48, 48, 3)), 0, 1).astype(np.float32)
+    return loss, x, target, ign
+
+
+def test_the_occluder_covers_object_pixels(scene) -> None:
+    loss, x, target, ign = scene
+    img = loss.render(x)[0]
+    obj = np.abs(img - loss.background).max(-1) > 0.05
+    assert 0.1 * obj.sum() < (obj & ign).sum() < 0.9 * obj.sum()
+
+
+def test_ignored_pixels_contribute_nothing_and_the_gradient_is_that_of_the_loss_without_them(scene) -> None:
+    """L_ign(x) = Σ_{p ∉ ignore} |R_p(x) − Ĩ_p|: its gradient equals the gradient of the L1 loss of the render and
+    the target both multiplied by (1 − ignore) by hand; changing the target under the occluder changes
+    neither L nor dL/dx; and the gradient differs from the one that counts those pixels."""
+    import torch
+
+    loss, x, target, ign = scene
+    L_full, g_full = loss(x, [target])
+    L_ign, g_ign = loss(x, [target], [ign])
+    # the twin: mask render and target by hand
+    xt = torch.tensor(x, requires_grad=True)
+    w = torch.as_tensor(~ign, dtype=torch.float32)[..., None]
+    img = loss.images(xt)[0]
+    twin = (img * w - torch.as_tensor(target) * w).abs().sum()
+    twin.backward()
+    assert L_ign == pytest.approx(float(twin.detach()), rel=1e-6)
+    scale = np.abs(g_ign).max()
+    np.testing.assert_allclose(g_ign, xt.grad.numpy(), rtol=0, atol=1e-6 * scale)
+    # anything under the occluder: same loss, same gradient
+    other = target.copy()
+    other[ign] = np.random.default_rng(1).random((int(ign.sum()), 3)).astype(np.float32)
+    L2, g2 = loss(x, [other], [ign])
+    assert L2 == L_ign
+    np.testing.assert_array_equal(g2, g_ign)
+    L3, _ = loss(x, [other])
+    assert L3 != L_full  # without the ignore mask those pixels count
+    # the occluded pixels carried part of the gradient
+    assert L_ign < L_full
+    assert np.linalg.norm(g_ign - g_full) > 0.05 * np.linalg.norm(g_full)
+    # no ignore mask, or an empty one: the plain loss
+    L4, g4 = loss(x, [target], [np.zeros_like(ign)])
+    assert L4 == L_full
+    np.testing.assert_array_equal(g4, g_full)
