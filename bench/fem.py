@@ -170,7 +170,8 @@ def main(argv=None):
     date = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     if not args.quick:
         args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "fem.json").write_text(json.dumps({"machine": machine, "date": date, "cases": cases}, indent=1))
+        (args.out / "fem.json").write_text(json.dumps({"machine": machine, "date": date, "frames": args.frames,
+                                                         "repeats": args.repeats, "cases": cases}, indent=1))
         write_markdown(args.out / "fem.md", machine, date, cases, args.frames, args.repeats)
     return cases
 
@@ -183,7 +184,7 @@ def summary(cases) -> str:
     proj = next((c for c in cases if c["name"] == ref["name"] and c["hessian"] == "projected"), None)
     out = (f"**Results.** On the {ref['vertices']}-vertex bar ({ref['tets']} tets) one full-space Newton iteration "
            f"took {best['newton_iteration_cpu_s'] * 1e3:.0f} ms of CPU ({best['newton_iteration_s'] * 1e3:.0f} ms "
-           f"wall on the loaded machine) with {best['solver']} (target ≤ 150 ms); the numba element Hessians "
+           f"wall) with {best['solver']} (target ≤ 150 ms); the numba element Hessians "
            f"with the analytic-eigensystem projection took {best['projection_cpu_s'] * 1e3:.0f} ms of CPU")
     jt = next((c["jax_twin_hessian_s"] for c in by.values() if c.get("jax_twin_hessian_s")), None)
     if jt:
@@ -215,24 +216,10 @@ def write_markdown(path: Path, machine: str, date: str, cases, frames: int, repe
         "(numba), exact element Hessians (numba, no eigensystem), scatter assembly, numeric factorisation "
         "plus one solve (CHOLMOD reuses its symbolic analysis), the window adjoint (exact Hessian solve and "
         "JAX vector–Jacobian products) per frame, and the JAX twin of the projected Hessians (vmapped "
-        "`jax.hessian` + `eigh`).\n\n" + md + "\n\n" + summary(cases) + "\n\n" + RESULTS_NOTE + "\n")
+        "`jax.hessian` + `eigh`).\n\n" + md + "\n\n" + summary(cases) + "\n\n"
+        "Interpretation: the hand-written, dated [fem_notes.md](fem_notes.md), which this script does not "
+        "rewrite.\n")
 
-
-RESULTS_NOTE = """\
-Newton (hessian_mode "auto") uses the exact Hessian as long as it is positive definite (CHOLMOD: the
-Cholesky factorisation accepts it; SuperLU: the step is a descent direction) and otherwise uses the
-PSD-projected one until a projected step is accepted in full. Near rest the exact Hessian of the
-incremental potential is positive definite thanks to the mass term M/Δt², and the exact Newton converges
-quadratically where the projected one (stable Neo-Hookean's twist modes are indefinite under slight
-compression and get clamped) needs several times the iterations (rows "projected"); the exact element
-Hessians also skip the eigensystem. The sparse factorisation dominates the iteration. This machine's 2
-cores were shared with other jobs while these numbers were taken (see the load on the machine line), so
-wall times are pessimistic; the CPU columns (process CPU time, BLAS limited to one thread) are what one
-idle core would take, and ratios within a row are fair. CHOLMOD here is scikit-sparse 0.4.16 on Debian's
-libsuitesparse-dev 5.12 with OpenBLAS (serial); with Debian's default reference BLAS (no libopenblas0
-package installed) the same factorisation plus solve took 218 ms of CPU instead of 90 ms on the
-3.3K-vertex bar.
-"""
 
 if __name__ == "__main__":
     main()

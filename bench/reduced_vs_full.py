@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT))
 
 import jax.numpy as jnp  # noqa: E402
 
-from stages.capture import quat_to_matrix  # noqa: E402
+from stages.domain.rotations import quat_wxyz_to_matrix as quat_to_matrix  # noqa: E402
 from stages.sim import potential as P  # noqa: E402
 from stages.sim.mesh import rest_quantities  # noqa: E402
 from stages.sim.meshgen import box_tets  # noqa: E402

@@ -15,8 +15,10 @@ import typer
 
 from rsl_cli import commands
 from rsl_cli.console import console, error, state
+from rsl_cli.options import RslGroup
 
 app = typer.Typer(
+    cls=RslGroup,
     name="rsl",
     help="RealSimLoop: keep a soft-body simulation in step with a real object seen by cameras.",
     no_args_is_help=True,
@@ -41,7 +43,10 @@ def _register_commands() -> None:
         if hasattr(mod, "register"):
             mods.append(mod)
     for mod in sorted(mods, key=lambda m: getattr(m, "ORDER", getattr(m.register, "order", 100))):
-        mod.register(app)
+        before = len(app.registered_commands)
+        mod.register(app)  # a hand-written command registers with typer; a stage declares a lazy one
+        for info in app.registered_commands[before:]:
+            RslGroup.orders[info.name or ""] = getattr(mod, "ORDER", 100)
 
 
 _register_commands()

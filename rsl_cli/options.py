@@ -16,6 +16,7 @@ import typing
 from typing import Any, Callable, Optional
 
 import typer
+from typer.core import TyperCommand, TyperGroup
 
 from stages.config import field_default, field_docs
 
@@ -86,23 +87,86 @@ def config_command(config_cls: type, action: Callable[[Any], Any], arguments: tu
     return command
 
 
-def stage_command(name: str) -> Callable[[typer.Typer], None]:
-    """``register(app)`` adding the command of the stage ``name`` of stages/registry.py: its Config's
+def build_stage_command(name: str):
+    """The click command of the stage ``name`` of stages/registry.py (imports the stage module): its Config's
     fields as arguments and options, its summary as help; running it runs ``stage.run(config, reporter)``."""
+    from stages.registry import stage
+
+    s = stage(name)
+    mod = s.load()
+
+    def action(config: Any) -> None:
+        from rsl_cli.console import RichReporter
+
+        mod.run(config, RichReporter())
+
+    sub = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode="rich")
+    sub.command(s.name, help=s.summary)(config_command(s.config_cls(mod), action, s.arguments, dict(s.flags)))
+    cmd = typer.main.get_command(sub)  # one command: typer gives the command itself
+    cmd.name = s.name
+    return cmd
+
+
+class LazyStageCommand(TyperCommand):
+    """A stage's command in `rsl`'s list before its module is imported: name and help from the registry;
+    parsing, running and its own --help build the real command (and import the stage) on first use.
+    So `rsl --help` imports no stage module, and a stage that fails to import breaks only its command."""
+
+    def __init__(self, name: str, summary: str):
+        super().__init__(name, help=summary)
+        self._real = None
+
+    def real(self):
+        if self._real is None:
+            self._real = build_stage_command(self.name)
+        return self._real
+
+    @property
+    def params(self):  # click sets self.params in __init__; read through to the real command after that
+        return self.real().params if "_real" in self.__dict__ else []
+
+    @params.setter
+    def params(self, value) -> None:
+        pass
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        return self.real().make_context(info_name, args, parent=parent, **extra)
+
+    def invoke(self, ctx):
+        return self.real().invoke(ctx)
+
+    def main(self, *args: Any, **kwargs: Any):
+        return self.real().main(*args, **kwargs)
+
+    def get_help(self, ctx) -> str:
+        return self.real().get_help(ctx)
+
+
+class RslGroup(TyperGroup):
+    """`rsl`'s command group: the hand-written commands typer registered, plus one :class:`LazyStageCommand`
+    per stage declared with :func:`stage_command`, listed in the order of ``ORDERS``."""
+
+    lazy: dict[str, str] = {}  # stage name -> summary, filled by stage_command(...)(app)
+    orders: dict[str, float] = {}  # command name -> position in `rsl --help`
+
+    def __init__(self, **kw: Any):
+        super().__init__(**kw)
+        for name, summary in self.lazy.items():
+            self.commands[name] = LazyStageCommand(name, summary)
+        order = sorted(self.commands, key=lambda n: self.orders.get(n, 100))
+        self.commands = {n: self.commands[n] for n in order}
+
+
+def stage_command(name: str) -> Callable[[typer.Typer], None]:
+    """``register(app)`` declaring the command of the stage ``name`` of stages/registry.py; the command is built
+    from the stage's Config (:func:`build_stage_command`) only when it is run, asked for help, or documented."""
     from stages.registry import STAGES, stage
 
     s = stage(name)
 
     def register(app: typer.Typer) -> None:
-        mod = s.load()
-
-        def action(config: Any) -> None:
-            from rsl_cli.console import RichReporter
-
-            mod.run(config, RichReporter())
-
-        cmd = config_command(s.config_cls(mod), action, s.arguments, dict(s.flags))
-        app.command(s.name, help=s.summary)(cmd)
+        RslGroup.lazy[s.name] = s.summary
+        RslGroup.orders[s.name] = register.order  # type: ignore[attr-defined]
 
     register.order = 5 + 7 * STAGES.index(s)  # type: ignore[attr-defined]  # `rsl --help` lists the registry's order
     return register

@@ -108,8 +108,19 @@ class AdaptConfig:
     residuals with an arrival-cost prior and process noise (a moving-horizon filter), reporting E ± σ."""
     process_noise: float = 0.02
     """gn: σ of the random walk of log E (and of the ν parameter) per frame — how fast the material may change."""
-    state_correction: bool = True
-    """gn, reduced space, markers: also estimate the window's two starting states (z's, with their own prior)."""
+    state_correction: Literal["states", "past", "off"] = "states"
+    """gn: also estimate a correction of the window's two starting states, so the simulated past cannot drift
+    from what is observed.  states: every latent coordinate of both states in the reduced space (2r unknowns),
+    the 12 lowest vibration modes of both in full space (24 unknowns), each with its own prior; past: along
+    their sensitivities to θ only (the past re-simulated with another θ, 2R unknowns); off: kept as stored."""
+    change_threshold: float = 3.0
+    """gn: a new frame whose residual RMS at the predicted θ exceeds this many σ (the noise level) is taken as a
+    change of material: the θ prior is widened by --change-sigma before the window is solved (0: never)."""
+    change_sigma: float = 0.5
+    """gn: σ added to log E (and the ν parameter) when a change of material is detected (0.5: a factor 1.65)."""
+    state_prior: float = 0.5
+    """gn, --state-correction past: prior σ of the correction coefficients (in log E units: the past may look
+    as if simulated with E off by this factor's exponent)."""
 
 
 # =========================================================================== backends
@@ -137,11 +148,8 @@ class _FullSpace:
         """States (w, n, 3) of ``frames`` from ``before`` = [x_{t0−2}, x_{t0−1}]; young/poisson (w, R)."""
         from stages.sim.scene import simulate
 
-        states = np.asarray(simulate(self.scene, [self.inputs(t) for t in frames], young, poisson,
-                                     x_prev=before[1], x_prev2=before[0], solver=self.solver))
-        if getattr(self, "guard", None) is not None:
-            self.guard(frames, states, young)
-        return states
+        return np.asarray(simulate(self.scene, [self.inputs(t) for t in frames], young, poisson,
+                                   x_prev=before[1], x_prev2=before[0], solver=self.solver))
 
     def backward(self, frames: Sequence[int], young: np.ndarray, poisson: np.ndarray, states: np.ndarray,
                  before: np.ndarray, dL_dX: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -159,6 +167,29 @@ class _FullSpace:
                                   d_young, d_poisson, d_before, solver=self.solver)
 
     state_sensitivity = sensitivity
+
+    @property
+    def mass_diag(self) -> np.ndarray:
+        """Lumped mass per DOF (3n,) kg."""
+        return np.repeat(np.asarray(self.scene.masses, float), 3)
+
+    def modes(self, x0: np.ndarray, young, poisson, count: int = 12) -> np.ndarray:
+        """The ``count`` lowest vibration modes (count, n, 3) at x0: K φ = λ M φ with K the elastic + handle +
+        contact Hessian (PSD-projected) at θ = (young, poisson), mass-orthonormal (φᵀ M φ = 1); computed once."""
+        if getattr(self, "_modes", None) is None:
+            import scipy.sparse as sp
+            from scipy.sparse.linalg import eigsh
+
+            from stages.sim.scene import hessian
+
+            sc = self.scene
+            H = hessian(sc, self.inputs(0), x0, x0, young, poisson, project=True)
+            Md = sp.diags(self.mass_diag)
+            K = (H - Md / sc.dt ** 2).tocsc()  # drop the inertia term of Φ
+            k = min(count, 3 * sc.n_vertices - 2)
+            _, vec = eigsh(K, k=k, M=Md.tocsc(), sigma=0.0, which="LM")
+            self._modes = vec.T.reshape(k, -1, 3)
+        return self._modes
 
     def decode_sensitivity(self, states, S):
         return S
@@ -227,11 +258,8 @@ class _ReducedSpace:
         return np.asarray(states)
 
     def forward(self, frames, young, poisson, before):
-        states = np.asarray(self.model.simulate([self.inputs(t) for t in frames], young, poisson,
-                                                z_prev=before[1], z_prev2=before[0]))
-        if getattr(self, "guard", None) is not None:
-            self.guard(frames, self.decode(states), young)
-        return states
+        return np.asarray(self.model.simulate([self.inputs(t) for t in frames], young, poisson,
+                                              z_prev=before[1], z_prev2=before[0]))
 
     def backward(self, frames, young, poisson, states, before, dL_dX):
         """dL/dX → dL/dZ = Jᵀ dL/dX → reduced adjoint over the window → (dL/dE, dL/dν) (w, R)."""
@@ -325,11 +353,53 @@ class _SolveGuard:
                 if bad:
                     what = f"inverted {bad} of {len(vol)} elements"
             if what:
-                E = ", ".join(f"{n} {e:.3g} Pa" for n, e in zip(self.names, np.atleast_2d(young)[min(i, len(young) - 1)]))
                 raise SolveCollapsed(
-                    f"{self.where}: the simulation {what} at frame {t} with E = {E}, far too soft for this object; "
-                    f"start from a larger E (--young-init, or [material] young = {self.young_toml:g} Pa) or "
-                    f"take smaller steps (--lr).")
+                    f"{self.where}: the simulation {what} at frame {t} with E = {self._E(young, i)}, far too soft "
+                    f"for this object; start from a larger E (--young-init, or [material] young = "
+                    f"{self.young_toml:g} Pa) or take smaller steps (--lr).")
+
+    def _E(self, young: np.ndarray, i: int = 0) -> str:
+        rows = np.atleast_2d(young)
+        return ", ".join(f"{n} {e:.3g} Pa" for n, e in zip(self.names, rows[min(i, len(rows) - 1)]))
+
+    def failed(self, e: Exception, t: int, young: np.ndarray) -> None:
+        """A solve that did not converge: the same sentence with what to change."""
+        raise SolveCollapsed(
+            f"{self.where}: the simulation failed at frame {t} with E = {self._E(young)} "
+            f"({str(e).rstrip('.')}); if E is far below the object's stiffness start from a larger E (--young-init, "
+            f"or [material] young = {self.young_toml:g} Pa), otherwise check controls.json's handles, loads and "
+            f"obstacles.") from None
+
+
+class _Guarded:
+    """A backend whose forward solves and start states are checked by a :class:`_SolveGuard` (all else is the
+    backend's own)."""
+
+    def __init__(self, backend, guard: _SolveGuard):
+        self._backend, self._guard = backend, guard
+
+    def __getattr__(self, name: str):
+        return getattr(self._backend, name)
+
+    def forward(self, frames, young, poisson, before):
+        from stages.sim.scene import SimulationError
+
+        try:
+            states = self._backend.forward(frames, young, poisson, before)
+        except SimulationError as e:
+            self._guard.failed(e, frames[0], young)
+        self._guard(frames, self._backend.decode(states), young)
+        return states
+
+    def start(self, young, poisson, kind, *args, **kw):
+        from stages.sim.scene import SimulationError
+
+        try:
+            s0 = self._backend.start(young, poisson, kind, *args, **kw)
+        except SimulationError as e:
+            self._guard.failed(e, 0, young)
+        self._guard([0], self._backend.decode(np.asarray(s0)[None]), young)
+        return s0
 
 
 # =========================================================================== observations
@@ -345,6 +415,10 @@ class _Markers:
         far = float(self.binding.distance.max())
         diag = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
         self.far = far / max(diag, 1e-12)
+        # the smallest marker noise σ the estimator assumes: 10⁻⁴ of the object's size (0.02 mm on a 0.2 m
+        # object; mocap is rarely better) — without a floor, noise-free synthetic markers give σ → 0 and the
+        # arrival cost becomes rigid against the slightest model or linearisation error
+        self.noise_floor = 1e-4 * diag
 
     def rebind(self, x0: np.ndarray) -> None:
         """Bind each marker to the point of the frame-0 surface x0 (n, 3) nearest its frame-0 position."""
@@ -400,7 +474,6 @@ class _Markers:
         return float(np.sqrt(np.mean(r * r))) if len(r) else 0.0
 
     huber = None  # marker noise is Gaussian: plain least squares
-    noise_floor = 1e-6  # m
 
 
 class _Vision:
@@ -525,16 +598,24 @@ class _Vision:
     # Gauss–Newton residuals: the pixel differences themselves (every camera, RGB), weighted by Huber IRLS
     # (stages.estimator) — L2 near the solution, L1-like on outlying pixels, like the L1 loss of Adam.
     huber = 1.345  # Huber δ in units of σ (95 % efficiency under Gaussian noise)
-    noise_floor = 1e-4  # of the [0, 1] intensity range
+    noise_floor = 1e-3  # of the [0, 1] intensity range (a quarter of one 8-bit grey level)
 
     def _renders(self, x: np.ndarray) -> np.ndarray:
         return np.concatenate([im.reshape(-1) for im in self.loss_fn.render(x[:self.n] - self.anchor)]
                               ).astype(np.float64)
 
+    def _keep(self, t: int) -> np.ndarray | float:
+        """1 for the pixels that count at frame t, 0 under an occluder (flattened like the residuals), or 1.0."""
+        if not self.occluded:
+            return 1.0
+        return np.concatenate([np.repeat(~(np.zeros(c.height * c.width, bool) if m is None else m.reshape(-1)), 3)
+                               for c, m in zip(self._cams, self.ignore(t))]).astype(np.float64)
+
     def residuals(self, frames: Sequence[int], X: np.ndarray) -> list[np.ndarray]:
-        """Per frame, r_f = R(G(x_f), c) − Ĩ_f^c over every pixel, channel and camera, flattened."""
-        return [self._renders(x) - np.concatenate([im.reshape(-1) for im in self.targets(t)]).astype(np.float64)
-                for t, x in zip(frames, X)]
+        """Per frame, r_f = R(G(x_f), c) − Ĩ_f^c over every pixel, channel and camera, flattened (0 under an
+        occluder)."""
+        return [(self._renders(x) - np.concatenate([im.reshape(-1) for im in self.targets(t)]).astype(np.float64))
+                * self._keep(t) for t, x in zip(frames, X)]
 
     def jacobian(self, frames: Sequence[int], X: np.ndarray, dX: np.ndarray, rel_step: float = 1e-2
                  ) -> list[np.ndarray]:
@@ -555,7 +636,7 @@ class _Vision:
                     cols.append(np.zeros(0))
                     continue
                 eps = rel_step * size / vmax
-                cols.append((self._renders(x + eps * v) - self._renders(x - eps * v)) / (2 * eps))
+                cols.append((self._renders(x + eps * v) - self._renders(x - eps * v)) / (2 * eps) * self._keep(frames[i]))
             m = max((len(c) for c in cols), default=0)
             out.append(np.stack([c if len(c) else np.zeros(m) for c in cols], axis=1))
         return out
@@ -570,7 +651,7 @@ class _Vision:
             imgs = self.loss_fn.images(xt)
             tg = torch.cat([torch.as_tensor(a, dtype=torch.float64).reshape(-1) for a in self.targets(t)])
             rend = torch.cat([im.reshape(-1) for im in imgs]).double()
-            w = torch.as_tensor(np.asarray(Ws[i], np.float64))
+            w = torch.as_tensor(np.asarray(Ws[i], np.float64) * self._keep(t))  # occluded pixels weigh 0
             (0.5 * (w * (rend - tg) ** 2).sum()).backward()
             g += np.einsum("ni,kni->k", xt.grad.numpy(), dX[:, i, :self.n])
         return g
@@ -682,16 +763,18 @@ class StartWindow:
         """dX/dp (k, w, n, 3) along k directions (θ shared by the window; d_before on the stored states)."""
         b, w = self.backend, len(frames)
         if frames[0] != 0:
-            return b.sensitivity(list(frames), self._tile(E, w), self._tile(nu, w), states, before, d_young,
-                                 d_poisson, d_before)
-        x0 = states[0]
-        S0 = b.start_sensitivity(E, nu, self.kind, x0, d_young, d_poisson)  # (k, state)
-        X0 = b.decode_sensitivity(states[:1], S0[:, None])
-        if w == 1:
-            return X0
-        Sd = b.state_sensitivity(list(frames[1:]), self._tile(E, w - 1), self._tile(nu, w - 1), states[1:],
-                                 np.stack([x0, x0]), d_young, d_poisson, np.stack([S0, S0], axis=1))
-        return np.concatenate([X0, b.decode_sensitivity(states[1:], Sd)], axis=1)
+            S = b.state_sensitivity(list(frames), self._tile(E, w), self._tile(nu, w), states, before, d_young,
+                                    d_poisson, d_before)
+        else:
+            x0 = states[0]
+            S0 = b.start_sensitivity(E, nu, self.kind, x0, d_young, d_poisson)[:, None]  # (k, 1, state)
+            S = S0
+            if w > 1:
+                Sd = b.state_sensitivity(list(frames[1:]), self._tile(E, w - 1), self._tile(nu, w - 1), states[1:],
+                                         np.stack([x0, x0]), d_young, d_poisson, np.concatenate([S0, S0], axis=1))
+                S = np.concatenate([S0, Sd], axis=1)
+        self.last_state_sensitivity = S  # (k, w, state): dstates/dp
+        return b.decode_sensitivity(states, S)
 
 
 # =========================================================================== the window objective
@@ -754,6 +837,7 @@ class GNWindow:
 
     def __init__(self, objective: "WindowObjective", fit_poisson: bool, s_fixed: np.ndarray):
         self.obj, self.fit_poisson, self.s_fixed = objective, fit_poisson, s_fixed
+        self.young_range: tuple[float, float] | None = None  # bounds of E (Pa), [material] young_range
         self.R = objective.R
         self.k_theta = self.R * (2 if fit_poisson else 1)
         self.times = [0.0, 0.0, 0.0]  # forward, sensitivity, residuals/render
@@ -809,6 +893,7 @@ class GNWindow:
         self.times[1] += t3 - t2
         self.times[2] += t4 - t3
         self.last_frames, self.last_jac = rs, Js
+        self.last_state_sens = obj.win.last_state_sensitivity
         exact = getattr(obj.obs, "exact_jtwr", None)
         if exact is None:
             return np.concatenate(rs), np.concatenate(Js, axis=0)
@@ -837,20 +922,41 @@ def _sigma_from_cov(gn: GNWindow, p: np.ndarray, cov: np.ndarray) -> tuple[np.nd
     return sE, np.broadcast_to(sN, (R,)).astype(float)
 
 
-def _state_directions(backend, stored: dict, t0: int, first: int, scale: float) -> tuple[np.ndarray, np.ndarray] | None:
-    """Correction directions of the two states before a window starting at t0 (reduced space only): unit
-    vectors of z_{t0−2} and z_{t0−1}, (2r, 2, r), and the prior σ of each coefficient, ``scale`` × the RMS of
-    that latent coordinate over the stored frames (its typical excursion).  None when a state before the
-    window is not a stored frame (the start state is known) or in full space."""
-    if backend.space != "reduced" or t0 - 2 < first:
+def _state_directions(backend, stored: dict, t0: int, first: int, scale: float, theta=None
+                      ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Correction directions of the two states before a window starting at t0 and the prior σ of each
+    coefficient.  Reduced space: unit vectors of z_{t0−2} and z_{t0−1}, (2r, 2, r); full space: the lowest
+    vibration modes φ_i (K φ = λ M φ at the start state) of each, (2m, 2, n, 3).  σ = ``scale`` × the RMS of that
+    coordinate's excursion over the stored frames (its typical motion).  None when a state before the window is
+    not a stored frame (frames before t = 1: the start state is known)."""
+    if t0 < 1 or any(max(t, 0) not in stored for t in (t0 - 2, t0 - 1)):
         return None
-    r = backend.dim
-    Z = np.stack([stored[t] for t in sorted(stored) if t < t0]) - backend.rest_state
-    rms = np.sqrt(np.mean(Z * Z, axis=0)) + 1e-9
-    D = np.zeros((2 * r, 2, r))
+    past = np.stack([stored[t] for t in sorted(stored) if t < t0])
+    if backend.space == "reduced":
+        basis = np.eye(backend.dim).reshape(backend.dim, backend.dim)  # (m, r)
+    else:
+        basis = backend.modes(stored[0], *theta)  # (m, n, 3), mass-orthonormal
+    m = len(basis)
+    B = basis.reshape(m, -1)
+    coords = (past - stored[0]).reshape(len(past), -1) @ (B.T if backend.space == "reduced" else
+                                                            (B * backend.mass_diag[None]).T)
+    rms = np.sqrt(np.mean(coords * coords, axis=0))
+    rms = np.maximum(rms, 1e-3 * rms.max() + 1e-300)
+    D = np.zeros((2 * m, 2) + basis.shape[1:])
     for i in range(2):
-        D[i * r + np.arange(r), i, np.arange(r)] = 1.0
+        D[i * m:(i + 1) * m, i] = basis
     return D, scale * np.concatenate([rms, rms])
+
+
+def _past_directions(sens: dict, t0: int, k_theta: int, sigma: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Correction directions of the two states before a window starting at t0 along their sensitivities to θ
+    (``sens``: frame → d state/dp (k_θ, …), propagated through every window since frame 0): a correction
+    c (k_θ,) moves them by Σ_j c_j ∂x/∂p_j — to first order, the past re-simulated with p + c.  Returns
+    (D (k_θ, 2, …), prior σ (k_θ,)), or None when those sensitivities are not known (frames before the range)."""
+    a, b = max(t0 - 2, 0), max(t0 - 1, 0)
+    if t0 < 1 or a not in sens or b not in sens:
+        return None
+    return np.stack([sens[a], sens[b]], axis=1), np.full(k_theta, float(sigma))
 
 
 # =========================================================================== mesh refinement
@@ -949,7 +1055,7 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
     if config.young_init is not None and not mat.young_range[0] <= config.young_init <= mat.young_range[1]:
         raise RslError(f"{capture.toml_path}: --young-init {config.young_init:g} Pa lies outside [material] "
                        f"young_range {list(mat.young_range)}; give a value inside it or widen the range.")
-    backend.guard = _SolveGuard(sim_mesh.vertices, sim_mesh.tets, names, capture.toml_path, mat.young)
+    backend = _Guarded(backend, _SolveGuard(sim_mesh.vertices, sim_mesh.tets, names, capture.toml_path, mat.young))
     poisson0 = np.array([config.poisson_init if config.poisson_init is not None else mat.region_poisson(r)
                          for r in names], float)
     if config.loss == "markers":
@@ -1015,12 +1121,13 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
     try:
         if config.estimator == "gn" and config.mode == "online":
             _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter,
-                       backend)
+                       backend, mat.young_range)
         elif config.estimator == "gn":
             if last is None:
                 raise RslError(f"{capture.toml_path}: --mode offline needs a finite frame range (not --follow "
                                f"without --frames).")
-            _offline_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter)
+            _offline_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter,
+                        mat.young_range)
         elif config.mode == "online":
             _online(config, obs, capture, first, last, params, adam, evaluate, stored, rec, R, prange, reporter,
                     backend)
@@ -1103,18 +1210,26 @@ def _gn_prior(p: np.ndarray) -> "object":
 
 
 def _gn_solve(gn: GNWindow, frames, p0, prior, before, D, sigma, obs, iterations: int):
-    """One window's Gauss–Newton solve; afterwards gn.last_* hold the window evaluated at the estimate."""
+    """One window's Gauss–Newton solve; afterwards gn.last_* hold the window evaluated at the estimate.
+    log E stays inside [material] young_range and moves at most 0.5 (a factor 1.65) per iteration: in the
+    stiff regime the motion hardly depends on E and an unbounded step could run away."""
     from stages.estimator import gauss_newton
 
+    k, kt = len(p0), gn.k_theta
+    lower, upper, cap = np.full(k, np.nan), np.full(k, np.nan), np.full(k, np.inf)
+    if gn.young_range is not None:
+        lower[:gn.R], upper[:gn.R] = np.log(gn.young_range[0]), np.log(gn.young_range[1])
+    cap[:kt] = 0.5
     res = gauss_newton(lambda pp, nj: gn.evaluate(frames, pp, before, D, nj), p0, prior, sigma,
-                       max_iterations=iterations, huber=obs.huber)
+                       max_iterations=iterations, huber=obs.huber, max_step=cap, lower=lower, upper=upper)
     lin = (list(gn.last_frames), list(gn.last_jac))  # per-frame residuals and Jacobians at res.p_lin
     if not np.array_equal(gn.last_p, res.p):
         gn.evaluate(frames, res.p, before, D, False)
     return res, lin
 
 
-def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter, backend):
+def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter, backend,
+               young_range=None):
     """Online moving-horizon estimation (stages.estimator): per new frame, Gauss–Newton on the window's
     unknowns against the arrival-cost prior; the frame leaving the window is folded into the prior, which then
     takes one frame of process noise."""
@@ -1124,10 +1239,14 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
 
     R, w = objective.R, config.window
     gn = GNWindow(objective, config.fit_poisson, s_nu)
+    gn.young_range = young_range
     k_th = gn.k_theta
     p_th = np.concatenate([log_e, s_nu]) if config.fit_poisson else log_e.copy()
     filt = WindowFilter(_gn_prior(p_th), np.full(k_th, float(config.process_noise)))
     sigma = None
+    sens: dict[int, np.ndarray] = {}  # frame -> d state/dp (k_θ, …)
+    sig_hist: list[float] = []
+    changes: list[int] = []  # frames where a change of material was detected
     total = None if last is None else last - first
     with reporter.task(f"adapt online gn ({backend.space}, {obs.kind}, w={w})", total) as task:
         T = first
@@ -1139,8 +1258,21 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
             before = np.stack([state_at(t0 - 2), state_at(t0 - 1)])
             tt = time.perf_counter()
             gn.times = [0.0, 0.0, 0.0]
-            sc = (_state_directions(backend, stored, t0, first, 0.05)
-                  if config.state_correction and obs.kind == "markers" else None)
+            if (sigma is not None and config.change_threshold > 0 and T >= 2 and len(frames) > 1
+                    and (not changes or T - changes[-1] > w)):  # at most once per window length
+                # innovation test: the new frame simulated from the stored states with the predicted θ
+                Ep, nup, _ = gn.theta(p_th)
+                xs = objective.win.forward([T], Ep, nup, np.stack([state_at(T - 2), state_at(T - 1)]))
+                rn = obs.residuals([T], backend.decode(xs))[0]
+                if len(rn) and np.sqrt(np.mean(rn * rn)) > config.change_threshold * sigma:
+                    filt.prior = Prior(filt.prior.mean, filt.prior.cov + np.eye(k_th) * config.change_sigma ** 2)
+                    changes.append(T)
+                    rec.changes = changes
+            sc = None
+            if config.state_correction == "states":
+                sc = _state_directions(backend, stored, t0, first, 0.05, gn.theta(p_th)[:2])
+            elif config.state_correction == "past":
+                sc = _past_directions(sens, t0, k_th, config.state_prior)
             D, prior, p0 = None, filt.prior, p_th.copy()
             if sc is not None:
                 D, sd = sc
@@ -1154,14 +1286,22 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
             p_th = res.p[:k_th].copy()
             for i, t in enumerate(frames):
                 stored[t] = gn.last_states[i]
-            if D is not None:  # the corrected starting states replace the stored ones
-                stored[t0 - 2], stored[t0 - 1] = gn.last_before[0], gn.last_before[1]
+                S = gn.last_state_sens  # (k, w, …) at the last linearisation
+                # d x_t/dp through the whole past: the window's θ columns plus, by linearity, the columns of the
+                # "past" correction (whose directions are the before states' own sensitivities)
+                sens[t] = S[:k_th, i] + (S[k_th:2 * k_th, i] if config.state_correction == "past" and D is not None
+                                         else 0.0)
+            if D is not None and t0 >= 1:  # the corrected starting states replace the stored ones
+                stored[max(t0 - 2, 0)], stored[t0 - 1] = gn.last_before[0], gn.last_before[1]
             sE, sN = _sigma_from_cov(gn, res.p, res.cov[:k_th, :k_th])
             if len(frames) == w:  # frame t0 leaves the window: fold it into the arrival cost
                 r0 = r_lin[0] + J_lin[0][:, k_th:] @ (res.p[k_th:] - res.p_lin[k_th:])
                 filt.leave(res.p_lin[:k_th], r0, J_lin[0][:, :k_th], sigma, huber_weights(r0, sigma, obs.huber))
             r_all = np.concatenate(gn.last_rs)
-            sigma = max(obs.noise_scale(r_all), obs.noise_floor)
+            # the noise level: the median of the windows' residual scales over the last 20 frames (robust: a
+            # material change's transient misfit does not inflate it at once)
+            sig_hist.append(max(obs.noise_scale(r_all), obs.noise_floor))
+            sigma = float(np.median(sig_hist[-20:]))
             E, nu, _ = gn.theta(res.p)
             losses = [_frame_loss(obs, r) for r in gn.last_rs]
             rec.frames.append(T)
@@ -1180,9 +1320,11 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
             T += 1
 
 
-def _offline_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter):
+def _offline_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter,
+                young_range=None):
     """Offline baseline with the same Gauss–Newton machinery: one θ, every frame in one window."""
     gn = GNWindow(objective, config.fit_poisson, s_nu)
+    gn.young_range = young_range
     p = np.concatenate([log_e, s_nu]) if config.fit_poisson else log_e.copy()
     frames = list(range(first, last))
     before = np.stack([state_at(first - 2), state_at(first - 1)])
@@ -1270,6 +1412,8 @@ def _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs, statu
         "gaussian_anchor": getattr(obs, "anchor_kind", None),
         "refine": config.refine,
         "status": status,  # complete | interrupted | failed
+        "estimator": config.estimator,
+        "material_changes_detected": list(getattr(rec, "changes", [])),  # gn: frames whose innovation widened θ
         "ended": "ctrl-c" if ended_by_ctrl_c else ("last frame" if status == "complete" else "error"),
         "wall_s": wall_s,
         "young_meaning": _young_meaning(config, mesh),

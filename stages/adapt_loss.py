@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stages.sim.mesh import deformation_gradients, shape_matrices
+from stages.sim.quadrature import point_map
 
 
 # =========================================================================== markers
@@ -229,6 +230,62 @@ def locate_in_tets(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, c
     return tet, bary
 
 
+def invert_element_map(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, element: np.ndarray,
+                       bary0: np.ndarray, iterations: int = 30, tol: float = 1e-13) -> np.ndarray:
+    """Barycentric (corner) coordinates (P, 4) of points (P, 3) in their elements (P,) of a quadratic mesh
+    (vertices (n, 3), tets (m, 10)): Newton on Σ_a N_a(ξ) x_a = p from bary0 (e.g. the corner tet's
+    barycentrics), ξ = (β₁, β₂, β₃), the update solving (Σ_a x_a ⊗ ∂N_a/∂ξ) Δξ = p − x(ξ); stops when
+    every |Δξ| < tol."""
+    from stages.sim.quadrature import shape_reference_gradients, shape_values
+
+    xe = np.asarray(vertices, np.float64)[np.asarray(tets)[element]]  # (P, 10, 3)
+    xi = np.asarray(bary0, np.float64)[:, 1:].copy()
+    for _ in range(iterations):
+        b = np.concatenate([1.0 - xi.sum(1, keepdims=True), xi], axis=1)
+        r = np.asarray(points, np.float64) - np.einsum("pk,pkd->pd", shape_values(2, b), xe)
+        J = np.einsum("pki,pkj->pij", xe, shape_reference_gradients(2, b))
+        det = np.linalg.det(J)
+        ok = np.isfinite(det) & (np.abs(det) > 1e-300)
+        J[~ok] = np.eye(3)
+        d = np.where(ok[:, None], np.linalg.solve(J, r[..., None])[..., 0], np.nan)  # NaN: a singular map
+        xi += d
+        if np.nanmax(np.abs(d), initial=0.0) < tol:
+            break
+    return np.concatenate([1.0 - xi.sum(1, keepdims=True), xi], axis=1)
+
+
+def locate_in_elements(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, candidates: int = 16
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """(element (P,), barycentric corner coordinates (P, 4)) of points (P, 3) in a mesh of linear (m, 4) or
+    quadratic (m, 10) tets at positions vertices (n, 3): :func:`locate_in_tets` in the corner tets, then for
+    quadratic tets the exact inverse of the (curved) element map (:func:`invert_element_map`); a point that
+    this puts outside its element (a curved element bulges past its corner tet) is inverted in each of the
+    ``candidates`` elements with the nearest corner centroids and kept in the one it is most inside."""
+    tets = np.asarray(tets, np.int64)
+    points = np.asarray(points, np.float64)
+    host, bary = locate_in_tets(points, vertices, tets[:, :4])
+    if tets.shape[1] != 10:
+        return host, bary
+    bary = invert_element_map(points, vertices, tets, host, bary)
+    far = np.flatnonzero(~(bary.min(1) >= -1e-9))  # outside, or NaN
+    if len(far):  # a curved element holds the point, not the corner tet: the exact inverse in nearby elements
+        from scipy.spatial import cKDTree
+
+        k = min(candidates, len(tets))
+        _, cand = cKDTree(vertices[tets[:, :4]].mean(1)).query(points[far], k=k)
+        cand = np.asarray(cand, np.int64).reshape(len(far), k).ravel()
+        rep = np.repeat(points[far], k, axis=0)
+        b0 = tet_barycentrics(rep, vertices, tets[cand, :4])
+        b = invert_element_map(rep, vertices, tets, cand, b0).reshape(len(far), k, 4)
+        score = np.where(np.isfinite(b).all(2), b.min(2), -np.inf)
+        j = np.argmax(score, axis=1)
+        better = score[np.arange(len(far)), j] > np.nan_to_num(bary[far].min(1), nan=-np.inf)
+        pick = far[better]
+        host[pick] = cand.reshape(len(far), k)[better, j[better]]
+        bary[pick] = b[better, j[better]]
+    return host, bary
+
+
 # =========================================================================== vision
 class ImageLoss:
     """L = Σ_c |R(G(x), c) − Ĩ^c|₁ (sum over pixels and channels, paper Eq. 7) and dL/dx.
@@ -258,12 +315,14 @@ class ImageLoss:
             p.requires_grad_(False)
         self._tets = np.asarray(mesh.tets, np.int64)
         self._dm_inv_all = np.asarray(mesh.dm_inv, np.float64)
+        self._rest = np.asarray(mesh.vertices, np.float64)
+        self.quadratic = self._tets.shape[1] == 10
         with torch.no_grad():  # the binding as fitted: host tets, barycentrics, world covariances at rest
             self._fit_host = np.asarray(gaussians.host_tet, np.int64)
             self._fit_bary = self.g.bary().double().numpy()
             self._fit_cov = self.g.rest_covariances().double().numpy()
-            rest = np.asarray(mesh.vertices, np.float64)
-            self._fit_means = np.einsum("gk,gkd->gd", self._fit_bary, rest[self._tets[self._fit_host]])
+            N, _, _ = point_map(self._rest, self._tets, self._fit_host, self._fit_bary)
+            self._fit_means = np.einsum("gk,gkd->gd", N, self._rest[self._tets[self._fit_host]])
         self._set_binding(self._fit_host, self._fit_bary, self._fit_cov)
         self.cams = [self.g.camera(c) for c in cameras]
         self.background = self.g.background.detach().numpy().astype(np.float32)  # (3,)
@@ -277,13 +336,18 @@ class ImageLoss:
             self.opt = torch.optim.Adam(ps, lr=lr_appearance)
 
     def _set_binding(self, host: np.ndarray, bary: np.ndarray, cov0: np.ndarray) -> None:
-        """Geometry used by :meth:`images`: host tet (G,), barycentric (G, 4), rest covariance (G, 3, 3)."""
+        """Geometry used by :meth:`images`: host tet (G,), barycentric (G, 4), rest covariance (G, 3, 3).
+        Quadratic tets: the shape values N (G, 10) and rest gradients G (G, 10, 3) at each Gaussian
+        (stages.sim.quadrature.point_map), μ = Σ N_a x_a, F = Σ x_a ⊗ G_a."""
         torch, dt = self.torch, self.g.dtype
         self.host_tet = np.asarray(host, np.int64)
-        self._host = torch.as_tensor(self._tets[self.host_tet])  # (G, 4) vertex ids
+        self._host = torch.as_tensor(self._tets[self.host_tet])  # (G, 4 | 10) vertex ids
         self._dm_inv = torch.as_tensor(self._dm_inv_all[self.host_tet], dtype=dt)
         self._bary = torch.as_tensor(np.asarray(bary, np.float64), dtype=dt)
         self._cov0 = torch.as_tensor(np.asarray(cov0, np.float64), dtype=dt)
+        if self.quadratic:
+            N, G, _ = point_map(self._rest, self._tets, self.host_tet, np.asarray(bary, np.float64))
+            self._N, self._G = torch.as_tensor(N, dtype=dt), torch.as_tensor(G, dtype=dt)
 
     def rebind(self, x_fit: np.ndarray | None) -> None:
         """Bind the fitted Gaussians to the tets of configuration x_fit (n, 3) (None: back to the fitted
@@ -292,8 +356,12 @@ class ImageLoss:
             self._set_binding(self._fit_host, self._fit_bary, self._fit_cov)
             return
         x = np.asarray(x_fit, np.float64)
-        host, bary = locate_in_tets(self._fit_means, x, self._tets)
-        F = deformation_gradients(x, self._tets[host], self._dm_inv_all[host])  # (G, 3, 3) at x_fit
+        host, bary = locate_in_elements(self._fit_means, x, self._tets)
+        if self.quadratic:  # F = Σ x_a ⊗ G_a at each Gaussian's new location
+            _, G, _ = point_map(self._rest, self._tets, host, bary)
+            F = np.einsum("gki,gkj->gij", x[self._tets[host]], G)
+        else:
+            F = deformation_gradients(x, self._tets[host], self._dm_inv_all[host])  # (G, 3, 3) at x_fit
         Finv = np.linalg.inv(F)
         self._set_binding(host, bary, Finv @ self._fit_cov @ Finv.transpose(0, 2, 1))
 
@@ -317,10 +385,14 @@ class ImageLoss:
         g = self.g
         x = torch.as_tensor(xt).to(g.dtype)
         # index_select: its backward is index_add_, much faster on the CPU than advanced indexing's
-        corners = x.index_select(0, self._host.reshape(-1)).reshape(-1, 4, 3)  # (G, 4, 3)
-        means = (self._bary[:, :, None] * corners).sum(1)
-        ds = (corners[:, 1:4] - corners[:, 0:1]).transpose(1, 2)
-        F = ds @ self._dm_inv
+        corners = x.index_select(0, self._host.reshape(-1)).reshape(-1, self._host.shape[1], 3)  # (G, k, 3)
+        if self.quadratic:
+            means = (self._N[:, :, None] * corners).sum(1)
+            F = torch.einsum("gai,gaj->gij", corners, self._G)
+        else:
+            means = (self._bary[:, :, None] * corners).sum(1)
+            ds = (corners[:, 1:4] - corners[:, 0:1]).transpose(1, 2)
+            F = ds @ self._dm_inv
         covs = F @ self._cov0 @ F.transpose(1, 2)
         opac = g.opacities()
         out = []

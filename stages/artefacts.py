@@ -378,7 +378,9 @@ def atomic_h5(path: str | Path, kind: str, provenance: Provenance) -> Iterator[h
     manifest = _MANIFESTS.setdefault(str(Path(tmp).resolve()), {})
     try:
         try:
-            with h5py.File(tmp, "w") as f:
+            # Built in memory (HDF5's core driver) and written out with plain writes: a full disk is then one
+            # OSError here, never an HDF5 library that fails half-way through closing a file (it can crash).
+            with h5py.File(tmp, "w", driver="core", backing_store=False) as f:
                 f.attrs["rsl_kind"] = kind
                 f.attrs["schema_version"] = SCHEMA_VERSION
                 f.attrs["rsl_version"] = RSL_VERSION
@@ -393,7 +395,7 @@ def atomic_h5(path: str | Path, kind: str, provenance: Provenance) -> Iterator[h
                     f.attrs["mesh_sha256"] = provenance.mesh_sha256
                 yield f
                 f.flush()
-            _fsync(tmp)
+                _write_file(tmp, f.id.get_file_image())
         except OSError as e:
             raise ArtefactError(f"{path}: writing failed ({_oserror_text(e)}); {kept}.") from None
         problem = verify_h5(tmp, kind, manifest)
@@ -412,9 +414,13 @@ def atomic_h5(path: str | Path, kind: str, provenance: Provenance) -> Iterator[h
         _MANIFESTS.pop(str(Path(tmp).resolve()), None)
 
 
-def _fsync(path: str) -> None:
-    fd = os.open(path, os.O_RDONLY)
+def _write_file(path: str, data: bytes) -> None:
+    """Write ``data`` to ``path`` (truncated first) and fsync it; an OSError (e.g. ENOSPC) on failure."""
+    fd = os.open(path, os.O_WRONLY | os.O_TRUNC)
     try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view):]
         os.fsync(fd)
     finally:
         os.close(fd)
@@ -956,6 +962,8 @@ class StressArtefact:
     tet_region: np.ndarray  # (m,)
     region_names: list[str]
     material_model: str
+    von_mises_point: np.ndarray | None = None  # (T, q) Pa per quadrature point (quadratic tets; None for linear)
+    point_element: np.ndarray | None = None  # (q,) the element of each quadrature point
 
     kind = "stress"
 
@@ -965,6 +973,9 @@ class StressArtefact:
             _put(f, "time_s", np.asarray(self.time_s, np.float64))
             for k in ("von_mises_tet", "von_mises_vertex", "cauchy_tet", "internal_forces"):
                 _put(f, k, np.asarray(getattr(self, k), np.float64), compress=True)
+            if self.von_mises_point is not None:
+                _put(f, "von_mises_point", np.asarray(self.von_mises_point, np.float64), compress=True)
+                _put(f, "point_element", np.asarray(self.point_element, np.int32))
             _put(f, "tet_region", np.asarray(self.tet_region, np.int32))
             f.attrs["region_names"] = json.dumps(list(self.region_names))
             f.attrs["material_model"] = self.material_model
@@ -980,11 +991,15 @@ class StressArtefact:
             vm = r.array("von_mises_tet", shape=(t, None))
             m = vm.shape[1]
             vmv = r.array("von_mises_vertex", shape=(t, None))
+            vmp = pel = None
+            if "von_mises_point" in r.f:  # quadratic tets only
+                vmp = r.array("von_mises_point", shape=(t, None))
+                pel = r.array("point_element", shape=(vmp.shape[1],), kind="i")
             return cls(
                 frames, r.array("time_s", shape=(t,)), vm, vmv, r.array("cauchy_tet", shape=(t, m, 3, 3)),
                 r.array("internal_forces", shape=(t, vmv.shape[1], 3)),
                 r.array("tet_region", shape=(m,), kind="i"), json.loads(r.attr("region_names")),
-                str(r.attr("material_model")),
+                str(r.attr("material_model")), vmp, pel,
             )
 
 

@@ -548,6 +548,10 @@ def check_toml_keys(raw: dict, path: Path) -> None:
     """Every table and key of capture.toml must be known (KNOWN_KEYS); the first unknown one is an error."""
     tables = [k for k in KNOWN_KEYS if "." not in k]
     for sec, val in raw.items():
+        if sec not in KNOWN_KEYS and not isinstance(val, dict):
+            homes = [t for t in tables if sec in KNOWN_KEYS[t]]
+            hint = f"; write it under its table, as [{homes[0]}] {sec}" if homes else nearest_key(sec, tables)
+            raise CaptureError(f"{path}: '{sec}' is not in a table{hint}.")
         if sec not in KNOWN_KEYS:
             raise CaptureError(f"{path}: table '[{sec}]' is not a known table{nearest_key(sec, tables)}; "
                                f"the tables are {', '.join('[' + t + ']' for t in tables)}.")

@@ -75,14 +75,17 @@ def robust_cost(r: np.ndarray, sigma: float, delta: float | None) -> float:
 
 def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, prior: Prior, sigma: float, *,
                  max_iterations: int = 5, huber: float | None = None, tol: float = 1e-3,
-                 max_rejections: int = 4) -> GNResult:
+                 max_rejections: int = 4, max_step: np.ndarray | float | None = None,
+                 lower: np.ndarray | None = None, upper: np.ndarray | None = None) -> GNResult:
     """Minimise C(p) (module docstring) from p0.
 
     evaluate(p, need_jacobian) → (r (m,), J (m, k) or None) or, with the Jacobian, (r, J, jtw) where jtw(W)
     gives Jᵀ diag(W) r exactly (used for the gradient when J is only approximate — the estimate is then the
     exact minimum of C, and J only shapes the steps and the covariance); sigma the noise level of one residual;
     huber δ in units of σ (None: plain least squares); stops after ``max_iterations`` Jacobians or when
-    the step's size in units of the posterior σ falls below ``tol``.
+    the step's size in units of the posterior σ falls below ``tol``.  ``max_step`` (k,) or scalar: a step is
+    scaled down until no |δ_i| exceeds it (a trust region); ``lower``/``upper`` (k,): p is clipped into these
+    bounds after each step (NaN or ±inf: unbounded).
     """
     p = np.asarray(p0, np.float64).copy()
     info = prior.info
@@ -108,7 +111,16 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
         for _ in range(max_rejections + 1):
             A = N + lam * np.diag(np.diag(N))
             step = -np.linalg.solve(A, g)
+            if max_step is not None:
+                ratio = float(np.max(np.abs(step) / np.broadcast_to(max_step, step.shape)))
+                if ratio > 1.0:
+                    step = step / ratio
             p_new = p + step
+            if lower is not None:
+                p_new = np.where(np.isfinite(lower), np.maximum(p_new, np.nan_to_num(lower, nan=-np.inf)), p_new)
+            if upper is not None:
+                p_new = np.where(np.isfinite(upper), np.minimum(p_new, np.nan_to_num(upper, nan=np.inf)), p_new)
+            step = p_new - p
             r_new = evaluate(p_new, False)[0]
             n_eval += 1
             c_new = cost(p_new, r_new)

@@ -268,38 +268,57 @@ def select_rows(seq: Sequence, spec: str, path_hint: str = "--frames") -> np.nda
 class StressField:
     """Per-frame stress of the whole sequence (T rows)."""
 
-    von_mises_tet: np.ndarray  # (T, m) Pa
+    von_mises_tet: np.ndarray  # (T, m) Pa (quadratic tets: the weighted mean over the element's points)
     von_mises_vertex: np.ndarray  # (T, n) Pa
     sigma: np.ndarray  # (T, m, 3, 3) Pa
     forces: np.ndarray  # (T, n, 3) internal nodal forces, N
+    von_mises_point: np.ndarray | None = None  # (T, q) Pa per quadrature point (quadratic tets only)
+    point_element: np.ndarray | None = None  # (q,) element of each quadrature point
 
 
 def compute_stress(seq: Sequence, reporter: Reporter) -> StressField:
-    """σ, σ_vM (tet and vertex) and internal nodal forces for every row."""
+    """σ, σ_vM (tet and vertex) and internal nodal forces for every row.  Quadratic tets: σ at each
+    quadrature point (stages.sim.stress.point_stress), per element the weight-averaged σ and σ_vM over its
+    points, nodal forces −Σ_q w_q P_q ∇N_a."""
+    from stages.sim.quadrature import build_quadrature, element_order
+
     mesh, ad = seq.mesh, seq.adapt
     T, n, m = seq.n_frames, mesh.n_vertices, mesh.n_tets
+    quad = build_quadrature(mesh.vertices, mesh.tets) if element_order(mesh.tets) == 2 else None
     vm_t = np.zeros((T, m))
     vm_v = np.zeros((T, n))
     sig = np.zeros((T, m, 3, 3))
     forces = np.zeros((T, n, 3))
+    vm_q = None if quad is None else np.zeros((T, quad.n_points))
+    what = "tets" if quad is None else "quadrature points"
     with reporter.task("stress", T) as task:
         for i in range(T):
             mu, lam = st.tet_lame_from_regions(ad.young[i], ad.poisson[i], mesh.tet_region)
-            s = st.tet_stress(ad.positions[i], mesh.tets, mesh.dm_inv, mu, lam, seq.model)
+            if quad is None:
+                s = st.tet_stress(ad.positions[i], mesh.tets, mesh.dm_inv, mu, lam, seq.model)
+            else:
+                s = st.point_stress(ad.positions[i], quad, mu[quad.element], lam[quad.element], seq.model)
             if np.any(s["J"] <= 0):
-                reporter.warn(f"frame {int(ad.frames[i])}: {int(np.sum(s['J'] <= 0))} inverted tets; "
+                reporter.warn(f"frame {int(ad.frames[i])}: {int(np.sum(s['J'] <= 0))} inverted {what}; "
                               f"their stress is not physical.")
-            vm_t[i], sig[i] = s["von_mises"], s["sigma"]
-            vm_v[i] = st.vertex_average(s["von_mises"], mesh.tets, mesh.rest_volumes, n)
-            forces[i] = st.nodal_forces(s["P"], mesh.tets, mesh.dm_inv, mesh.rest_volumes, n)
+            if quad is None:
+                vm_t[i], sig[i] = s["von_mises"], s["sigma"]
+                forces[i] = st.nodal_forces(s["P"], mesh.tets, mesh.dm_inv, mesh.rest_volumes, n)
+            else:
+                vm_q[i] = s["von_mises"]
+                vm_t[i] = st.element_average(s["von_mises"], quad, m)
+                sig[i] = st.element_average(s["sigma"], quad, m)
+                forces[i] = st.point_nodal_forces(s["P"], quad, n)
+            vm_v[i] = st.vertex_average(vm_t[i], mesh.tets, mesh.rest_volumes, n)
             task.advance(1, max_kpa=float(vm_t[i].max()) / 1e3)
-    return StressField(vm_t, vm_v, sig, forces)
+    return StressField(vm_t, vm_v, sig, forces, vm_q, None if quad is None else quad.element)
 
 
 def write_stress(seq: Sequence, field: StressField, out: Path, config: ExportConfig) -> list[Path]:
     """stress.h5 (a StressArtefact) and stress_summary.csv (one row per frame, plus per region if several)."""
     h5 = StressArtefact(seq.adapt.frames, seq.times, field.von_mises_tet, field.von_mises_vertex, field.sigma,
-                        field.forces, seq.mesh.tet_region, list(seq.mesh.region_names), seq.model
+                        field.forces, seq.mesh.tet_region, list(seq.mesh.region_names), seq.model,
+                        field.von_mises_point, field.point_element
                         ).save(out / "stress.h5", Provenance.make(config, seq.provenance_inputs))
     names = list(seq.mesh.region_names)
     rows = []
@@ -365,14 +384,19 @@ def write_vtk(seq: Sequence, field: StressField, applied: np.ndarray | None, out
     """vtk/frame_NNNNNN.vtu per frame and vtk/<source>.pvd listing them with their times.
 
     Point data: displacement (m), von_mises (Pa), internal_force (N) and, when forces were
-    computed, applied_force (N, handles and contacts); cell data: von_mises, region, young_pa, poisson."""
+    computed, applied_force (N, handles and contacts); cell data: von_mises, region, young_pa, poisson.
+    Quadratic tets are written as VTK_QUADRATIC_TETRA (meshio "tetra10", the same node order), cell
+    von_mises being the mean over the element's quadrature points."""
     import meshio
+
+    from stages.sim.quadrature import element_order
 
     mesh, ad = seq.mesh, seq.adapt
     folder = out / "vtk"
     folder.mkdir(parents=True, exist_ok=True)
     written = []
     region = mesh.tet_region.astype(np.int32)
+    cell_type = "tetra" if element_order(mesh.tets) == 1 else "tetra10"
     with reporter.task("vtk", seq.n_frames) as task:
         for i in range(seq.n_frames):
             x = ad.positions[i]
@@ -382,7 +406,7 @@ def write_vtk(seq: Sequence, field: StressField, applied: np.ndarray | None, out
             if applied is not None:
                 point_data["applied_force"] = applied[i]
             m = meshio.Mesh(
-                points=x, cells=[("tetra", mesh.tets.astype(np.int64))], point_data=point_data,
+                points=x, cells=[(cell_type, mesh.tets.astype(np.int64))], point_data=point_data,
                 cell_data={"von_mises": [field.von_mises_tet[i]], "region": [region],
                            "young_pa": [young_tet], "poisson": [ad.poisson[i][mesh.tet_region]]},
             )
@@ -429,9 +453,13 @@ def _load_gaussians(seq: Sequence, ws: Path):
 
 
 def gaussian_values(gauss, mesh: MeshArtefact, vertex_values: np.ndarray) -> np.ndarray:
-    """A per-vertex field carried by the Gaussians: v_g = Σ_k β_gk v[tet_g,k], (G,) from (n,)."""
-    corners = mesh.tets[gauss.host_tet]  # (G, 4)
-    return np.sum(np.asarray(gauss.bary, np.float64) * np.asarray(vertex_values)[corners], axis=1)
+    """A per-vertex field carried by the Gaussians: v_g = Σ_k β_gk v[tet_g,k] (quadratic tets: Σ_a N_a(β_g)
+    v[tet_g,a] over all nodes), (G,) from (n,)."""
+    from stages.sim.quadrature import element_order, shape_values
+
+    nodes = mesh.tets[gauss.host_tet]  # (G, 4 | 10)
+    w = shape_values(element_order(mesh.tets), np.asarray(gauss.bary, np.float64))
+    return np.sum(w * np.asarray(vertex_values)[nodes], axis=1)
 
 
 def stress_scale(config: ExportConfig, field: StressField, rows: np.ndarray) -> float:

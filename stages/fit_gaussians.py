@@ -107,6 +107,15 @@ def seed_gaussians(mesh: MeshArtefact, n: int, surface_bias: float, rng: np.rand
     return host, bary, np.log(0.5 * spacing)
 
 
+def rest_centres(mesh: MeshArtefact, host: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """Rest positions (n, 3) m of points of host elements (n,) at barycentric (corner) coordinates (n, 4):
+    Σ_a N_a(β) X_a (= Σ β_k X_k for linear tets; the quadratic map for quadratic ones)."""
+    from stages.sim.quadrature import point_map
+
+    N, _, _ = point_map(mesh.vertices, mesh.tets, host, bary)
+    return np.einsum("gk,gkd->gd", N, mesh.vertices[mesh.tets[host]])
+
+
 def _sample_colours(centres: np.ndarray, cams: list, images: list, masks: list) -> tuple[np.ndarray, list]:
     """Mean colour of the pixels each centre projects to (inside the mask); (n, 3), seen-count per camera."""
     acc = np.zeros((len(centres), 3))
@@ -217,7 +226,7 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
 
     # ---------------------------------------------------------------- seeding
     host, bary, log_sigma = seed_gaussians(mesh, config.gaussians, config.surface_bias, rng)
-    centres = np.einsum("gk,gkd->gd", bary, mesh.vertices[mesh.tets[host]])
+    centres = rest_centres(mesh, host, bary)
     colour, seen = _sample_colours(centres, cams, targets, masks)
     for cam, s in zip(cams, seen):
         if s == 0:
@@ -228,7 +237,7 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
     sh[:, 0] = gauss.color_to_sh0(colour)
     g = gauss.BoundGaussians(mesh.tets, mesh.dm_inv, host, bary, np.repeat(log_sigma[:, None], 3, 1),
                        np.tile([1.0, 0.0, 0.0, 0.0], (config.gaussians, 1)),
-                       np.zeros(config.gaussians), sh, background)
+                       np.zeros(config.gaussians), sh, background, rest=mesh.vertices)
     positions = torch.as_tensor(mesh.vertices, dtype=torch.float32)
 
     tgt_t, mask_t, bg_t = [], [], []

@@ -14,7 +14,8 @@ import numpy as np
 from stages.capture import SURFACE_SUFFIXES, CaptureError
 from stages.errors import RslError
 from stages.progress import Reporter, SilentReporter
-from stages.sim.mesh import signed_volumes
+from stages.sim.mesh import TET_FACES, signed_volumes
+from stages.sim.mesh import boundary_faces as _boundary_faces
 
 
 @contextlib.contextmanager
@@ -27,10 +28,6 @@ def _in_temporary_directory():
             yield
         finally:
             os.chdir(old)
-
-
-# Faces of a positively oriented tet (a, b, c, d), each listed with its outward normal.
-TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
 
 
 # =========================================================================== pure geometry
@@ -79,7 +76,7 @@ def boundary_faces(tets: np.ndarray) -> np.ndarray:
         tets_sharing = np.flatnonzero(inverse == inverse[f]) // 4
         raise ValueError(f"tets {tets_sharing.tolist()} overlap across a shared face: one of them is "
                          f"inverted (folded over its neighbour)")
-    return faces[counts[inverse] == 1]
+    return _boundary_faces(tets)  # the faces used by one tet (the extraction lives in stages.sim.mesh)
 
 
 def enclosed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:

@@ -113,27 +113,23 @@ def read_csv(path: str | Path) -> MarkerData:
 
 
 def write_csv(path: str | Path, positions: np.ndarray) -> None:
-    """(T, M, 3) metres -> markers.csv with marker ids 0..M−1.  An entry with a NaN (a gap) is left out; a
-    frame with no observed marker is written as one row of the first observed marker with x, y and z empty
-    (so the file still holds frames 0..T−1); a marker never observed is written as one such empty row at
-    frame 0 (so the file still holds M markers)."""
+    """(T, M, 3) metres -> markers.csv with marker ids 0..M−1.  An entry with a NaN (a gap) is left out, so a
+    marker never observed does not appear at all (its id is skipped); a frame with no observed marker is
+    written as one row of the first observed marker with x, y and z empty (so the file still holds frames
+    0..T−1)."""
     markers = np.asarray(positions, float)
     seen_all = np.all(np.isfinite(markers), axis=-1)  # (T, M)
     anywhere = np.flatnonzero(seen_all.any(axis=0))
     placeholder = int(anywhere[0]) if len(anywhere) else 0
-    never = np.flatnonzero(~seen_all.any(axis=0))
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(CSV_HEADER)
         for t in range(markers.shape[0]):
             seen = seen_all[t]
-            empty = [int(m) for m in never] if t == 0 and len(anywhere) else []
-            if not seen.any() and placeholder not in empty:
-                empty.append(placeholder)
+            if not seen.any():
+                w.writerow([t, placeholder, "", "", ""])
             for m in np.flatnonzero(seen):
                 w.writerow([t, m, *(f"{v:.9g}" for v in markers[t, m])])
-            for m in sorted(empty):
-                w.writerow([t, m, "", "", ""])
 
 
 # =========================================================================== C3D
@@ -232,7 +228,8 @@ def check_rate(data: MarkerData, path: str | Path, fps: float, toml_path: str | 
 
 
 def c3d_to_csv(src: str | Path, dst: str | Path) -> MarkerData:
-    """Convert markers.c3d to markers.csv (metres, marker ids 0..M−1 in the C3D's order); returns what was read."""
+    """Convert markers.c3d to markers.csv (metres, marker ids 0..M−1 in the C3D's order; a marker never observed
+    is left out, its id skipped); returns what was read."""
     data = read_c3d(src)
     write_csv(dst, data.positions)
     return data

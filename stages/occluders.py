@@ -80,3 +80,12 @@ def draw_occluders(image: np.ndarray, controls: Controls, frame: int, camera, al
                                   lambda p: np.broadcast_to(albedo, p.shape), None, camera.dist, supersample)
         out = rgb + (1.0 - cov)[..., None] * out
     return np.clip(out, 0.0, 1.0)
+
+
+def clamp_visual(held: np.ndarray, pad: float = 0.12) -> Visual:
+    """A box visual around the points a handle holds (k, 3), grown by ``pad`` × its largest side on every side:
+    what a clamp gripping those vertices looks like (rsl synth --clamp)."""
+    held = np.asarray(held, np.float64)
+    lo, hi = held.min(0), held.max(0)
+    grow = pad * float(np.max(hi - lo))
+    return Visual("box", box=np.stack([lo - grow, hi + grow]))

@@ -120,6 +120,11 @@ STAGES: tuple[Stage, ...] = (
           summary="Export what the adapted simulation reveals: stress, handle and contact forces, a ParaView "
                   "series, 3DGS PLYs, stress renders and plots. With no product flag, everything the workspace "
                   "allows."),
+    Stage("report", "stages.report", "ReportConfig", None, ("adapt", "mesh", "gaussians", "cameras"), arguments=(),
+          flags=(("out", ("--out", "-o")),),
+          summary="Write one self-contained HTML page (WS/report.html): E(t) ± σ per region against the truth, "
+                  "renders beside the photos, stress renders, handle/contact forces, timings and every "
+                  "artefact's provenance. Sections the workspace cannot make say why."),
     Stage("rollout", "stages.rollout", "RolloutConfig", None, ("adapt", "mesh", "subspace"),
           summary="Simulate new controls (handle and obstacle motions) with the adapted material, from the adapted "
                   "state or from rest; writes WS/rollout.h5 (read it with `rsl export --source rollout`)."),

@@ -43,8 +43,6 @@ from stages.progress import Reporter, SilentReporter
 st = lazy_module("stages.sim.stress")  # jax loads on first use
 
 REPORT_FILE = "report.html"
-FORCE_COLUMNS = ("frame", "time_s", "name", "kind", "fx_N", "fy_N", "fz_N", "magnitude_sum_N",
-                 "applied_fx_N", "applied_fy_N", "applied_fz_N")  # the columns of export's forces.csv read here
 
 
 @dataclass(frozen=True)
@@ -419,20 +417,14 @@ def section_stress(ctx: Context) -> str:
 
 def _read_force_csv(path: Path) -> dict:
     """name -> {"t": (k,), "internal": (k, 3), "applied": (k, 3)} from a forces.csv (export's header)."""
+    from stages.capture import read_forces_csv
+
     out: dict = {}
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        missing = [c for c in FORCE_COLUMNS if c not in (reader.fieldnames or [])]
-        if missing:
-            raise SectionMissing(f"{path}: lacks the column{'s' if len(missing) > 1 else ''} {', '.join(missing)}.")
-        for r in reader:
-            try:
-                d = out.setdefault(r["name"], {"t": [], "internal": [], "applied": []})
-                d["t"].append(float(r["time_s"]))
-                d["internal"].append([float(r["fx_N"]), float(r["fy_N"]), float(r["fz_N"])])
-                d["applied"].append([float(r["applied_fx_N"]), float(r["applied_fy_N"]), float(r["applied_fz_N"])])
-            except (TypeError, ValueError):
-                raise SectionMissing(f"{path}: malformed row {r}.") from None
+    for r in read_forces_csv(path):
+        d = out.setdefault(r["name"], {"t": [], "internal": [], "applied": []})
+        d["t"].append(r["time_s"])
+        d["internal"].append([r["fx_N"], r["fy_N"], r["fz_N"]])
+        d["applied"].append([r["applied_fx_N"], r["applied_fy_N"], r["applied_fz_N"]])
     return {k: {kk: np.asarray(vv, np.float64) for kk, vv in v.items()} for k, v in out.items()}
 
 

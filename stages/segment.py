@@ -4,17 +4,19 @@ Methods (stages/vision/segmentation.py):
 
 - ``background``: difference from background/CAM.png with shadow suppression.
 - ``chroma``: chroma key against a uniform backdrop (key colour given or from the border).
-- ``grabcut``: GrabCut seeded by the rest mesh (WS/mesh.h5) projected with WS/cameras.h5 in
-  frame 0, then by the previous frame's mask (propagation).
+- ``grabcut``: GrabCut seeded in frame 0 by the object's frame-0 state projected with WS/cameras.h5
+  (the tet mesh of WS/mesh.h5, or the capture's own mesh; in its static equilibrium under gravity and
+  the frame-0 controls when capture.toml says ``start = "equilibrium"`` and a tet mesh is at hand, else
+  at rest), then by the previous frame's mask (propagation).
 - ``sam2``: SAM 2 with a user-supplied checkpoint (optional ``sam2`` package), prompted like
   grabcut.
 - ``lab``: the lab's own masks CAPTURE/masks/CAM/000000.png … (object > 127), read as they are.
 - ``auto``: lab when every camera has lab masks; else background when every camera has a plate;
   else (no plate) chroma when the border of every camera's first frame is one colour
   (:func:`~stages.vision.segmentation.backdrop_uniformity`) and the chroma key finds an object
-  there (that overlaps the projected rest mesh, IoU ≥ CHROMA_AGREE, when cameras.h5 exists); else grabcut, seeded by the frame-0 state projected with WS/cameras.h5 (mesh.h5's surface,
-  or the capture's rest mesh when tetrahedralize has not run yet: `rsl run` segments first); else
-  chroma.  The method used and why is reported and recorded in masks.h5 (``method``).
+  there (that overlaps the projected frame-0 state, IoU ≥ CHROMA_AGREE, when cameras.h5 exists); else
+  grabcut (mesh.h5, or the capture's mesh when tetrahedralize has not run yet: `rsl run` segments
+  first); else chroma.  The method used and why is reported and recorded in masks.h5 (``method``).
 
 Occluders (controls.json ``visual`` of handles and obstacles, stages/occluders.py): the pixels they
 cover are taken out of every mask (neither object nor background; the object stays one piece across
@@ -110,7 +112,8 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
     inputs: list[Path] = cap.frame_inputs(backgrounds=True)  # every frame read (a hash per camera)
     priors = None
     if method in ("grabcut", "sam2"):
-        priors, inputs = _mesh_priors(cap, ws)
+        priors, inputs, seeded = _mesh_priors(cap, ws, reporter)
+        reporter.info(f"segment: {method} seeded by {seeded} projected with cameras.h5")
     key = _parse_color(config.key_color) if config.key_color else None
     occluding, cam_objs = _occluder_cameras(cap, ws, method, reporter)
     if occluding:
@@ -276,14 +279,13 @@ def _resolve(method: str, cap: Capture, ws: Path) -> tuple[str, str]:
         if not has_cams:
             return "chroma", why
         # check the key against the projected object: a plain but not keyable backdrop falls through to GrabCut
-        priors, _ = _mesh_priors(cap, ws)
+        priors, _, _ = _mesh_priors(cap, ws)
         agree = min(iou(spreads[c][1], priors[c]) if priors[c].shape == spreads[c][2] else 0.0 for c in priors)
         if agree >= CHROMA_AGREE:
             return "chroma", why + f" and the key agrees with the projected object (IoU ≥ {agree:.2f})"
     if has_cams:
-        seed = "mesh.h5's surface" if (ws / KIND_FILES["mesh"]).is_file() else f"the rest mesh {cap.mesh_path.name}"
         return "grabcut", (f"no background plate and the frame border is not one colour (chroma spread "
-                           f"{worst:.1f}); seeded by {seed} projected with cameras.h5")
+                           f"{worst:.1f}); seeded by the object's frame-0 state projected with cameras.h5")
     return "chroma", ("no background plate and no cameras.h5 to project the object with (run rsl calibrate "
                       "for GrabCut); the chroma key is a guess here")
 
@@ -305,22 +307,64 @@ def _rest_surface(cap: Capture) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
 
 
-def _mesh_priors(cap: Capture, ws: Path) -> tuple[dict[str, np.ndarray], list[Path]]:
-    """Silhouette of the frame-0 state in every camera (the first frame's seed): mesh.h5's surface, or the
-    capture's rest mesh when mesh.h5 does not exist yet, projected with cameras.h5."""
+def _frame0_mesh(cap: Capture, ws: Path) -> tuple[object | None, np.ndarray, np.ndarray, list[Path], str]:
+    """(tet MeshArtefact or None, vertices (n, 3), surface triangles (k, 3), inputs, what it is) of the object at
+    rest: mesh.h5, else the capture's tet mesh (.mesh/.msh), else the capture's surface."""
+    mesh_path = ws / KIND_FILES["mesh"]
+    if mesh_path.is_file():
+        mesh = MeshArtefact.load(mesh_path)
+        return mesh, mesh.vertices, mesh.surface_faces, [mesh_path], "mesh.h5's surface"
+    if cap.mesh_path.suffix.lower() in (".mesh", ".msh"):
+        from stages.meshing import read_tet_mesh
+        from stages.sim.meshgen import mesh_artefact
+
+        v, tets, _ = read_tet_mesh(cap.mesh_path)
+        mesh = mesh_artefact(v, tets, cap.density)
+        return mesh, mesh.vertices, mesh.surface_faces, [cap.mesh_path], f"the rest mesh {cap.mesh_path.name}"
+    v, f = _rest_surface(cap)
+    return None, v, f, [cap.mesh_path], f"the rest mesh {cap.mesh_path.name}"
+
+
+def _frame0_state(cap: Capture, mesh, reporter: Reporter) -> tuple[np.ndarray | None, str]:
+    """Positions (n, 3) of frame 0 when the capture starts at equilibrium (capture.toml [capture] start): the static
+    equilibrium under gravity and the frame-0 controls with capture.toml's initial E and ν; None (use the rest
+    shape) when it starts at rest, nothing holds the object, there is no tet mesh, or the solve fails."""
+    if mesh is None or getattr(cap, "start", "rest") != "equilibrium":
+        return None, ""
+    controls = cap.controls()
+    if not controls.handles:
+        return None, ""
+    from stages.sim.scene import SimulationError, frame_inputs, make_scene
+    from stages.sim.static import start_state
+
+    try:
+        scene = make_scene(mesh, controls, cap.material.model, cap.dt, cap.gravity)
+        young = np.array([cap.material.region_young(r) for r in scene.region_names])
+        poisson = np.array([cap.material.region_poisson(r) for r in scene.region_names])
+        x0 = np.asarray(start_state(scene, frame_inputs(scene, controls, 0), young, poisson, "equilibrium"))
+    except SimulationError as e:
+        reporter.warn(f"segment: the frame-0 equilibrium did not solve ({e}); GrabCut is seeded by the rest shape.")
+        return None, ""
+    return x0[: len(mesh.vertices)], " in its frame-0 equilibrium (capture.toml's E and ν)"
+
+
+def _mesh_priors(cap: Capture, ws: Path, reporter: Reporter = SilentReporter()
+                 ) -> tuple[dict[str, np.ndarray], list[Path], str]:
+    """(silhouette per camera, inputs, what was projected): the frame-0 state of the object — the rest shape, or its
+    static equilibrium when capture.toml says the capture starts there — of mesh.h5, or of the capture's rest mesh
+    when mesh.h5 does not exist yet, projected with cameras.h5 (the first frame's GrabCut seed)."""
     from stages.vision.segmentation import mesh_silhouette
 
-    cams_path, mesh_path = ws / KIND_FILES["cameras"], ws / KIND_FILES["mesh"]
+    cams_path = ws / KIND_FILES["cameras"]
     if not cams_path.is_file():
         raise RslError(f"{cams_path}: file not found; mesh-seeded segmentation needs WS/cameras.h5 "
                        "(rsl calibrate) and WS/mesh.h5 (rsl tetrahedralize) or the capture's rest mesh.")
-    if mesh_path.is_file():
-        mesh = MeshArtefact.load(mesh_path)
-        verts, faces = mesh.vertices, mesh.surface_faces
-        paths = [mesh_path, cams_path]
-    else:
-        verts, faces = _rest_surface(cap)
-        paths = [cap.mesh_path, cams_path]
+    mesh, verts, faces, paths, what = _frame0_mesh(cap, ws)
+    x0, how = _frame0_state(cap, mesh, reporter)
+    if x0 is not None:
+        verts, what = x0, what + how
+        paths.append(cap.controls_path)
+    paths.append(cams_path)
     cams = CamerasArtefact.load(cams_path)
     out = {}
     for name in cap.camera_names:
@@ -333,7 +377,7 @@ def _mesh_priors(cap: Capture, ws: Path) -> tuple[dict[str, np.ndarray], list[Pa
             raise RslError(f"{cams_path}: camera '{name}' does not see the rest mesh (its projection misses "
                            "the image); check the calibration's world frame.")
         out[name] = sil
-    return out, paths
+    return out, paths, what
 
 
 def _occluder_cameras(cap: Capture, ws: Path, method: str, reporter: Reporter) -> tuple[bool, dict]:

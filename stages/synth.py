@@ -117,6 +117,11 @@ class SynthConfig:
     handles: Literal["spring", "hard"] = "spring"
     """Handles of the truth: stiff springs, or hard (Dirichlet: the held vertices follow the handle exactly).
     With hard, controls.json declares the handles "hard": true, as a lab describes a clamp."""
+    clamp: bool = False
+    """Give the first handle a visible clamp: a box around the vertices it holds, written as its ``visual`` in
+    controls.json and drawn (dark grey, in front) into the frames; truth/masks show the object it does not hide."""
+    plates: bool = True
+    """Write background/CAM.png (the empty scene); --no-plates makes a capture without a background plate."""
     overwrite: bool = False
     """Replace CAPTURE_OUT when it exists (it must then be a capture made by rsl synth)."""
 
@@ -596,6 +601,12 @@ def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
     _, _, masses = rest_quantities(mesh.vertices, mesh.tets, c.density)
     ctl, notes = scenario_controls(c.scenario, mesh.vertices, mesh.faces, c.frames, float(masses.sum()),
                                    gravity, float(young.max()), c.amplitude, hard=c.handles == "hard")
+    if c.clamp:  # a visible clamp over the first handle's vertices (stages/occluders.py)
+        from stages.occluders import clamp_visual
+
+        if not ctl.handles:
+            raise RslError(f"--clamp needs a handle to draw; the {c.scenario} scenario has none.")
+        ctl.handles[0].visual = clamp_visual(mesh.vertices[ctl.handles[0].select.select(mesh.vertices)])
     controls_json = ctl.to_json()
     ctl = parse_controls(json.loads(json.dumps(controls_json)), Path("controls.json"))  # exactly what is written
     art = mesh_artefact(mesh, c.density, ctl)
@@ -749,7 +760,7 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, tmesh: SynthMesh
 
     # ---------------------------------------------------------------- images
     texture = procedural_texture(cell_m=float(np.ptp(mesh.vertices, axis=0).max()) / 8, seed=c.seed)
-    for cam in cams:
+    for cam in cams if c.plates else ():
         _write_png(root / "background" / f"{cam.name}.png", _to_u8(backgrounds[cam.name]))
     board_json = {}
     for k, pose in enumerate(poses):
@@ -770,9 +781,14 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, tmesh: SynthMesh
                                               cam.height, texture, backgrounds[cam.name], cam.dist, c.supersample)
                 if seen_by is not None:  # the true (noise-free) marker positions are what the cameras see
                     seen_by[f] += visible_points(true_pts[f], cam, depth)
+                mask = cov >= 0.5
+                if c.clamp:  # drawn in front; the truth mask is the object it leaves visible
+                    from stages.occluders import draw_occluders, ignore_mask
+
+                    rgb = draw_occluders(rgb, ctl, f, cam, supersample=c.supersample)
+                    mask &= ~ignore_mask(ctl, f, cam, margin_px=0)
                 if c.noise > 0:
                     rgb = rgb + noise_rng.normal(0.0, c.noise, rgb.shape)
-                mask = cov >= 0.5
                 min_cov[cam.name] = min(min_cov[cam.name], float(mask.mean()))
                 _write_png(root / "frames" / cam.name / f"{f:06d}.png", _to_u8(rgb))
                 _write_png(root / "truth" / "masks" / cam.name / f"{f:06d}.png", mask.astype(np.uint8) * 255)

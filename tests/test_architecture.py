@@ -130,7 +130,7 @@ ROTATION_TWINS = {
     ("stages/render/gaussians.py", "rotmat_to_quat"),  # numpy; delegates to stages.domain.rotations
     ("stages/render/bind_project.py", "_rotmat"),  # numba kernel of the fused bind+project
 }
-ROTATION_NAME = re.compile(r"quat|rotvec|rodrigues|axis_angle|slerp|euler|rotmat|rot_matrix", re.I)
+ROTATION_NAME = re.compile(r"quat|rotvec|rodrigues|axis_angle|slerp|euler_ang|rotmat|rot_matrix|rotation_matrix", re.I)
 QUAT_FORMULA = re.compile(r"1\s*-\s*2\s*\*\s*\(\s*\w\s*\*\s*\w\s*\+\s*\w\s*\*\s*\w\s*\)")
 
 

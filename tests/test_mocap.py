@@ -98,11 +98,13 @@ def test_shared_optotrak_sample_reads_and_converts(shared_data: Path, tmp_path: 
     assert np.nanmax(steps) < 0.2  # under 6 m/s at 30 Hz: plausible marker speeds
     back = mocap.c3d_to_csv(src, tmp_path / "markers.csv")
     csv = mocap.read_csv(tmp_path / "markers.csv")
-    assert csv.positions.shape == (29, 54, 3)
-    np.testing.assert_array_equal(csv.observed, back.observed)
-    np.testing.assert_allclose(csv.positions[obs], P, rtol=1e-8)
-    # rsl adapt's rules: every marker seen at frame 0; the sample has three that are not
-    with pytest.raises(CaptureError, match=r"marker\(s\) 51, 52 are never observed"):
+    seen = obs.any(axis=0)  # the two never-observed markers are left out of the CSV; the ids of the others kept
+    assert csv.positions.shape == (29, 52, 3)
+    assert csv.labels == [str(i) for i in np.flatnonzero(seen)]
+    np.testing.assert_array_equal(csv.observed, back.observed[:, seen])
+    np.testing.assert_allclose(csv.positions[csv.observed], P, rtol=1e-8)
+    # rsl adapt's rules: every marker seen, and at frame 0; the sample has three that are not
+    with pytest.raises(CaptureError, match=r"marker\(s\) 53 are not observed at frame 0"):
         read_markers(tmp_path / "markers.csv")
     with pytest.raises(CaptureError, match=r"Marker_52, Marker_53 are never observed"):
         read_markers(src)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -130,11 +131,13 @@ def scene():
     ign = ignore_mask(ctl, 0, cam)
     x = v + 0.002 * np.sin(v[:, [1, 2, 0]] * 80.0)
     target = np.clip(loss.render(v)[0] + rng.normal(0, 0.05, (48, 48, 3)), 0, 1).astype(np.float32)
-    return loss, x, target, ign
+    target = np.round(target * 255) / 255  # exactly what an 8-bit frame holds
+    return SimpleNamespace(loss=loss, x=x, target=target, ign=ign, mesh=mesh, cam=cam, gauss=gauss,
+                           controls=_controls(box, [list(_pose([0.09, 0.02, 0.02], angle=0.0))]))
 
 
 def test_the_occluder_covers_object_pixels(scene) -> None:
-    loss, x, target, ign = scene
+    loss, x, ign = scene.loss, scene.x, scene.ign
     img = loss.render(x)[0]
     obj = np.abs(img - loss.background).max(-1) > 0.05
     assert 0.1 * obj.sum() < (obj & ign).sum() < 0.9 * obj.sum()
@@ -146,7 +149,7 @@ def test_ignored_pixels_contribute_nothing_and_the_gradient_is_that_of_the_loss_
     neither L nor dL/dx; and the gradient differs from the one that counts those pixels."""
     import torch
 
-    loss, x, target, ign = scene
+    loss, x, target, ign = scene.loss, scene.x, scene.target, scene.ign
     L_full, g_full = loss(x, [target])
     L_ign, g_ign = loss(x, [target], [ign])
     # the twin: mask render and target by hand
@@ -173,3 +176,82 @@ def test_ignored_pixels_contribute_nothing_and_the_gradient_is_that_of_the_loss_
     L4, g4 = loss(x, [target], [np.zeros_like(ign)])
     assert L4 == L_full
     np.testing.assert_array_equal(g4, g_full)
+
+
+# =========================================================================== rsl synth --clamp
+def test_synth_clamp_draws_the_handle_visual_and_no_plates_leaves_background_out(tmp_path, shared_data, rsl) -> None:
+    """`rsl synth --clamp --no-plates`: controls.json's first handle carries a box visual around the vertices it
+    holds; the frames show it (dark, where its ignore mask is) and the truth masks hold only the visible object."""
+    import cv2
+    import trimesh
+
+    from stages.capture import load_capture, read_cameras_json, read_image
+
+    beam = shared_data / "autodef_fulton" / "Coarse_beam.mesh"
+    cap = tmp_path / "cap"
+    p = rsl("synth", beam, cap, "--scenario", "cable", "--cameras", "1", "--frames", "3", "--resolution", "48",
+            "--markers", "0", "--calib-views", "0", "--clamp", "--no-plates")
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert not (cap / "background").exists()
+    ctl = load_capture(cap).controls()
+    vis = ctl.handles[0].visual
+    assert vis is not None and vis.kind == "box"
+    surf = np.asarray(trimesh.load(cap / "object.obj", process=False).vertices)
+    held = surf[ctl.handles[0].select.select(surf)]
+    assert len(held) and np.all(vis.box[0] < held.min(0)) and np.all(vis.box[1] > held.max(0))  # encloses them
+    cam = read_cameras_json(cap / "cameras.json")[0]
+    for t in range(3):
+        cover = ignore_mask(ctl, t, cam, margin_px=0)
+        img = read_image(cap / "frames" / "cam0" / f"{t:06d}.png").astype(float) / 255
+        truth = read_image(cap / "truth" / "masks" / "cam0" / f"{t:06d}.png")[..., 0] > 127
+        assert cover.sum() > 20 and truth.sum() > 20
+        inner = cv2.erode(cover.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)  # away from its outline
+        assert inner.sum() > 5 and img[inner].max() < 0.45  # the dark clamp
+        assert not np.any(truth & cover)
+
+
+# =========================================================================== rsl adapt's vision observations
+def test_adapt_vision_observations_leave_the_occluder_out(scene, tmp_path) -> None:
+    """stages.adapt._Vision on a capture whose handle carries a visual: the L1 loss it passes ImageLoss carries
+    the occluder's ignore mask, and the Gauss–Newton residuals, their Jacobian columns and Jᵀ W r are zero /
+    unchanged under it, whatever the frame holds there."""
+    from stages.adapt import _Vision
+    from stages.artefacts import CamerasArtefact
+    from stages.capture import load_capture, write_image
+
+    loss, x, target, ign, mesh, cam = scene.loss, scene.x, scene.target, scene.ign, scene.mesh, scene.cam
+    cap = tmp_path / "cap"
+    (cap / "frames" / "c0").mkdir(parents=True)
+    import meshio
+
+    meshio.write(str(cap / "object.mesh"), meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)]), file_format="medit")
+    (cap / "capture.toml").write_text('[capture]\ncameras = ["c0"]\nstart = "rest"\n[object]\nmesh = "object.mesh"\n')
+    (cap / "controls.json").write_text(json.dumps(scene.controls))
+    frame = np.round(target * 255).astype(np.uint8)
+    write_image(cap / "frames" / "c0" / "000000.png", frame)
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    CamerasArtefact([cam], "json").save(ws / "cameras.h5")
+    scene.gauss.save(ws / "gaussians.h5")
+    obs = _Vision(load_capture(cap), ws, "", mesh, False)
+    assert obs.occluded
+    np.testing.assert_array_equal(obs.ignore(0)[0], ign)
+    tgt = obs.targets(0)[0]
+    L, G = obs.loss([0], x[None])
+    L_ref, g_ref = loss(x, [tgt], [ign])
+    assert L[0] == pytest.approx(L_ref, rel=1e-6)
+    np.testing.assert_allclose(G[0], g_ref, atol=1e-6 * np.abs(g_ref).max())
+    r = obs.residuals([0], x[None])[0].reshape(48, 48, 3)
+    assert np.all(r[ign] == 0) and np.abs(r[~ign]).max() > 0
+    dX = np.random.default_rng(2).normal(size=(2, 1) + x.shape) * 1e-3
+    J = obs.jacobian([0], x[None], dX)[0].reshape(48, 48, 3, 2)
+    assert np.all(J[ign] == 0) and np.abs(J[~ign]).max() > 0
+    W = [np.ones(48 * 48 * 3)]
+    g1 = obs.exact_jtwr([0], x[None], dX, [r.reshape(-1)], W)
+    # a frame that differs only under the occluder gives the same residuals and Jᵀ W r
+    other = frame.copy()
+    other[ign] = 255 - other[ign]
+    write_image(cap / "frames" / "c0" / "000000.png", other)
+    obs2 = _Vision(load_capture(cap), ws, "", mesh, False)
+    np.testing.assert_array_equal(obs2.residuals([0], x[None])[0], r.reshape(-1))
+    np.testing.assert_allclose(obs2.exact_jtwr([0], x[None], dX, [r.reshape(-1)], W), g1, rtol=1e-12)

@@ -123,6 +123,66 @@ def test_p2_reduced_gradient_and_hessian_against_finite_differences(p2):
         assert np.abs(fdh - H).max() <= 1e-5 * np.abs(H).max()
 
 
+def test_p2_fast_path_with_all_points_equals_reference(p2):
+    """All quadrature points with weight 1 = the full incremental potential Φ(φ(z)) of stages.sim.potential
+    (gradient, Hessian, energy differences)."""
+    scene, snaps, ae, _ = p2
+    z, z1, z2 = _states(ae, snaps)
+    inp = frame_inputs_bar(scene, 0.01)
+    fast, ref = ReducedModel(ae, scene), ReducedModel(ae, scene, reference=True)
+    args = (inp, YOUNG, POISSON, z1, z2)
+    g_f, g_r = fast.gradient(z, *args), ref.gradient(z, *args)
+    assert np.linalg.norm(g_f - g_r) <= 1e-10 * np.linalg.norm(g_r)
+    h_f, h_r = fast.hessian(z, *args), ref.hessian(z, *args)
+    assert np.abs(h_f - h_r).max() <= 1e-10 * np.abs(h_r).max()
+    dz = 1e-3 * np.random.default_rng(0).normal(size=z.shape)
+    de_f = fast.energy(z + dz, *args) - fast.energy(z, *args)
+    de_r = ref.energy(z + dz, *args) - ref.energy(z, *args)
+    assert abs(de_f - de_r) <= 1e-9 * abs(de_r)
+
+
+def test_p2_reduced_rollout_follows_full_space(p2):
+    """PCA r = 12 with a 60-point cubature, trained on full-space P2 sequences of a clamp that lifts and
+    turns, against the full-space P2 simulation of a held-out sequence."""
+    from stages.sim.materials import lame
+    from stages.sim.scene import simulate
+
+    scene = p2[0]
+    hid = scene.handles[0].ids
+    c = scene.rest[hid].mean(0)
+
+    def seq(seed, frames=12):
+        rng = np.random.default_rng(seed)
+        amp = rng.uniform(-1, 1, 3) * np.array([0.01, 0.5, 0.3])
+        out = []
+        for f in range(frames):
+            s = np.sin(0.5 * np.pi * min(f / 8, 1.0))
+            a, b = amp[1] * s, amp[2] * s
+            Rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+            Rz = np.array([[np.cos(b), -np.sin(b), 0], [np.sin(b), np.cos(b), 0], [0, 0, 1]])
+            target = (scene.rest[hid] - c) @ (Rx @ Rz).T + c + np.array([0, 0, amp[0] * s])
+            out.append(FrameInputs((target,), np.zeros_like(scene.rest), np.zeros((0, 7))))
+        return out
+
+    ins = [seq(s) for s in range(5)]
+    xs = [simulate(scene, i, YOUNG, POISSON) for i in ins]
+    train = np.concatenate(xs[:4])
+    sub, _ = fit_subspace("pca", scene.rest, scene.masses, train, 12)
+    quad = scene_quadrature(scene)
+    mu, lam = (np.asarray(a)[scene.tet_region[quad.element]] for a in lame(YOUNG, POISSON))
+    sampler = ReducedForceSampler(sub, np.asarray(sub.encode(jnp.asarray(train[::3]))), quad, mu, lam,
+                                  scene.material)
+    ids, w, _ = fit_cubature(sampler, scene.tet_region[quad.element], 2, max_points=60, tol=1e-3, seed=0)
+    diag = np.linalg.norm(scene.rest.max(0) - scene.rest.min(0))
+    errs = {}
+    for name, model in (("cubature", ReducedModel(sub, scene, (ids, w))), ("all points", ReducedModel(sub, scene))):
+        Z = model.simulate(ins[4], YOUNG, POISSON)
+        errs[name] = np.linalg.norm(model.decode(Z) - xs[4], axis=-1).mean() / diag
+    motion = np.linalg.norm(xs[4] - scene.rest, axis=-1).mean() / diag
+    assert errs["all points"] < 0.02 and errs["cubature"] < 0.03, errs
+    assert errs["cubature"] < 0.2 * motion, (errs, motion)
+
+
 def test_p2_assembled_hessian_equals_forward_over_reverse_on_a_point_subset(p2):
     scene, snaps, ae, pca = p2
     quad = scene_quadrature(scene)
@@ -411,3 +471,158 @@ def test_p2_binding_gradcheck_reference_and_fused():
         [p.detach().clone().requires_grad_(True) for p in (g.bary_logits, g.log_scales, g.rotations)]
     assert torch.autograd.gradcheck(reference, ins, eps=1e-7, atol=1e-6, rtol=1e-5)
     assert torch.autograd.gradcheck(fused, ins, eps=1e-7, atol=1e-6, rtol=1e-5)
+
+
+def test_p2_point_location_inverts_the_curved_element_map():
+    from stages.adapt_loss import locate_in_elements
+
+    mesh = p2_box_mesh(bow=0.01)
+    rng = np.random.default_rng(8)
+    x = mesh.vertices + rng.normal(scale=0.002, size=mesh.vertices.shape)  # a deformed, curved configuration
+    host = rng.integers(0, len(mesh.tets), 200)
+    bary = rng.dirichlet(np.ones(4) * 3, 200)
+    N, _, _ = Q.point_map(mesh.vertices, mesh.tets, host, bary)
+    pts = np.einsum("gk,gkd->gd", N, x[mesh.tets[host]])
+    h, b = locate_in_elements(pts, x, mesh.tets)
+    N2 = Q.shape_values(2, b)
+    np.testing.assert_allclose(np.einsum("gk,gkd->gd", N2, x[mesh.tets[h]]), pts, atol=1e-13)
+    assert b.min() > -1e-9  # found inside an element
+    inner = bary.min(1) > 0.05  # well inside: the same element and coordinates
+    assert np.array_equal(h[inner], host[inner])
+    np.testing.assert_allclose(b[inner], bary[inner], atol=1e-10)
+
+
+def test_p2_image_loss_matches_bound_gaussians_and_rebinds_exactly():
+    import torch
+
+    from stages.adapt_loss import ImageLoss
+    from stages.render.gaussians import BoundGaussians
+    from test_fit_gaussians import look_at
+
+    mesh = p2_box_mesh()
+    art = p2_gaussians(mesh, 400, 9)
+    art.opacity_logit = np.full(400, 2.0)
+    cam = look_at("c", [0.3, 0.1, 0.2], 48, f=50.0)
+    loss = ImageLoss(art, mesh, [cam])
+    rng = np.random.default_rng(10)
+    x = mesh.vertices + rng.normal(scale=0.003, size=mesh.vertices.shape)
+    with torch.no_grad():
+        a = loss.images(torch.as_tensor(x))[0]
+        b = BoundGaussians.from_artefact(art, mesh).render(torch.as_tensor(x), cam).image
+    assert float((a - b).abs().max()) < 1e-4 and float(a.std()) > 0.01
+    # rebind to a deformed fit-frame shape: rendered there, the Gaussians are the fitted ones
+    loss.rebind(x)
+    N = loss._N.double().numpy()
+    G = loss._G.double().numpy()
+    xe = x[mesh.tets[loss.host_tet]]
+    np.testing.assert_allclose(np.einsum("gk,gkd->gd", N, xe), loss._fit_means, atol=1e-6)
+    F = np.einsum("gki,gkj->gij", xe, G)
+    cov = F @ loss._cov0.double().numpy() @ F.transpose(0, 2, 1)
+    np.testing.assert_allclose(cov, loss._fit_cov, rtol=1e-4, atol=1e-10)
+
+
+def test_markers_bind_to_the_p2_surface():
+    from stages.adapt_loss import bind_markers
+
+    mesh = p2_box_mesh()
+    faces = mesh.surface_faces
+    rng = np.random.default_rng(11)
+    f = rng.integers(0, len(faces), 30)
+    b = rng.dirichlet(np.ones(3), 30)
+    m0 = np.einsum("mk,mkd->md", b, mesh.vertices[faces[f]])
+    binding = bind_markers(mesh.vertices, faces, m0)
+    assert binding.distance.max() < 1e-12 and binding.faces.max() >= mesh.tets[:, :4].max()  # mid-edge nodes
+    np.testing.assert_allclose(binding.positions(mesh.vertices), m0, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- export
+SIZE_EXPORT = (0.1, 0.02, 0.02)  # test_export.SIZE
+@pytest.fixture(scope="module")
+def p2_stretch_ws(tmp_path_factory):
+    """test_export's uniaxial stretch ramp on a quadratic-tet block (homogeneous F at every point)."""
+    from stages.artefacts import AdaptArtefact, MeshArtefact, Provenance
+    from stages.sim.materials import lame
+    from test_export import E, NU, SIZE, snh_uniaxial, stretch_controls, write_capture
+    from test_stress_meshes import block_mesh
+
+    root = tmp_path_factory.mktemp("export_p2")
+    v, t, _ = block_mesh(SIZE, (4, 1, 1))
+    v2, t2 = Q.quadratic_tets(v, t)
+    vol, dmi, m = rest_quantities(v2, t2, 1000.0)
+    mesh = MeshArtefact(v2, t2, Q.quadratic_surface(t2), np.zeros(len(t2), np.int64), ["body"], vol, dmi, m, 1000.0)
+    ws = root / "ws"
+    ws.mkdir()
+    mesh.save(ws / "mesh.h5")
+    stretches = np.linspace(1.0, 1.2, 4)
+    mu, lam = lame(E, NU)
+    l2s = np.array([snh_uniaxial(l1, mu, lam)[0] for l1 in stretches])
+    cap = write_capture(root / "capture", mesh, stretch_controls(stretches, l2s))
+    pos = np.stack([v2 * np.array([l1, l2, l2]) for l1, l2 in zip(stretches, l2s)])
+    T = len(stretches)
+    AdaptArtefact(
+        frames=np.arange(T), young=np.full((T, 1), E), poisson=np.full((T, 1), NU), z=np.zeros((T, 0)),
+        positions=pos, loss=np.linspace(1.0, 0.1, T), time_forward_s=np.full(T, 0.1),
+        time_backward_s=np.full(T, 0.2), time_render_s=np.full(T, 0.05), time_total_s=np.full(T, 0.4),
+        region_names=["body"], mode="online", space="full", loss_kind="markers", window=3,
+    ).save(ws / "adapt.h5", Provenance.make({"capture": str(cap), "workspace": str(ws)}))
+    return {"ws": ws, "mesh": mesh, "stretches": stretches, "l2s": l2s, "root": root, "mu": mu, "lam": lam}
+
+
+def test_p2_export_stress_per_point_and_vtk_quadratic_tetra(p2_stretch_ws):
+    import meshio
+    import pyvista
+
+    from stages.artefacts import StressArtefact
+    from stages.export import ExportConfig, read_pvd, run
+    from test_export import snh_uniaxial
+
+    d = p2_stretch_ws
+    out = run(ExportConfig(workspace=d["ws"], stress=True, vtk=True, out=d["root"] / "out"))
+    art = StressArtefact.load(out / "stress.h5")
+    mesh = d["mesh"]
+    m = len(mesh.tets)
+    assert art.von_mises_point.shape == (4, 4 * m) and np.array_equal(art.point_element, np.repeat(np.arange(m), 4))
+    series = read_pvd(out / "vtk" / "adapt.pvd")
+    assert len(series) == 4
+    for i, (_, path) in enumerate(series):
+        s11 = abs(snh_uniaxial(d["stretches"][i], d["mu"], d["lam"])[2])
+        np.testing.assert_allclose(art.von_mises_point[i], s11, rtol=1e-6, atol=1e-9 * 2e5)
+        np.testing.assert_allclose(art.von_mises_tet[i], s11, rtol=1e-6, atol=1e-9 * 2e5)
+        vm = meshio.read(path)
+        assert vm.points.shape == mesh.vertices.shape
+        np.testing.assert_array_equal(vm.cells_dict["tetra10"], mesh.tets)
+        np.testing.assert_allclose(vm.cell_data["von_mises"][0], art.von_mises_tet[i])
+        grid = pyvista.read(path)  # what ParaView reads: VTK's own XML reader
+        assert grid.n_points == len(mesh.vertices) and grid.n_cells == m
+        assert set(np.asarray(grid.celltypes).tolist()) == {24}  # VTK_QUADRATIC_TETRA
+        l1, l2 = d["stretches"][i], d["l2s"][i]
+        assert np.isclose(grid.volume, np.prod(SIZE_EXPORT) * l1 * l2 * l2, rtol=1e-9)
+    # internal nodal forces balance (no external load in the elastic forces)
+    np.testing.assert_allclose(art.internal_forces.sum(1), 0.0, atol=1e-9)
+
+
+def test_p2_gaussian_values_follow_the_quadratic_field(p2_stretch_ws):
+    from stages.export import gaussian_values
+
+    mesh = p2_stretch_ws["mesh"]
+    art = p2_gaussians(mesh, 20, 12)
+    field = mesh.vertices[:, 0] ** 2  # quadratic: reproduced exactly by the P2 interpolant
+    N, _, _ = Q.point_map(mesh.vertices, mesh.tets, art.host_tet, art.bary)
+    pos = np.einsum("gk,gkd->gd", N, mesh.vertices[mesh.tets[art.host_tet]])
+    np.testing.assert_allclose(gaussian_values(art, mesh, field), pos[:, 0] ** 2, atol=1e-15)
+
+
+@pytest.mark.slow
+def test_fit_gaussians_on_a_p2_mesh_reaches_psnr(tmp_path):
+    """rsl fit-gaussians (the real CLI) on test_fit_gaussians' box capture with a quadratic-tet mesh.h5."""
+    from conftest import run_rsl
+    from stages.artefacts import GaussiansArtefact
+    from test_fit_gaussians import FIT_PSNR_DB, make_capture
+
+    cap, ws = tmp_path / "capture", tmp_path / "ws"
+    make_capture(cap, ws)
+    p2_box_mesh(bow=0.0).save(ws / "mesh.h5")
+    proc = run_rsl("fit-gaussians", cap, "-w", ws, "--iterations", "60", "--gaussians", "1500")
+    assert proc.returncode == 0, proc.stderr
+    art = GaussiansArtefact.load(ws / "gaussians.h5")
+    assert art.host_tet.max() < 48 and min(art.fit_psnr.values()) >= FIT_PSNR_DB, art.fit_psnr

@@ -1,9 +1,14 @@
-"""Per-tet energy, gradient and PSD-projected Hessian: a compiled (numba) stable Neo-Hookean
-kernel with the analytic eigensystem of Smith et al. 2019, and its JAX twin for every material.
+"""Energy, gradient and PSD-projected Hessian at quadrature points: a compiled (numba) stable
+Neo-Hookean kernel with the analytic eigensystem of Smith et al. 2019, and its JAX twin for every material.
 
-Element unknowns are x_e = [x_0, x_1, x_2, x_3] (12,). With G (4, 3) the shape-function gradients
-(G_a = row a−1 of Dm⁻¹ for a ≥ 1, G_0 = −Σ_a G_a), F = Σ_a x_a ⊗ G_a, so
-    ∂(VΨ)/∂x_a = V P G_a,    ∂²(VΨ)/∂x_{a,i}∂x_{b,k} = V Σ_{jl} ∂²Ψ/∂F_ij∂F_kl G_aj G_bl.
+A quadrature point (stages.sim.quadrature.Quadrature) lies in an element with k nodes (4: linear,
+10: quadratic tets); its unknowns are the element's nodes x_e = [x_0 … x_{k−1}] (3k,). With G (k, 3)
+the shape-function gradients at the point (linear tets: G_a = row a−1 of Dm⁻¹ for a ≥ 1,
+G_0 = −Σ_a G_a) and w its weight (linear tets: the rest volume V), F = Σ_a x_a ⊗ G_a, so
+    ∂(wΨ)/∂x_a = w P G_a,    ∂²(wΨ)/∂x_{a,i}∂x_{b,k} = w Σ_{jl} ∂²Ψ/∂F_ij∂F_kl G_aj G_bl.
+The kernel sums the points of an element into one (3k,) gradient and (3k, 3k) Hessian (``out_index``);
+the per-tet entry points (:func:`snh_kernel`, :func:`element_terms`) are the linear case with one
+point per tet, bit for bit the per-tet math.
 The 9×9 Hessian ∂²Ψ/∂F² = Σ_k λ_k vec(Q_k) vec(Q_k)ᵀ with, for F = U Σ Vᵀ (U, V rotations,
 σ_3 may be negative), Ψ = Ψ(I₂, J), I₂ = Σσ², J = σ₁σ₂σ₃:
   - twist  Q = U (e_i e_jᵀ − e_j e_iᵀ)/√2 Vᵀ,  λ = 2Ψ_I₂ + Ψ_J σ_k,

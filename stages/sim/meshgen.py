@@ -6,7 +6,7 @@ import itertools
 
 import numpy as np
 
-from .mesh import rest_quantities, signed_volumes
+from .mesh import boundary_faces, rest_quantities, signed_volumes
 
 
 def box_tets(cells: tuple[int, int, int], size: tuple[float, float, float],
@@ -33,12 +33,8 @@ def box_tets(cells: tuple[int, int, int], size: tuple[float, float, float],
 
 
 def surface_faces(tets: np.ndarray) -> np.ndarray:
-    """Boundary triangles (faces that belong to one tet), oriented outward."""
-    local = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
-    faces = tets[:, local].reshape(-1, 3)
-    key = np.sort(faces, axis=1)
-    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return faces[cnt[inv.reshape(-1)] == 1]
+    """Boundary triangles (faces that belong to one tet), oriented outward (:func:`.mesh.boundary_faces`)."""
+    return boundary_faces(tets)
 
 
 def mesh_artefact(vertices: np.ndarray, tets: np.ndarray, density: float, tet_region: np.ndarray | None = None,

@@ -551,20 +551,34 @@ def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_i
         if slope >= 0.0:  # cannot happen for a positive definite H; guard against round-off
             dx, slope = -grad, -gnorm ** 2
         dx = dx.reshape(-1, 3)
-        alpha = 1.0
         tol_round = 1e-12 * (abs(e_x) + 1e-300)
-        while True:
-            x_new = x + alpha * dx
-            e_new = energy_at(x_new)
-            if np.isfinite(e_new) and e_new <= e_x + 1e-4 * alpha * slope + tol_round:
-                break
-            alpha *= 0.5
-            if alpha < 1e-10:
-                break
+
+        def backtrack():  # Armijo on Φ: (alpha, x_new, Φ(x_new))
+            a = 1.0
+            while True:
+                z = x + a * dx
+                e = energy_at(z)
+                if (np.isfinite(e) and e <= e_x + 1e-4 * a * slope + tol_round) or a < 1e-10:
+                    return a, z, e
+                a *= 0.5
+
+        # near the solution the predicted decrease −slope/2 drowns in the round-off of Φ (a sum of
+        # element energies that cancel to strain² μV): there the full step is taken when it lowers ‖∇Φ‖
+        small = -slope <= 1e-9 * (abs(e_x) + 1e-300)
+        if small:
+            alpha, x_new = 1.0, x + dx
+            _, g_new, _ = _elastic(scene, x_new, mu, lam, GRADIENT, True, kernels)
+            _, gv_new, _ = _vertex_terms(scene, inputs, x_new, y, x_prev, GRADIENT, True)
+            g_new = _scatter_grad(scene, g_new) + gv_new.reshape(-1)
+            if fixed is not None:
+                g_new[fixed] = 0.0
+            small = float(np.linalg.norm(g_new)) < gnorm
+        if not small:
+            alpha, x_new, e_new = backtrack()
         if alpha < 1e-10:  # no decrease measurable: near round-off, take the Newton step
             alpha = 1.0
             x_new = x + dx
-        elif alpha == 1.0 and used != "exact" and hessian_mode == "auto":
+        elif alpha == 1.0 and not small and used != "exact" and hessian_mode == "auto":
             # a full projected step that the energy accepts can be too short along the directions whose
             # curvature the projection flipped: go on doubling it while the energy keeps falling
             e_best = e_new

@@ -172,12 +172,6 @@ def nodal_forces(P: np.ndarray, tets: np.ndarray, dm_inv: np.ndarray, volumes: n
     return f
 
 
-def elastic_energy(x, tets, dm_inv, volumes, mu, lam, model: str = "stable_neohookean"):
-    """Σ_e V_e Ψ(F_e) in JAX (J), the potential whose negative gradient :func:`nodal_forces` assembles."""
-    psi = jax.vmap(energy_density(model))
-    return jnp.sum(volumes * psi(deformation_gradients(x, tets, dm_inv), mu, lam))
-
-
 def force_sum(forces: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, float]:
     """Force on a vertex set: (Σ_i f_i  (3,) N,  Σ_i ‖f_i‖  N) over ids; forces (n, 3) N."""
     ids = np.asarray(ids, np.int64)

@@ -13,7 +13,7 @@ Modules
 API for the adapt stage::
 
     from stages.subspace import ReducedModel
-    model = ReducedModel.from_artefacts(SubspaceArtefact.load(ws / "subspace.h5"), scene)  # or .from_artefact
+    model = ReducedModel.from_artefacts(SubspaceArtefact.load(ws / "subspace.h5"), scene)
     model.dim, model.z_rest                       # r; ψ(rest) (= 0)
     x = model.decode(z)                           # (r,) → (n, 3); (T, r) → (T, n, 3)
     z = model.encode(x)                           # (n, 3) → (r,)

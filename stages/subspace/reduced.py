@@ -48,6 +48,7 @@ import numpy as np  # noqa: E402
 from stages.errors import RslError  # noqa: E402
 from stages.sim import potential as P  # noqa: E402
 from stages.sim.materials import energy_density, lame  # noqa: E402
+from stages.sim.mesh import boundary_faces  # noqa: E402
 from stages.sim.quadrature import element_order, quadratic_surface  # noqa: E402
 from stages.subspace.cubature import scene_quadrature  # noqa: E402
 from stages.subspace.networks import LINEAR_KINDS, SubspaceMap, net_decode  # noqa: E402
@@ -73,10 +74,7 @@ def surface_vertices(tets: np.ndarray) -> np.ndarray:
     mid-edge nodes)."""
     if element_order(tets) == 2:
         return np.unique(quadratic_surface(tets))
-    f = np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 3, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 1]]])
-    key = np.sort(f, axis=1)
-    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return np.unique(f[cnt[inv.ravel()] == 1])
+    return np.unique(boundary_faces(tets))
 
 
 def _q_of_z(kind: str, net: dict, q_scale, z):
@@ -182,8 +180,6 @@ class ReducedModel:
     def cubature_tets(self) -> np.ndarray:
         """The cubature's quadrature point ids (the older name; for linear tets they are tet ids)."""
         return self.cubature_points
-
-    from_artefact = from_artefacts
 
     @property
     def dim(self) -> int:
@@ -551,13 +547,6 @@ def _inverse(c: np.ndarray) -> np.ndarray:
     return ci.T @ ci
 
 
-def _cho_solve(c: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(C Cᵀ)⁻¹ b for a lower-triangular Cholesky factor C."""
-    from scipy.linalg import solve_triangular
-
-    return solve_triangular(c.T, solve_triangular(c, b, lower=True), lower=False)
-
-
 def _solve_sym(h: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """H⁻¹ b for the symmetric reduced Hessian (LU if it is indefinite)."""
+    """H⁻¹ b for the reduced Hessian, symmetrised: ½ (H + Hᵀ) z = b (numpy's LAPACK gesv, an LU solve)."""
     return np.linalg.solve(0.5 * (h + h.T), b)

@@ -1,0 +1,181 @@
+"""Loss sweep: is each loss lowest at the true E on a capture rsl did not make?
+
+A synthetic capture whose truth uses another discretisation than rsl adapt (quadratic tets — on a once
+refined mesh in the full mode —, 3 implicit substeps per frame, hard Dirichlet handles) is made by
+`rsl synth` from sample_data/bar (a cable pulls the free end of the bar held at the other, constant E),
+for each start state (equilibrium, rest).  Over a grid of fixed E (ν held at the truth's), the whole-sequence
+loss is computed with the full-space forward simulation from the capture's declared start
+(stages/sweep.py): the marker loss on rsl's own discretisations of the shipped mesh (P1, P1 refined once,
+P2), and the vision loss (L1 image loss of the Gaussians fitted by the pipeline: calibrate → segment →
+tetrahedralize → fit-gaussians) on the workspace's mesh.  The minimum is the vertex of the parabola in log E
+through the grid minimum and its neighbours; its ratio to E_true is the loss's bias.
+
+    .venv/bin/python bench/loss_sweep.py [--quick] [--no-vision] [--out docs/results]
+
+--quick: P2 truth on the shipped mesh (no refinement), 20 frames, 9 grid points; full: P2 on the
+once-refined mesh, 30 frames, 13 grid points.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+os.environ.setdefault("JAX_ENABLE_X64", "1")
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+E_TRUE = 1.0e5
+POISSON = 0.45
+RSL = [sys.executable, "-m", "rsl_cli.app"]
+
+
+def rsl(*args) -> None:
+    env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
+    p = subprocess.run([*RSL, *map(str, args)], capture_output=True, text=True, env=env, cwd=ROOT)
+    if p.returncode != 0:
+        raise SystemExit(f"rsl {' '.join(map(str, args))} failed:\n{p.stderr[-3000:]}")
+
+
+def make_capture(out: Path, start: str, frames: int, refine: int, resolution: int) -> float:
+    """The truth capture (P2, refined ``refine`` times, 3 substeps, hard handles); returns synth seconds."""
+    t0 = time.perf_counter()
+    rsl("synth", ROOT / "sample_data/bar/object.mesh", out, "--scenario", "cable", "--cameras", "2",
+        "--frames", frames, "--resolution", resolution, "--markers", 40, "--calib-views", 0, "--young", E_TRUE,
+        "--poisson", POISSON, "--start", start, "--truth-order", 2, "--truth-refine", refine, "--substeps", 3,
+        "--handles", "hard", "--size", 0.25, "--seed", 0, "--overwrite")
+    return time.perf_counter() - t0
+
+
+def shipped_mesh(density: float, order: int):
+    """rsl's mesh of the shipped object: sample_data/bar's tets, placed as rsl synth placed them."""
+    import meshio
+
+    from stages.sim.meshgen import mesh_artefact
+    from stages.synth import prepare_mesh
+
+    m = meshio.read(str(ROOT / "sample_data/bar/object.mesh"))
+    pm = prepare_mesh(np.asarray(m.points, float), np.asarray(m.cells_dict["tetra"]), 0.25, "")
+    return mesh_artefact(pm.vertices, pm.tets, density, order=order)
+
+
+def pipeline(cap: Path, ws: Path) -> None:
+    """cameras, masks, mesh and Gaussians for the vision loss."""
+    rsl("calibrate", cap, "-w", ws, "--from-json", cap / "cameras.json")
+    rsl("segment", cap, "-w", ws, "--method", "background")
+    rsl("tetrahedralize", cap, "-w", ws)
+    rsl("fit-gaussians", cap, "-w", ws, "--frame", 0)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="sized-down run (see the module docstring)")
+    ap.add_argument("--no-vision", action="store_true", help="marker loss only (no pipeline)")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_loss_sweep"))
+    a = ap.parse_args()
+
+    from stages.artefacts import KIND_FILES, MeshArtefact
+    from stages.capture import load_capture
+    from stages.sweep import sweep
+
+    frames, refine = (20, 0) if a.quick else (30, 1)
+    scales = (np.array([0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.25, 1.4]) if a.quick else
+              np.array([0.5, 0.55, 0.6, 0.65, 0.7, 0.8, 0.9, 0.95, 1.0, 1.05, 1.1, 1.25, 1.4]))
+    grid = E_TRUE * scales
+    a.work.mkdir(parents=True, exist_ok=True)
+    cases = []
+    for start in ("equilibrium", "rest"):
+        cap_dir = a.work / f"bar_cable_{start}"
+        t_synth = make_capture(cap_dir, start, frames, refine, 96)
+        cap = load_capture(cap_dir)
+        truth_desc = f"P2{' refined ×1' if refine else ''}, 3 substeps, hard handles"
+        print(f"capture {cap_dir.name}: synth {t_synth:.0f} s", flush=True)
+        for label, order, ref in (("P1", 1, 0), ("P1 refined ×1", 1, 1), ("P2", 2, 0)):
+            t0 = time.perf_counter()
+            res = sweep(cap, shipped_mesh(cap.density, order), grid, "markers", refine=ref, poisson=POISSON)
+            cases.append(_case(start, truth_desc, "markers", label, res, time.perf_counter() - t0))
+            print(_row(cases[-1]), flush=True)
+        if not a.no_vision:
+            ws = a.work / f"ws_{start}"
+            pipeline(cap_dir, ws)
+            mesh = MeshArtefact.load(ws / KIND_FILES["mesh"])
+            t0 = time.perf_counter()
+            res = sweep(cap, mesh, grid, "vision", workspace=ws, poisson=POISSON)
+            cases.append(_case(start, truth_desc, "vision", "P1 (rsl tetrahedralize)", res,
+                               time.perf_counter() - t0))
+            print(_row(cases[-1]), flush=True)
+    write(cases, a.out, a.quick)
+
+
+def _case(start, truth, loss, adapt_mesh, res, seconds) -> dict:
+    return {"start": start, "truth": truth, "loss": loss, "adapt_mesh": adapt_mesh,
+            "n_vertices": res.info["n_vertices"], "n_elements": res.info["n_elements"],
+            "frames": res.info["frames"], "young_true": E_TRUE, "young_min": res.young_min,
+            "ratio": res.young_min / E_TRUE, "interior": res.interior, "grid": res.young.tolist(),
+            "loss_values": res.loss.tolist(), "seconds": seconds}
+
+
+def _row(c: dict) -> str:
+    edge = "" if c["interior"] else " (grid end)"
+    return (f"| {c['start']} | {c['loss']} | {c['adapt_mesh']} | {c['n_vertices']} | "
+            f"{c['young_min']:.4g}{edge} | {c['ratio']:.3f} | {100 * (c['ratio'] - 1):+.1f} % | "
+            f"{c['seconds']:.0f} |")
+
+
+def write(cases: list[dict], out: Path, quick: bool) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    data = {"machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs, {platform.python_version()}",
+            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "mode": "quick" if quick else "full", "cases": cases}
+    (out / "loss_sweep.json").write_text(json.dumps(data, indent=1))
+    head = ("| start | loss | rsl's mesh | vertices | E at the minimum (Pa) | E_min / E_true | bias | time (s) |\n"
+            "| --- | --- | --- | --- | --- | --- | --- | --- |")
+    table = "\n".join([head] + [_row(c) for c in cases])
+    within = [c for c in cases if abs(c["ratio"] - 1) <= 0.03]
+    md = (f"# Loss sweep: where each loss is lowest\n\n"
+          f"Truth: {cases[0]['truth']} (`rsl synth --truth-order 2 --substeps 3 --handles hard`), "
+          f"sample_data/bar pulled by a cable, E_true = {E_TRUE:g} Pa, ν = {POISSON}; frames "
+          f"{cases[0]['frames'][0]}–{cases[0]['frames'][1] - 1}; mode {data['mode']}.  Whole-sequence loss over a "
+          f"grid of fixed E ({len(cases[0]['grid'])} values, {min(cases[0]['grid']):g}–{max(cases[0]['grid']):g} "
+          f"Pa), full-space simulation from the capture's declared start, minimum refined by a parabola in "
+          f"log E.\n\n{table}\n\n"
+          f"{len(within)} of {len(cases)} minima lie within 3 % of E_true.\n\n"
+          f"Machine: {data['machine']}; date {data['date']}.  Produced by `bench/loss_sweep.py"
+          f"{' --quick' if quick else ''}`.\n\n![loss over E](loss_sweep.png)\n")
+    (out / "loss_sweep.md").write_text(md)
+    starts = sorted({c["start"] for c in cases})
+    fig, axes = plt.subplots(1, len(starts), figsize=(5.5 * len(starts), 4), squeeze=False)
+    for ax, st in zip(axes[0], starts):
+        for c in (c for c in cases if c["start"] == st):
+            y = np.asarray(c["loss_values"])
+            ax.plot(np.asarray(c["grid"]) / E_TRUE, y / y.min(), "o-", ms=3, label=f"{c['loss']}, {c['adapt_mesh']}")
+            ax.axvline(c["ratio"], color=ax.lines[-1].get_color(), ls=":", lw=1)
+        ax.axvline(1.0, color="k", lw=1)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("E / E_true")
+        ax.set_ylabel("loss / its minimum")
+        ax.set_title(f"start = {st}")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "loss_sweep.png", dpi=110)
+    print(table)
+
+
+if __name__ == "__main__":
+    main()

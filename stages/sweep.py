@@ -1,0 +1,196 @@
+"""Loss sweeps: the whole-sequence (or window) loss of a capture over a grid of fixed E — the check that a
+loss is unbiased (its minimum at E_true) before an optimiser runs on it.
+
+For each E of the grid (one value for every region, or a scale of each region's E), the capture is
+simulated in full space from its declared start state (docs/capture.md: x_0 = rest or the static
+equilibrium with this E, x_{−1} = x_{−2} = x_0, one implicit-Euler step per frame), observations are
+anchored to the simulated frame-0 state as ``rsl adapt`` anchors them (markers bound to the nearest point of
+the frame-0 surface; Gaussians re-bound to the frame-0 tets), and the loss is summed over the frames:
+
+    markers  L(E) = Σ_t Σ_i ‖m_i(x_t(E)) − p_t^i‖²  (m²)
+    vision   L(E) = Σ_t Σ_c |R(G(x_t(E)), c) − Ĩ_t^c|₁  (stages.adapt_loss.ImageLoss)
+
+The minimum is refined by a parabola in log E through the grid minimum and its two neighbours.
+Not a stage: it writes nothing; ``bench/loss_sweep.py`` and ``rsl evaluate --sweep`` call it.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+
+@dataclass
+class SweepResult:
+    """Losses over a grid of E and the refined minimum."""
+
+    young: np.ndarray  # (K,) Pa, the grid (region 0's E when regions are scaled together)
+    loss: np.ndarray  # (K,) summed loss per grid point
+    frame_loss: np.ndarray  # (K, T) per frame
+    young_min: float  # Pa, parabolic refinement in log E (the grid minimum at the grid's ends)
+    i_min: int  # index of the grid minimum
+    interior: bool  # the grid minimum is not at an end of the grid
+    info: dict = field(default_factory=dict)
+
+
+def parabolic_minimum(x: np.ndarray, y: np.ndarray) -> tuple[float, int, bool]:
+    """(x at the minimum, grid index, interior?) of samples y(x): the vertex of the parabola through the
+    smallest sample and its neighbours (x may be unevenly spaced); the grid point itself at an end."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    i = int(np.nanargmin(y))
+    if i == 0 or i == len(x) - 1:
+        return float(x[i]), i, False
+    x0, x1, x2 = x[i - 1:i + 2]
+    y0, y1, y2 = y[i - 1:i + 2]
+    d = (x0 - x1) * (x0 - x2) * (x1 - x2)
+    a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / d
+    b = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / d
+    if not a > 0:
+        return float(x1), i, True
+    return float(np.clip(-b / (2 * a), x0, x2)), i, True
+
+
+def simulate_fixed(scene, controls, young: np.ndarray, poisson: np.ndarray, frames: int, start: str,
+                   substeps: int = 1, **step_kw) -> np.ndarray:
+    """Positions (T, n, 3) for constant per-region young (R,) Pa / poisson (R,) from the declared start."""
+    from stages.sim.scene import frame_inputs
+    from stages.sim.static import simulate_from_start
+
+    return simulate_from_start(scene, lambda f: frame_inputs(scene, controls, f), young, poisson, frames, start,
+                               substeps, **step_kw)
+
+
+def marker_loss_curve(X_of: Callable[[float], np.ndarray], faces: np.ndarray, markers: np.ndarray,
+                      grid: Sequence[float], frames: Sequence[int]) -> np.ndarray:
+    """Per grid value: the per-frame marker loss (K, T) with markers bound to the simulated frame-0 surface
+    (as rsl adapt binds them).  X_of(E) -> positions (T_all, n, 3) from frame 0."""
+    from stages.adapt_loss import bind_markers, marker_residuals
+
+    out = np.zeros((len(grid), len(frames)))
+    for k, e in enumerate(grid):
+        X = X_of(e)
+        binding = bind_markers(X[0], faces, markers[0])
+        r = marker_residuals(binding, X[list(frames)], markers[list(frames)])
+        out[k] = np.sum(r * r, axis=(1, 2))
+    return out
+
+
+def vision_loss_curve(X_of: Callable[[float], np.ndarray], image_loss, targets: Callable[[int], list],
+                      grid: Sequence[float], frames: Sequence[int], fit_frame: int = 0) -> np.ndarray:
+    """Per grid value, the per-frame L1 image loss (K, T) of stages.adapt_loss.ImageLoss with the Gaussians
+    re-bound to the simulated fit frame (adapt's ``rebind`` anchor)."""
+    out = np.zeros((len(grid), len(frames)))
+    for k, e in enumerate(grid):
+        X = X_of(e)
+        image_loss.rebind(X[fit_frame])
+        for j, t in enumerate(frames):
+            out[k, j] = image_loss(X[t], targets(t))[0]
+    return out
+
+
+def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: tuple[int, int] | None = None,
+          workspace: Path | None = None, cameras: Sequence[str] | None = None, poisson: float | None = None,
+          start: str | None = None, refine: int = 0, substeps: int = 1,
+          reporter: Callable[[str], None] | None = None) -> SweepResult:
+    """The loss of ``capture`` (stages.capture.Capture) on ``mesh`` (a MeshArtefact: P1 or P2; ``refine``
+    splits its tets 8-fold that many times) over the grid of E (Pa; every region's E scaled with region 0's
+    capture.toml value, one region: E itself) with ν fixed (``poisson`` or capture.toml's), frames
+    [a, b) (default all), start (default capture.start).  loss "vision" needs ``workspace`` with cameras.h5
+    and gaussians.h5 (masks.h5 when there)."""
+    import dataclasses
+
+    from stages.sim.mesh import rest_quantities
+    from stages.sim.meshgen import refine_tets
+    from stages.sim.scene import make_scene
+
+    start = start or getattr(capture, "start", "equilibrium")
+    ctl = capture.controls()
+    if refine:
+        v, t, reg = mesh.vertices, mesh.tets, mesh.tet_region
+        for _ in range(refine):
+            v, t, reg = refine_tets(v, t, reg)
+        vol, dmi, masses = rest_quantities(v, t, mesh.density)
+        from stages.sim.meshgen import surface_faces
+
+        mesh = dataclasses.replace(mesh, vertices=v, tets=t, tet_region=reg, rest_volumes=vol, dm_inv=dmi,
+                                   vertex_masses=masses, surface_faces=surface_faces(t), handles={})
+    scene = make_scene(mesh, ctl, capture.material.model, capture.dt, capture.gravity)
+    names = list(scene.region_names)
+    base = np.array([capture.material.region_young(r) for r in names], float)
+    nu = np.array([poisson if poisson is not None else capture.material.region_poisson(r) for r in names], float)
+    obs_T = None
+    if loss == "markers":
+        P = capture.markers()
+        if P is None:
+            raise ValueError(f"{capture.root}: no markers.csv for a marker-loss sweep")
+        obs_T = len(P)
+    else:
+        obs_T = capture.frame_count()
+    a, b = frames if frames is not None else (0, obs_T)
+    b = min(b, obs_T)
+    T_sim = b
+    cache: dict[float, np.ndarray] = {}
+
+    def X_of(e: float) -> np.ndarray:
+        if e not in cache:
+            young = base * (e / base[0])
+            cache.clear()
+            cache[e] = simulate_fixed(scene, ctl, young, nu, T_sim, start, substeps)
+            if reporter is not None:
+                reporter(f"E = {e:.4g} Pa simulated")
+        return cache[e]
+
+    fr = list(range(a, b))
+    if loss == "markers":
+        n = scene.n_vertices
+        faces = np.asarray(mesh.surface_faces)
+        if faces.max() >= n:
+            raise ValueError("surface faces index beyond the mesh's vertices")
+        per = marker_loss_curve(X_of, faces, P, grid, fr)
+    elif loss == "vision":
+        per = _vision(capture, workspace, cameras, mesh, X_of, grid, fr)
+    else:
+        raise ValueError(f"loss is markers or vision, not {loss!r}")
+    total = per.sum(axis=1)
+    lg = np.log(np.asarray(grid, float))
+    lmin, i, interior = parabolic_minimum(lg, total)
+    return SweepResult(np.asarray(grid, float), total, per, float(math.exp(lmin)), i, interior,
+                       {"start": start, "frames": [a, b], "n_vertices": int(scene.n_vertices),
+                        "n_elements": int(len(scene.tets)), "order": int(np.asarray(mesh.tets).shape[1] == 10) + 1,
+                        "refine": int(refine), "loss": loss})
+
+
+def _vision(capture, workspace, cameras, mesh, X_of, grid, frames) -> np.ndarray:
+    from stages.adapt_loss import ImageLoss
+    from stages.artefacts import KIND_FILES, CamerasArtefact, GaussiansArtefact, MasksArtefact, read_provenance
+    from stages.capture import read_image
+
+    ws = Path(workspace)
+    cams_art = CamerasArtefact.load(ws / KIND_FILES["cameras"])
+    gauss = GaussiansArtefact.load(ws / KIND_FILES["gaussians"])
+    names = list(cameras) if cameras else [c.name for c in cams_art.cameras]
+    masks_path = ws / KIND_FILES["masks"]
+    masks = MasksArtefact.load(masks_path).masks if masks_path.exists() else None
+    il = ImageLoss(gauss, mesh, [cams_art.by_name(c) for c in names])
+    plates = [None if masks is not None and c in masks else capture.background(c) for c in names]
+    il.set_backgrounds([None if p is None else p.astype(np.float32) / 255.0 for p in plates])
+    fit_frame = int(read_provenance(ws / KIND_FILES["gaussians"]).get("config", {}).get("frame", 0) or 0)
+    cache: dict[int, list] = {}
+
+    def targets(t: int) -> list:
+        if t not in cache:
+            out = []
+            for c in names:
+                src = capture.frame_source(c)
+                img = (src.read(t) if src.video is not None else read_image(src.files[t])).astype(np.float32) / 255.
+                if masks is not None and c in masks and t < len(masks[c]):
+                    m = masks[c][t][..., None].astype(np.float32)
+                    img = img * m + il.background[None, None, :] * (1 - m)
+                out.append(img)
+            cache[t] = out
+        return cache[t]
+
+    return vision_loss_curve(X_of, il, targets, grid, frames, fit_frame)

@@ -1,0 +1,69 @@
+"""The benchmark pages say only what the run measured: fed made-up measurements, the generated text
+follows them (ratios, met / not met) and carries none of the hand-written notes' fixed statements."""
+from __future__ import annotations
+
+import copy
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "docs" / "results"
+
+
+def _bench(name: str):
+    spec = importlib.util.spec_from_file_location(f"bench_{name}_text", ROOT / "bench" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _scaled(cases: list[dict], key: str, value: float) -> list[dict]:
+    out = copy.deepcopy(cases)
+    for c in out:
+        c[key] = value
+    return out
+
+
+def test_reduced_vs_full_text_follows_the_ratios() -> None:
+    m = _bench("reduced_vs_full")
+    d = json.loads((RESULTS / "reduced_vs_full.json").read_text())
+    slow = m.markdown(d["machine"], d["date"], _scaled(d["cases"], "ratio", 4.25))
+    assert "4.2× (not met)" in slow and "(met)" not in slow and "target holds" not in slow
+    fast = m.markdown(d["machine"], d["date"], _scaled(d["cases"], "ratio", 31.5))
+    assert "31.5× (met)" in fast and "not met" not in fast
+    assert "reduced_vs_full_notes.md" in fast
+
+
+def test_render_text_follows_the_measurements() -> None:
+    m = _bench("render")
+    d = json.loads((RESULTS / "render.json").read_text())
+    for key in ("ratio", "ratio_cpu", "ratio_lean", "ratio_lean_cpu"):
+        d["cases"] = _scaled(d["cases"], key, 7.5)
+    text = m.markdown(d)
+    assert "7.5× in wall time" in text and "met in both columns" not in text.replace("not met in both", "")
+    assert "render_notes.md" in text and "Between runs on this shared machine" not in text
+    assert not hasattr(m, "AB_NOTE")
+
+
+def test_adapt_text_quotes_the_measured_speedup() -> None:
+    m = _bench("adapt")
+    d = json.loads((RESULTS / "adapt.json").read_text())
+    for r in d["cases"]:
+        if r.get("name") == "bar-like, reduced":
+            r["physics_speedup"] = 12.5
+    text = m._markdown(d)
+    assert "physics speed-up 12.5×" in text
+    assert "38×" not in text and "Observations" not in text and "adapt_notes.md" in text
+
+
+@pytest.mark.parametrize("name", ["adapt", "reduced_vs_full", "render", "fem"])
+def test_hand_written_notes_exist_and_are_dated(name: str) -> None:
+    notes = RESULTS / f"{name}_notes.md"
+    text = notes.read_text()
+    assert "hand-written" in text and "never rewrites this file" in text
+    date = json.loads((RESULTS / f"{name}.json").read_text())["date"][:10]
+    assert date in text  # the note names the run it reads
+    assert f"{name}_notes.md" in (RESULTS / f"{name}.md").read_text()

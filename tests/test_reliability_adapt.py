@@ -1,0 +1,305 @@
+"""Nothing silently wrong in `rsl adapt` and downstream (issue 14), through the real CLI.
+
+A complete adapt.h5 is never replaced by a failed or interrupted run (that one goes to adapt.partial.h5, which
+downstream stages refuse); an unreadable frame anywhere is an error naming the file; MP4 frames are read like
+PNG folders; frames at another size than cameras.h5 are refused; a mesh.h5 from another capture, a renumbered
+mesh with the old Gaussians or adapt.h5, an obstacle inside the object, and a far too soft E that collapses the
+mesh each end with one sentence that says what to change.
+
+One module fixture builds a tiny workspace (bar_synth's frames with the sample bar's tet mesh: tetrahedralize,
+calibrate from cameras.json, a 300-Gaussian fit, a 3-frame markers adapt); the cases run in one child process.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from reliability import (SAMPLE, assert_one_sentence, batch, copy_capture, edit, flat, rsl_proc, tree_bytes)
+from stages.capture import read_image, write_image
+
+GROUPS = {"test_adapt_case": "rsl adapt: frames, meshes, obstacles, material",
+          "test_failed_run_keeps_adapt_h5": "rsl adapt: unfinished runs never replace adapt.h5",
+          "test_ctrl_c_keeps_adapt_h5": "rsl adapt: unfinished runs never replace adapt.h5",
+          "test_downstream_refuses_partial": "rsl adapt: unfinished runs never replace adapt.h5",
+          "test_mp4_frames_are_read": "rsl adapt: frames, meshes, obstacles, material",
+          "test_rotation_angle_small_angles": "arithmetic: rotation angle"}
+
+MARKERS = ["--space", "full", "--loss", "markers", "--window", "2"]
+VISION = ["--space", "full", "--loss", "vision", "--window", "1", "--iters-per-frame", "1", "--frames", "0:2"]
+
+
+def _syn(dst: Path) -> Path:
+    cap = copy_capture(dst)
+    shutil.copy(SAMPLE / "bar" / "object.mesh", cap / "object.mesh")
+    edit(cap / "capture.toml", 'mesh = "object.obj"', 'mesh = "object.mesh"')
+    return cap
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("adapt_base")
+    cap, ws = _syn(root / "cap"), root / "ws"
+    procs = batch([["tetrahedralize", cap, "-w", ws, "--no-preview"], ["calibrate", cap, "-w", ws],
+                   ["fit-gaussians", cap, "-w", ws, "--iterations", "5", "--gaussians", "300",
+                    "--max-resolution", "64"],
+                   ["adapt", cap, "-w", ws, *MARKERS, "--frames", "0:3"]], root / "setup")
+    for p in procs:
+        assert p.returncode == 0, p.stderr
+    return cap, ws
+
+
+def _copy(base: tuple[Path, Path], dst: Path) -> tuple[Path, Path]:
+    cap, ws = base
+    shutil.copytree(cap, dst / "cap")
+    shutil.copytree(ws, dst / "ws")
+    return dst / "cap", dst / "ws"
+
+
+def _bad_png(name: str, data: bytes | None = None):
+    def f(cap: Path) -> None:
+        p = cap / "frames" / "cam1" / name
+        p.write_bytes(p.read_bytes()[: len(p.read_bytes()) // 2] if data is None else data)
+    return f
+
+
+def _resize(cap: Path) -> None:
+    import cv2
+
+    for p in sorted((cap / "frames" / "cam0").glob("*.png")):
+        write_image(p, cv2.resize(read_image(p), (64, 64)))
+
+
+def _sphere_inside(cap: Path) -> None:
+    data = json.loads((cap / "controls.json").read_text())
+    data["obstacles"] = [{"name": "pusher", "shape": "sphere", "radius": 0.02}]
+    (cap / "controls.json").write_text(json.dumps(data))
+
+
+def _other_mesh(ws: Path) -> None:
+    from stages.artefacts import MeshArtefact, Provenance
+
+    art = MeshArtefact.load(ws / "other" / "mesh.h5")  # tetrahedralized from sample_data/dino in the fixture
+    shutil.copy(ws / "other" / "mesh.h5", ws / "mesh.h5")
+    assert art.n_vertices > 0 and Provenance
+
+
+def _renumber(ws: Path) -> None:
+    from stages.artefacts import MeshArtefact, Provenance
+
+    m = MeshArtefact.load(ws / "mesh.h5")
+    perm = np.random.default_rng(0).permutation(m.n_vertices)
+    inv = np.argsort(perm)
+    m.vertices, m.vertex_masses = m.vertices[perm], m.vertex_masses[perm]
+    m.tets, m.surface_faces = inv[m.tets], inv[m.surface_faces]
+    m.handles = {k: inv[v] for k, v in m.handles.items()}
+    m.loads = {k: inv[v] for k, v in m.loads.items()}
+    cap = ws.parent / "cap"
+    m.save(ws / "mesh.h5", Provenance.make({"capture": str(cap), "workspace": str(ws)}, [cap / "object.mesh"]))
+
+
+def _toml(old: str, new: str):
+    return lambda cap: edit(cap / "capture.toml", old, new)
+
+
+WIDE = _toml("young_range = [20000.0, 1000000.0]", "young_range = [0.5, 1000000.0]")
+
+# case -> (change the capture, change the workspace, command after "adapt CAP -w WS" or a full command
+#          (a list starting with a command name), texts of the one sentence)
+CASES = {
+    "unreadable frame in the middle": (_bad_png("000001.png", b"not a png"), None, VISION,
+                                       ["frames/cam1/000001.png: cannot read image"]),
+    "truncated frame in the middle": (_bad_png("000001.png"), None, VISION, ["frames/cam1/000001.png"]),
+    "frames at another size than cameras.h5": (_resize, None, VISION,
+                                               ["frames/cam0/000000.png: the frame is 64x64 but camera 'cam0' in "
+                                                "cameras.h5 is calibrated for 128x128 images"]),
+    "a frame missing in the middle": (lambda c: (c / "frames" / "cam2" / "000005.png").unlink(), None, VISION,
+                                      ["frames/cam2: frames should be numbered from 0 without gaps; frame 5 is "
+                                       "missing"]),
+    "mesh.h5 of another capture": (None, _other_mesh, [*MARKERS, "--frames", "0:2"],
+                                   ["mesh.h5: was made from another object mesh than", "object.mesh",
+                                    "run `rsl tetrahedralize`"]),
+    "sphere obstacle inside the rest shape": (_sphere_inside, None, [*MARKERS, "--frames", "0:2"],
+                                              ["controls.json: obstacle 'pusher' starts inside the object at "
+                                               "frame 0", "move it out of the rest shape"]),
+    "--young-init outside young_range": (None, None, [*MARKERS, "--frames", "0:2", "--young-init", "1"],
+                                         ["capture.toml: --young-init 1 Pa lies outside [material] young_range"]),
+    "--young-init 1 collapses the start state": (WIDE, None, [*MARKERS, "--frames", "0:2", "--young-init", "1"],
+                                                 ["capture.toml: the simulation failed at frame 0 with E = body 1 Pa",
+                                                  "start from a larger E (--young-init"]),
+    "renumbered mesh with the old gaussians.h5": (None, _renumber, VISION,
+                                                  ["gaussians.h5: was made from a different mesh.h5",
+                                                   "run `rsl fit-gaussians` again"]),
+    "renumbered mesh with the old adapt.h5 (export)": (None, _renumber, ["export", "--stress", "--no-plots",
+                                                                         "--no-render", "--no-vtk", "--no-forces"],
+                                                       ["adapt.h5: was made from a different mesh.h5"]),
+    "renumbered mesh with the old adapt.h5 (evaluate)": (None, _renumber, ["evaluate"],
+                                                         ["adapt.h5: was made from a different mesh.h5"]),
+}
+
+
+@pytest.fixture(scope="module")
+def results(base, tmp_path_factory) -> dict:
+    root = tmp_path_factory.mktemp("adapt_cases")
+    other = root / "other"
+    commands, where = [["tetrahedralize", SAMPLE / "dino", "-w", other, "--no-preview"]], {}
+    names = sorted(CASES)
+    for i, name in enumerate(names):
+        cap, ws = _copy(base, root / f"c{i}")
+        where[name] = (cap, ws, tree_bytes(ws))
+        cmd = CASES[name][2]
+        if cmd[0] in ("export", "evaluate"):
+            commands.append([cmd[0], *([cap] if cmd[0] == "evaluate" else []), "-w", ws, *cmd[1:]])
+        else:
+            commands.append(["adapt", cap, "-w", ws, *cmd])
+    # first the dino mesh (a mesh.h5 of another capture), then the breakers, then the cases
+    first = batch(commands[:1], root / "run0")
+    assert first[0].returncode == 0, first[0].stderr
+    for name in names:
+        cap, ws, _ = where[name]
+        (ws / "other").mkdir()
+        shutil.copy(other / "mesh.h5", ws / "other" / "mesh.h5")
+        if CASES[name][0]:
+            CASES[name][0](cap)
+        if CASES[name][1]:
+            CASES[name][1](ws)
+        where[name] = (cap, ws, tree_bytes(ws))
+    procs = batch(commands[1:], root / "run1")
+    return {name: (proc, *where[name]) for name, proc in zip(names, procs)}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_adapt_case(case: str, results: dict) -> None:
+    proc, cap, ws, before = results[case]
+    msg = assert_one_sentence(proc, *CASES[case][3])
+    assert str(cap) in msg or str(ws) in msg, msg  # names the file with its folder
+    assert tree_bytes(ws) == before  # adapt.h5 (and every other artefact) intact
+    assert not (ws / "adapt.partial.h5").exists()  # each of these is found before any frame is adapted
+
+
+def test_failed_run_keeps_adapt_h5(base, tmp_path: Path) -> None:
+    """A run that fails after some frames (the mesh collapses): adapt.h5 stays, the frames done go to
+    adapt.partial.h5 (status failed), and the sentence says both and what to change."""
+    from stages.artefacts import AdaptArtefact
+
+    cap, ws = _copy(base, tmp_path)
+    WIDE(cap)
+    edit(cap / "capture.toml", 'cameras = ["cam0", "cam1", "cam2"]', 'cameras = ["cam0", "cam1", "cam2"]\nstart = "rest"')
+    before = tree_bytes(ws)
+    proc, status = batch([["adapt", cap, "-w", ws, *MARKERS, "--frames", "0:6", "--young-init", "30"],
+                          ["status", "-w", ws]], tmp_path / "run")
+    msg = assert_one_sentence(proc, "capture.toml: the simulation", "far too soft for this object",
+                              "start from a larger E", "adapt.h5 is unchanged")
+    assert {k: v for k, v in tree_bytes(ws).items() if k != "adapt.partial.h5"} == before
+    if (ws / "adapt.partial.h5").exists():
+        assert "kept in adapt.partial.h5" in msg
+        part = AdaptArtefact.load(ws / "adapt.partial.h5", allow_partial=True)
+        assert part.extra["status"] == "failed" and len(part.frames) >= 1
+    assert "adapt adapt.h5 up to date" in " ".join(flat(status.stdout).replace("│", " ").split())
+
+
+@pytest.fixture(scope="module")
+def interrupted(base, tmp_path_factory) -> dict:
+    """A non-follow adapt stopped by Ctrl-C after a few frames, then what downstream does with the result."""
+    root = tmp_path_factory.mktemp("ctrl_c")
+    cap, ws = _copy(base, root)
+    before = tree_bytes(ws)
+    proc = rsl_proc("adapt", cap, "-w", ws, *MARKERS, "--frames", "0:40")
+    lines = []
+    for line in proc.stderr:  # wait for the loop to start, then for a few frames
+        lines.append(line)
+        if "adapt online" in line:
+            break
+    time.sleep(8)
+    proc.send_signal(signal.SIGINT)
+    rest = proc.stderr.read()
+    code = proc.wait()
+    after = tree_bytes(ws)
+    # downstream of a workspace whose adapt.h5 is that unfinished run (as an older rsl would have left it)
+    ws2 = root / "ws_partial"
+    shutil.copytree(ws, ws2)
+    shutil.copy(ws / "adapt.partial.h5", ws2 / "adapt.h5")
+    down = batch([["export", "-w", ws2, "--stress", "--no-plots", "--no-render", "--no-vtk", "--no-forces"],
+                  ["evaluate", cap, "-w", ws2], ["info", ws2 / "adapt.h5"], ["info", ws / "adapt.partial.h5"],
+                  ["status", "-w", ws2], ["run", cap, "-w", ws2, "--only", "adapt", "--dry-run"],
+                  ["status", "-w", ws]], root / "down")
+    return {"code": code, "stderr": "".join(lines) + rest, "before": before, "after": after, "ws": ws,
+            "ws2": ws2, "down": down}
+
+
+def test_ctrl_c_keeps_adapt_h5(interrupted: dict) -> None:
+    from stages.artefacts import AdaptArtefact
+
+    ws = interrupted["ws"]
+    err = flat(interrupted["stderr"])
+    assert interrupted["code"] == 130, err
+    assert "Traceback" not in interrupted["stderr"]
+    assert "interrupted; the" in err and f"frame(s) done are kept in {ws / 'adapt.partial.h5'}; adapt.h5 is " \
+                                         f"unchanged." in err, err
+    assert {k: v for k, v in interrupted["after"].items() if k != "adapt.partial.h5"} == interrupted["before"]
+    part = AdaptArtefact.load(ws / "adapt.partial.h5", allow_partial=True)
+    assert part.extra["status"] == "interrupted" and 1 <= len(part.frames) < 40
+    status = " ".join(flat(interrupted["down"][6].stdout).replace("│", " ").split())
+    assert "adapt adapt.h5 up to date" in status and "adapt.partial.h5: the frames of an unfinished" in status
+
+
+DOWNSTREAM = {"export refuses it": (0, "adapt.h5: holds an unfinished (interrupted) run"),
+              "evaluate refuses it": (1, "adapt.h5: holds an unfinished (interrupted) run"),
+              "rsl info adapt.h5 refuses it": (2, "adapt.h5: holds an unfinished (interrupted) run"),
+              "rsl info adapt.partial.h5 shows it": (3, None),
+              "rsl status calls it invalid": (4, "adapt adapt.h5 invalid holds a interrupted run"),
+              "rsl run remakes it": (5, "adapt run adapt.h5 invalid")}
+
+
+@pytest.mark.parametrize("case", sorted(DOWNSTREAM))
+def test_downstream_refuses_partial(case: str, interrupted: dict) -> None:
+    i, text = DOWNSTREAM[case]
+    proc = interrupted["down"][i]
+    if case.startswith("rsl info adapt.partial"):
+        assert proc.returncode == 0 and "kind adapt" in flat(proc.stdout), proc.stderr
+        assert '"status": "interrupted"' in proc.stdout
+    elif i in (4, 5):
+        assert proc.returncode == 0, proc.stderr
+        assert text in " ".join(flat(proc.stdout).replace("│", " ").split()), proc.stdout
+    else:
+        assert_one_sentence(proc, text, "not a complete one")
+
+
+def test_mp4_frames_are_read(base, tmp_path: Path) -> None:
+    """frames/CAM.mp4 instead of PNG folders: the vision loss reads them as segment does (a correct result)."""
+    import cv2
+
+    from stages.artefacts import AdaptArtefact, read_provenance
+
+    cap, ws = _copy(base, tmp_path)
+    for cam in ("cam0", "cam1", "cam2"):
+        files = sorted((cap / "frames" / cam).glob("*.png"))
+        first = read_image(files[0])
+        vw = cv2.VideoWriter(str(cap / "frames" / f"{cam}.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30,
+                             (first.shape[1], first.shape[0]))
+        for p in files:
+            vw.write(cv2.cvtColor(read_image(p), cv2.COLOR_RGB2BGR))
+        vw.release()
+        shutil.rmtree(cap / "frames" / cam)
+    proc, = batch([["adapt", cap, "-w", ws, *VISION]], tmp_path / "run")
+    assert proc.returncode == 0, proc.stderr
+    art = AdaptArtefact.load(ws / "adapt.h5")
+    assert list(art.frames) == [0, 1] and art.loss_kind == "vision" and np.all(np.isfinite(art.young))
+    inputs = {i["path"] for i in read_provenance(ws / "adapt.h5")["inputs"]}
+    assert {"frames/cam0.mp4", "frames/cam1.mp4", "frames/cam2.mp4"} <= inputs, inputs
+
+
+@pytest.mark.parametrize("angle_rad", [1e-12, 1e-8, 1e-4, 0.5, 3.0, np.pi - 1e-6])
+def test_rotation_angle_small_angles(angle_rad: float) -> None:
+    """rotation_angle_deg = atan2(|skew|, tr − 1) keeps full relative precision down to 1e-12 rad (arccos of the
+    trace could not resolve angles below ~1e-6°) and up to π; the axis does not matter."""
+    from stages.vision.geometry import rotation_angle_deg, rotvec_to_matrix
+
+    for axis in (np.array([1.0, 0, 0]), np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])):
+        got = rotation_angle_deg(rotvec_to_matrix(angle_rad * axis))
+        assert got == pytest.approx(np.degrees(angle_rad), rel=1e-9, abs=0.0)
