@@ -7,9 +7,18 @@ OUT    ?= out
 export JAX_ENABLE_X64 := 1
 DEB_PACKAGES := libusb-1.0-0 libsuitesparse-dev libopenblas0-serial
 
-.PHONY: setup demo test test-slow bench clean
+.PHONY: setup demo test test-slow bench clean browser
 
-setup: $(VENV)/.installed
+setup: $(VENV)/.installed browser
+
+# Debian's Chromium, for the headless-browser test of `rsl report` (tests/test_report.py), installed when
+# missing; when it cannot be installed the test says so and skips its browser checks.
+browser:
+	@command -v chromium >/dev/null 2>&1 || command -v chromium-browser >/dev/null 2>&1 || { \
+	  echo "installing Debian package: chromium"; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  { $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq chromium; } || \
+	  echo "chromium could not be installed: tests/test_report.py will skip its browser checks"; }
 
 $(VENV)/.installed: pyproject.toml
 	@# Debian packages: libusb for open3d; SuiteSparse headers and a serial OpenBLAS for CHOLMOD

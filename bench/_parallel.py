@@ -17,7 +17,7 @@ import sys
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any, Callable, Sequence
 
-_ENV = {"JAX_ENABLE_X64": "1", "JAX_PLATFORMS": "cpu"}
+_ENV = {"JAX_ENABLE_X64": "1", "JAX_PLATFORMS": "cpu"}  # as stages.generate_data.RAY_ENV
 
 
 def add_parallel_args(parser: argparse.ArgumentParser) -> None:
@@ -53,18 +53,13 @@ def map_tasks(fn: Callable, arg_list: Sequence[tuple], workers: int = 1, ray: st
 
 
 def _map_ray(fn: Callable, arg_list: list[tuple], address: str) -> list:
+    from stages.errors import RslError
+    from stages.generate_data import connect_ray  # one way to reach a cluster, shared with rsl generate-data
+
     try:
-        import ray
-    except ImportError:
-        raise SystemExit("--ray needs Ray: pip install 'rsl[ray]'.") from None
-    started_here = not ray.is_initialized()
-    if started_here:
-        try:
-            ray.init(address=address, runtime_env={"env_vars": dict(_ENV)}, log_to_driver=False,
-                     include_dashboard=False)
-        except Exception as e:  # ConnectionError and friends
-            raise SystemExit(f"--ray {address}: cannot connect to the Ray cluster ({type(e).__name__}: {e}).") \
-                from None
+        ray, started_here = connect_ray(address)
+    except RslError as e:
+        raise SystemExit(str(e)) from None
     # Send this module and the sweep's own module by value: on a cluster's nodes only rsl is installed
     # (stages.*), not the bench scripts.
     for name in {__name__, fn.__module__}:

@@ -64,3 +64,9 @@ Done. Results:
   stress, forces, VTU,   $WS/export/   (open the .pvd in ParaView; PNG/MP4 renders and plots)
   renders and plots
 MSG
+
+# The page a lab takes away: E(t) ± σ against the truth, renders beside the photos, stress, forces,
+# timings and every artefact's provenance, in one self-contained HTML file.
+step "report";           $RSL report -w "$WS"
+echo
+echo "Report: $(cd "$(dirname "$WS/report.html")" && pwd)/report.html"

@@ -54,18 +54,24 @@ _register_commands()
 
 def main() -> None:
     """Run the CLI; an RslError or a bad path ends with one red sentence and exit 1."""
-    from stages.errors import RslError
+    from stages.errors import Interrupted, RslError
 
     try:
         rc = app(standalone_mode=False)
+        if rc == 130:  # typer turns a Ctrl-C (KeyboardInterrupt) into exit code 130
+            error("interrupted.")
+            _exit_now(130)
         if isinstance(rc, int) and rc != 0:
             sys.exit(rc)
+    except Interrupted as e:  # Ctrl-C, and the stage says what it kept
+        error(f"interrupted; {e}")
+        _exit_now(130)
     except RslError as e:
         error(str(e))
         sys.exit(1)
-    except KeyboardInterrupt as e:  # a stage may say what it kept (stages.errors.Interrupted)
-        error(f"interrupted; {e}" if str(e) else "interrupted.")
-        sys.exit(130)
+    except KeyboardInterrupt:
+        error("interrupted.")
+        _exit_now(130)
     except SystemExit:
         raise
     except Exception as e:  # click usage errors and unexpected failures
@@ -81,6 +87,14 @@ def main() -> None:
             console.print_exception()
         error(f"{type(e).__name__}: {e}")
         sys.exit(1)
+
+
+def _exit_now(code: int) -> None:
+    """Exit after a Ctrl-C without the interpreter's teardown: a native library (XLA's thread pools, a sparse
+    solver) interrupted mid-call can crash in its destructors, turning a clean stop into a segfault."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":

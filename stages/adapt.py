@@ -838,6 +838,7 @@ class GNWindow:
     def __init__(self, objective: "WindowObjective", fit_poisson: bool, s_fixed: np.ndarray):
         self.obj, self.fit_poisson, self.s_fixed = objective, fit_poisson, s_fixed
         self.young_range: tuple[float, float] | None = None  # bounds of E (Pa), [material] young_range
+        self.rebind_anchor = True  # re-anchor the observations at x_anchor(θ) (until a material change)
         self.R = objective.R
         self.k_theta = self.R * (2 if fit_poisson else 1)
         self.times = [0.0, 0.0, 0.0]  # forward, sensitivity, residuals/render
@@ -863,7 +864,7 @@ class GNWindow:
         c = p[self.k_theta:]
         b = before if D is None or not len(c) else before + np.tensordot(c, D, axes=1)
         t0 = time.perf_counter()
-        if need_jac and rebind and obj.rebind:
+        if need_jac and rebind and obj.rebind and self.rebind_anchor:
             obj.obs.rebind(obj.anchor_positions(E, nu))
         states = obj.win.forward(list(frames), E, nu, b)
         X = backend.decode(states)
@@ -1247,13 +1248,14 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
     sens: dict[int, np.ndarray] = {}  # frame -> d state/dp (k_θ, …)
     sig_hist: list[float] = []
     changes: list[int] = []  # frames where a change of material was detected
+    start_w = first  # the window never reaches before the last change point
     total = None if last is None else last - first
     with reporter.task(f"adapt online gn ({backend.space}, {obs.kind}, w={w})", total) as task:
         T = first
         while last is None or T < last:
             if config.follow and not _wait_for(obs, T, config.follow_timeout):
                 break
-            frames = list(range(max(first, T - w + 1), T + 1))
+            frames = list(range(max(start_w, T - w + 1), T + 1))
             t0 = frames[0]
             before = np.stack([state_at(t0 - 2), state_at(t0 - 1)])
             tt = time.perf_counter()
@@ -1265,8 +1267,17 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
                 xs = objective.win.forward([T], Ep, nup, np.stack([state_at(T - 2), state_at(T - 1)]))
                 rn = obs.residuals([T], backend.decode(xs))[0]
                 if len(rn) and np.sqrt(np.mean(rn * rn)) > config.change_threshold * sigma:
+                    # a change point: the window restarts at T (the frames before it saw the old material and
+                    # are not folded into the arrival cost) and the θ prior is widened
                     filt.prior = Prior(filt.prior.mean, filt.prior.cov + np.eye(k_th) * config.change_sigma ** 2)
                     changes.append(T)
+                    # the anchor frame (0, or the Gaussians' fit frame) showed the old material: its binding is
+                    # kept as it is from here on instead of being re-simulated with the new θ
+                    gn.rebind_anchor = False
+                    start_w = T
+                    frames = [T]
+                    t0 = T
+                    before = np.stack([state_at(t0 - 2), state_at(t0 - 1)])
                     rec.changes = changes
             sc = None
             if config.state_correction == "states":
@@ -1298,10 +1309,10 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
                 r0 = r_lin[0] + J_lin[0][:, k_th:] @ (res.p[k_th:] - res.p_lin[k_th:])
                 filt.leave(res.p_lin[:k_th], r0, J_lin[0][:, :k_th], sigma, huber_weights(r0, sigma, obs.huber))
             r_all = np.concatenate(gn.last_rs)
-            # the noise level: the median of the windows' residual scales over the last 20 frames (robust: a
-            # material change's transient misfit does not inflate it at once)
+            # the noise level: the median of the windows' residual scales over the last 5 frames (robust: one
+            # window's transient misfit does not inflate it at once)
             sig_hist.append(max(obs.noise_scale(r_all), obs.noise_floor))
-            sigma = float(np.median(sig_hist[-20:]))
+            sigma = float(np.median(sig_hist[-5:]))
             E, nu, _ = gn.theta(res.p)
             losses = [_frame_loss(obs, r) for r in gn.last_rs]
             rec.frames.append(T)

@@ -709,7 +709,8 @@ class MeshArtefact:
             n = v.shape[0]
             tets = r.array("tets", shape=(None, None), kind="i").astype(np.int64)
             if tets.shape[1] not in (4, 10):
-                r.fail(f"tets has {tets.shape[1]} nodes per element; 4 (linear) or 10 (quadratic) expected.")
+                r.fail(f"'tets' should have shape (*, 4) (linear tets) or (*, 10) (quadratic tets), found "
+                       f"{tets.shape}.")
             m = tets.shape[0]
             if m == 0:
                 r.fail("holds no tetrahedron.")

@@ -3,5 +3,8 @@
 from stages.domain.errors import CaptureError, RslError  # noqa: F401
 
 
-class Interrupted(KeyboardInterrupt):
-    """Ctrl-C during a stage; the message says what was kept (e.g. the frames saved to adapt.partial.h5)."""
+class Interrupted(RslError):
+    """Ctrl-C ended a stage, which kept what it had (the message says what and where); exit code 130.
+
+    Not a KeyboardInterrupt: the command-line layer (typer) turns those into a bare exit code, and the
+    sentence saying what was kept would be lost."""

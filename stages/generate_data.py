@@ -205,19 +205,50 @@ def _run_pool(tasks: list, workers: int, reporter: Reporter, task) -> list:
     return results
 
 
-def _run_ray(tasks: list, address: str, reporter: Reporter, task) -> list:
+RAY_ENV = {"JAX_ENABLE_X64": "1", "JAX_PLATFORMS": "cpu"}  # set in every Ray worker (runtime_env)
+
+
+def _ray_endpoint(address: str) -> tuple[str, int] | None:
+    """(host, port) of a 'HOST:PORT' or 'ray://HOST:PORT' address; None for 'auto' / 'local' / other forms."""
+    a = address.strip()
+    a = a[len("ray://"):] if a.startswith("ray://") else a
+    host, sep, port = a.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        return None
+    return host.strip("[]"), int(port)
+
+
+def connect_ray(address: str, timeout_s: float = 10.0):
+    """``ray`` connected to the cluster at ``address`` ('auto', 'HOST:PORT', 'ray://HOST:10001', or 'local' to
+    start one here); returns (ray module, whether this call connected — then the caller shuts it down).
+
+    A HOST:PORT where nothing answers within ``timeout_s`` is refused at once (Ray itself would retry for
+    minutes)."""
     try:
         import ray
     except ImportError:
         raise RslError("--ray needs Ray, an optional extra of rsl: pip install 'rsl[ray]'.") from None
-    env = {"env_vars": {"JAX_ENABLE_X64": "1", "JAX_PLATFORMS": "cpu"}}
-    started_here = not ray.is_initialized()
+    if ray.is_initialized():
+        return ray, False
+    end = _ray_endpoint(address)
+    if end is not None:
+        import socket
+
+        try:
+            socket.create_connection(end, timeout=timeout_s).close()
+        except OSError as e:
+            raise RslError(f"--ray {address}: nothing answers at {end[0]}:{end[1]} ({e.strerror or e}); is the Ray "
+                           f"head running there (`ray start --head`) and the port reachable?") from None
     try:
-        if started_here:
-            ray.init(address=None if address == "local" else address, runtime_env=env, log_to_driver=False,
-                     include_dashboard=False)
+        ray.init(address=None if address == "local" else address, runtime_env={"env_vars": dict(RAY_ENV)},
+                 log_to_driver=False, include_dashboard=False)
     except Exception as e:  # ConnectionError and friends
         raise RslError(f"--ray {address}: cannot connect to the Ray cluster ({type(e).__name__}: {e}).") from None
+    return ray, True
+
+
+def _run_ray(tasks: list, address: str, reporter: Reporter, task) -> list:
+    ray, started_here = connect_ray(address)
     try:
         remote = ray.remote(simulate_sequence)
         mesh_ref = ray.put(tasks[0][0]) if tasks else None

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from stages.errors import RslError
+from stages.errors import Interrupted, RslError
 from stages.progress import Reporter, SilentReporter
 from stages.registry import PIPELINE, Stage
 from stages.registry import stage as _stage
@@ -137,6 +137,8 @@ def run_pipeline(capture: Path | None, workspace: Path, reporter: Reporter = Sil
         reporter.info(f"[{i}/{len(stages)}] {s.name}: running ({why})")
         try:
             mod.run(config, reporter)
+        except Interrupted:
+            raise
         except RslError as e:
             raise RslError(f"stage '{s.name}' failed: {e}") from None
         hashes.clear()  # files may have changed

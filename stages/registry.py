@@ -89,12 +89,12 @@ STAGES: tuple[Stage, ...] = (
                   "truth masks, markers.csv)."),
     Stage("calibrate", "stages.calibrate", "CalibrateConfig", "cameras", needs_cameras=True, pipeline=True,
           summary="Camera intrinsics, distortion and poses in one world frame -> cameras.h5."),
-    Stage("segment", "stages.segment", "SegmentConfig", "masks", ("cameras",), needs_cameras=True, pipeline=True,
-          summary="Masks of the object in every frame (plates, chroma, GrabCut, SAM 2) -> masks.h5."),
     Stage("tetrahedralize", "stages.tetrahedralize", "TetrahedralizeConfig", "mesh", volatile=("threads",),
           pipeline=True,
           summary="Tet mesh of the object (fTetWild from its surface, or its tet mesh as it is) with regions, "
                   "handles, rest quantities and a quality report → mesh.h5."),
+    Stage("segment", "stages.segment", "SegmentConfig", "masks", ("cameras", "mesh"), needs_cameras=True, pipeline=True,
+          summary="Masks of the object in every frame (plates, chroma, GrabCut, SAM 2) -> masks.h5."),
     Stage("fit-gaussians", "stages.fit_gaussians", "FitGaussiansConfig", "gaussians", ("mesh", "cameras", "masks"),
           needs_cameras=True, pipeline=True,
           summary="Seed 3D Gaussians in the tets and fit their appearance to one frame's masked views "
@@ -133,8 +133,9 @@ STAGES: tuple[Stage, ...] = (
 PIPELINE: tuple[Stage, ...] = tuple(s for s in STAGES if s.pipeline)
 
 
-def stage(name: str, stages: tuple[Stage, ...] = STAGES) -> Stage:
-    """The stage called ``name``; an RslError listing the names otherwise."""
+def stage(name: str, stages: tuple[Stage, ...] | None = None) -> Stage:
+    """The stage called ``name`` among ``stages`` (default: all of :data:`STAGES`); an RslError otherwise."""
+    stages = STAGES if stages is None else stages
     for s in stages:
         if s.name == name:
             return s

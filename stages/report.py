@@ -344,7 +344,7 @@ def section_renders(ctx: Context, reporter: Reporter) -> str:
     rows = _render_rows(ctx)
     _, vm_v = ctx.stress()
     vmax = float(np.percentile(vm_v[rows], 99)) or 1.0
-    corners = ctx.mesh.tets[gauss.host_tet]  # (G, 4): the fitted binding carries the vertex field
+    corners = ctx.mesh.tets[gauss.host_tet][:, :4]  # (G, 4) corner nodes: the fitted binding's barycentrics
     from matplotlib import colormaps
 
     turbo = colormaps["turbo"]
@@ -659,6 +659,9 @@ def make_sections(ctx: Context, reporter: Reporter) -> list[Section]:
             s.missing = str(e)
         except (RslError, OSError) as e:  # a stage input that cannot be used: the section says why
             s.missing = str(e)
+        except Exception as e:  # noqa: BLE001 — one section failing must not cost the others; it is reported
+            s.missing = f"it failed ({type(e).__name__}: {e})"
+            reporter.warn(f"report: section '{title}' failed: {type(e).__name__}: {e}")
         if s.missing:
             reporter.info(f"report: section '{title}' not made: {s.missing}")
         out.append(s)

@@ -131,7 +131,7 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
             frames = _iter_frames(src, n_frames)
             plate = cap.background(cam) if method == "background" else None
             frames_used = []
-            raw = []
+            raw, ignored = [], []
             prev = priors[cam] if priors is not None else None
             for i in range(n_frames):
                 frame = next(frames)
@@ -143,6 +143,7 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
                     if ign.shape != frame.shape[:2]:
                         raise RslError(f"{ws / 'cameras.h5'}: camera '{cam}' is calibrated for {ign.shape[1]}x"
                                        f"{ign.shape[0]} images but its frames are {frame.shape[1]}x{frame.shape[0]}.")
+                    ignored.append(ign)
                 if method == "lab":
                     m = _lab_mask(cap, cam, i)
                     if m.shape != frame.shape[:2]:
@@ -184,6 +185,8 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
                     frames_used.append((i, frame))
                 task.advance(1, cam=cam)
             stack = np.stack(raw) if method == "lab" else seg.temporal_majority(np.stack(raw), config.temporal)
+            if ignored:  # the vote may bring back pixels an occluder covers in this frame but not its neighbours
+                stack &= ~np.stack(ignored)
             empty = [i for i in range(n_frames) if not stack[i].any()]
             if len(empty) == n_frames:
                 raise RslError(f"{cap.root / 'frames' / cam}: the {method} segmentation found no object in any "

@@ -104,7 +104,7 @@ def artefact_state(workspace: str | Path, kind: str, hashes: dict[str, str] | No
     if not isinstance(inputs, list):
         return ArtefactState(kind, path, INVALID, ["attribute 'inputs' is not a list"])
     if kind == "adapt" and adapt_status(prov) != "complete":
-        return ArtefactState(kind, path, INVALID, [f"holds a {adapt_status(prov)} run, not a complete one"],
+        return ArtefactState(kind, path, INVALID, [f"holds an unfinished ({adapt_status(prov)}) run, not a complete one"],
                              str(prov.get("created", "")), prov.get("config") or {}, inputs)
     cache = HashCache(workspace)
     reasons = input_changes(inputs, hashes, path, prov, cache)

@@ -153,3 +153,24 @@ def test_no_rotation_code_outside_the_helpers(path: Path) -> None:
         line = src.count("\n", 0, m.start()) + 1
         inside = [n for n, d in defs.items() if d.lineno <= line <= (d.end_lineno or d.lineno)]
         assert any((rel, n) in ROTATION_TWINS for n in inside), f"{rel}:{line}: a quaternion→matrix formula"
+
+
+# --------------------------------------------------------------------------- pure layers
+FILE_CALLS = {"open", "read_text", "write_text", "read_bytes", "write_bytes", "mkdir", "unlink", "rename"}
+
+
+def _calls(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    out = set()
+    for n in ast.walk(tree):
+        if isinstance(n, ast.Call):
+            out.add(n.func.attr if isinstance(n.func, ast.Attribute) else getattr(n.func, "id", ""))
+    return out
+
+
+@pytest.mark.parametrize("name", [n for n in MODULES if layer(n) <= 1], ids=str)
+def test_domain_and_engines_neither_print_nor_touch_files(name: str) -> None:
+    calls = _calls(MODULES[name])
+    assert "print" not in calls, f"{name} prints"
+    if layer(name) == 0:
+        assert not calls & FILE_CALLS, f"{name} touches files: {sorted(calls & FILE_CALLS)}"

@@ -243,10 +243,10 @@ def test_pipeline_stage_errors(fake_stages) -> None:
 
 def test_real_pipeline_names_every_stage() -> None:
     names = [s.name for s in pipeline.STAGES]
-    assert names == ["calibrate", "segment", "tetrahedralize", "fit-gaussians", "generate-data",
+    assert names == ["calibrate", "tetrahedralize", "segment", "fit-gaussians", "generate-data",
                      "train-subspace", "adapt"]
     assert [s.module for s in pipeline.STAGES] == [
-        "stages.calibrate", "stages.segment", "stages.tetrahedralize", "stages.fit_gaussians",
+        "stages.calibrate", "stages.tetrahedralize", "stages.segment", "stages.fit_gaussians",
         "stages.generate_data", "stages.train_subspace", "stages.adapt"]
     t = pipeline.stage("tetrahedralize")
     cfg = t.make_config(Path("c"), Path("w"), {"max_tets": "500", "optimize": "false"})

@@ -150,11 +150,46 @@ def test_bad_choice_is_refused_by_the_cli() -> None:
     assert "Traceback" not in p.stderr
 
 
-def test_building_the_cli_imports_no_jax_or_torch() -> None:
+def test_rsl_help_imports_no_stage_module() -> None:
+    """`rsl --help` lists the stages from the registry: no stage module, no jax / torch is imported."""
     code = ("import sys, rsl_cli.app; from typer.main import get_command; get_command(rsl_cli.app.app); "
-            "print(sorted(m for m in ('jax', 'torch', 'numba', 'optax', 'scipy.spatial') if m in sys.modules))")
+            "sys.argv = ['rsl', '--help']\n"
+            "try:\n    rsl_cli.app.main()\nexcept SystemExit:\n    pass\n"
+            "print('MODULES', sorted(m for m in sys.modules if m.split('.')[0] in "
+            "('jax', 'torch', 'numba', 'optax', 'h5py') or m in ('scipy.spatial',) or m in "
+            + repr(sorted({s.module for s in STAGES})) + "))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert out.strip() == "[]"
+    assert "Commands" in out and "tetrahedralize" in out
+    assert out.strip().splitlines()[-1] == "MODULES []"
+
+
+def test_a_stage_command_imports_only_its_stage() -> None:
+    code = ("import sys, rsl_cli.app; sys.argv = ['rsl', 'evaluate', '--help']\n"
+            "try:\n    rsl_cli.app.main()\nexcept SystemExit:\n    pass\n"
+            "print('MODULES', sorted(m for m in sys.modules if m in " + repr(sorted({s.module for s in STAGES})) + "))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert "--psnr-frames" in out
+    assert out.strip().splitlines()[-1] == "MODULES ['stages.evaluate']"
+
+
+def test_a_stage_that_cannot_load_breaks_only_its_command(monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    from rsl_cli.options import LazyStageCommand
+    from stages import registry
+    from stages.errors import RslError
+
+    broken = registry.Stage("broken", "stages.no_such_stage", "NoConfig", None, summary="Broken on purpose.")
+    monkeypatch.setattr(registry, "STAGES", registry.STAGES + (broken,))
+    from rsl_cli.options import RslGroup
+    import typer._click as click
+
+    monkeypatch.setattr(RslGroup, "lazy", {**RslGroup.lazy, "broken": broken.summary})
+    group = RslGroup(name="rsl")
+    text = group.get_help(click.Context(group, info_name="rsl")) + capsys.readouterr().out  # (typer prints it)
+    assert "Broken on purpose." in text and "tetrahedralize" in text
+    cmd = group.get_command(click.Context(group, info_name="rsl"), "broken")
+    assert isinstance(cmd, LazyStageCommand)
+    with pytest.raises(RslError, match=r"stage 'broken' \(stages/no_such_stage.py\) not available"):
+        cmd.make_context("broken", [])
 
 
 def test_pipeline_is_the_registry_order() -> None:

@@ -259,8 +259,9 @@ def test_image_residual_jacobian_and_exact_gradient(beam, tmp_path):
 
 
 def test_adapt_gn_markers_recovers_young_with_sigma(beam, rsl):
-    """rsl adapt --estimator gn from 4× too soft: E within 1 % after a few frames (same-model capture: no noise,
-    no model error), σ finite and small, online and offline."""
+    """rsl adapt --estimator gn from 4× too soft: E within 1 % (and within 3σ) from frame 20 on (same-model
+    capture: no noise, no model error; the start state is the capture's equilibrium), σ finite and shrinking,
+    online and offline."""
     from stages.artefacts import AdaptArtefact
     from test_adapt_e2e import E_TRUE
 
@@ -271,7 +272,8 @@ def test_adapt_gn_markers_recovers_young_with_sigma(beam, rsl):
     assert "±" in proc.stderr
     art = AdaptArtefact.load(ws / "adapt.h5")
     assert art.young_sigma.shape == art.young.shape and np.all(np.isfinite(art.young_sigma))
-    assert np.all(np.abs(art.young[8:, 0] / E_TRUE - 1) < 0.01), art.young[:, 0]
+    assert np.all(np.abs(art.young[20:, 0] / E_TRUE - 1) < 0.01), art.young[:, 0]
+    assert np.all(np.abs(art.young[20:, 0] - E_TRUE) <= 3 * art.young_sigma[20:, 0]), art.young_sigma[:, 0]
     assert art.young_sigma[0, 0] > art.young_sigma[-1, 0] > 0  # it knows it has learnt
     proc = rsl("adapt", cap, "-w", ws, "--space", "full", "--loss", "markers", "--mode", "offline",
                "--young-init", str(E_TRUE / 4), "--estimator", "gn", "--frames", "0:12", "--offline-iters", "8")

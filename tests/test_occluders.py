@@ -11,7 +11,6 @@ import pytest
 
 from stages.artefacts import Camera, GaussiansArtefact
 from stages.capture import CaptureError, load_controls, parse_controls
-from stages.domain.controls import Visual
 from stages.occluders import ignore_mask, visual_world
 from stages.render.mesh_raster import look_at, project_points
 from stages.sim.meshgen import box_tets, mesh_artefact
@@ -255,3 +254,28 @@ def test_adapt_vision_observations_leave_the_occluder_out(scene, tmp_path) -> No
     obs2 = _Vision(load_capture(cap), ws, "", mesh, False)
     np.testing.assert_array_equal(obs2.residuals([0], x[None])[0], r.reshape(-1))
     np.testing.assert_allclose(obs2.exact_jtwr([0], x[None], dX, [r.reshape(-1)], W), g1, rtol=1e-12)
+
+
+def test_clean_mask_keeps_an_object_cut_in_two_by_an_occluder() -> None:
+    """A bar crossed by a gripper band: without the ignore mask the largest component drops one half; with it
+    both halves stay (connected through the ignored band) and the band itself is in no mask — even when the
+    band is larger than the object."""
+    from stages.vision.segmentation import clean_mask
+
+    m = np.zeros((40, 60), bool)
+    m[15:25, 5:55] = True  # the bar
+    band = np.zeros_like(m)
+    band[:, 24:34] = True  # the gripper, floor to ceiling
+    seen = m & ~band
+    seen[2, 2] = True  # a speck away from everything
+    plain = clean_mask(seen, 0, 0)
+    assert plain[20, 10] != plain[20, 45]  # one half lost
+    kept = clean_mask(seen, 0, 0, ignore=band)
+    np.testing.assert_array_equal(kept, m & ~band)
+    big = np.zeros_like(m)
+    big[:, 20:40] = True
+    big[0:5, :] = True  # larger than both halves together
+    seen = m & ~big
+    seen[35, 2] = True  # a speck, not connected to the band
+    kept = clean_mask(seen, 0, 0, ignore=big)
+    np.testing.assert_array_equal(kept, m & ~big)

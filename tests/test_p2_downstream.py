@@ -141,6 +141,7 @@ def test_p2_fast_path_with_all_points_equals_reference(p2):
     assert abs(de_f - de_r) <= 1e-9 * abs(de_r)
 
 
+@pytest.mark.slow
 def test_p2_reduced_rollout_follows_full_space(p2):
     """PCA r = 12 with a 60-point cubature, trained on full-space P2 sequences of a clamp that lifts and
     turns, against the full-space P2 simulation of a held-out sequence."""
@@ -626,3 +627,46 @@ def test_fit_gaussians_on_a_p2_mesh_reaches_psnr(tmp_path):
     assert proc.returncode == 0, proc.stderr
     art = GaussiansArtefact.load(ws / "gaussians.h5")
     assert art.host_tet.max() < 48 and min(art.fit_psnr.values()) >= FIT_PSNR_DB, art.fit_psnr
+
+
+# --------------------------------------------------------------------------- generate-data → train-subspace
+@pytest.mark.slow
+def test_generate_data_and_train_subspace_on_a_p2_mesh_through_the_cli(tmp_path, rsl):
+    """The real CLI on a quadratic-tet mesh.h5: snapshots over all nodes, an autoencoder and a cubature of
+    quadrature points, which ReducedModel loads and steps with."""
+    import json
+
+    import meshio
+
+    from stages.artefacts import MeshArtefact, Provenance, SnapshotsArtefact, SubspaceArtefact
+    from stages.capture import load_capture, select_handles
+    from stages.sim.meshgen import mesh_artefact
+    from stages.sim.scene import frame_inputs, make_scene
+    from test_generate_data import TOML, _controls
+
+    cap_dir, ws = tmp_path / "capture", tmp_path / "ws"
+    cap_dir.mkdir()
+    v, t = box_tets((5, 1, 1), (0.2, 0.04, 0.04))
+    meshio.write(str(cap_dir / "object.mesh"), meshio.Mesh(v, [("tetra", t)]), file_format="medit")
+    (cap_dir / "capture.toml").write_text(TOML)
+    (cap_dir / "controls.json").write_text(json.dumps(_controls()))
+    cap = load_capture(cap_dir)
+    mesh = mesh_artefact(v, t, cap.density, order=2)
+    mesh.handles = select_handles(cap.controls(), mesh.vertices)
+    mesh.save(ws / "mesh.h5", Provenance.make({}, []))
+    proc = rsl("generate-data", cap_dir, "-w", ws, "--sequences", "4", "--frames", "8", "--workers", "1")
+    assert proc.returncode == 0, proc.stderr
+    snap = SnapshotsArtefact.load(ws / "snapshots.h5")
+    assert snap.positions.shape == (32, len(mesh.vertices), 3)
+    proc = rsl("train-subspace", "-w", ws, "--dim", "3", "--epochs", "20", "--cubature-tets", "40",
+               "--cubature-poses", "10")
+    assert proc.returncode == 0, proc.stderr
+    assert "quadrature points" in proc.stdout + proc.stderr
+    art = SubspaceArtefact.load(ws / "subspace.h5")
+    pts = np.asarray(art.extra["cubature_points"])
+    assert art.extra["cubature_order"] == 2 and 0 < len(pts) <= 40 and pts.max() < 4 * len(mesh.tets)
+    mesh = MeshArtefact.load(ws / "mesh.h5")
+    scene = make_scene(mesh, cap.controls(), "stable_neohookean", 1 / 30, np.array([0, 0, -9.81]))
+    model = ReducedModel.from_artefacts(art, scene)
+    Z = model.simulate([frame_inputs(scene, cap.controls(), f) for f in range(3)], np.array([1e5]), np.array([0.4]))
+    assert Z.shape == (3, 3) and np.all(np.isfinite(Z))

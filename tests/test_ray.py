@@ -135,7 +135,7 @@ def test_generate_data_with_an_unreachable_ray_address_is_one_sentence(tiny, tmp
     with socket_port() as port:  # a port where nothing listens
         proc = rsl("generate-data", cap, "-w", w, "--sequences", "1", "--frames", "2", "--ray", f"127.0.0.1:{port}")
     assert proc.returncode == 1 and "Traceback" not in proc.stderr
-    assert "cannot connect to the Ray cluster" in proc.stderr
+    assert f"nothing answers at 127.0.0.1:{port}" in " ".join(proc.stderr.split())
     assert not (w / "snapshots.h5").exists()
 
 
@@ -169,12 +169,10 @@ def sag_at(capture: str, workspace: str, young_pa: float, frames: int) -> np.nda
     return np.asarray(x[-1])
 
 
-def test_bench_sweep_on_a_ray_head_equals_the_local_pool(ray_head, tiny):
-    sys.path.insert(0, str(ROOT / "bench"))
-    try:
-        from _parallel import map_tasks
-    finally:
-        sys.path.remove(str(ROOT / "bench"))
+def test_bench_sweep_on_a_ray_head_equals_the_local_pool(ray_head, tiny, monkeypatch):
+    monkeypatch.syspath_prepend(str(ROOT / "bench"))  # as when a script in bench/ runs (the pool's workers get it too)
+    from _parallel import map_tasks
+
     cap, ws = tiny
     args = [(str(cap), str(ws), e, 4) for e in (6e4, 1e5, 1.8e5)]
     serial = map_tasks(sag_at, args)

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.artefacts import CamerasArtefact, MasksArtefact
+from stages.artefacts import MasksArtefact
 from stages.capture import load_controls, read_cameras_json, read_image, write_image
 from stages.vision.segmentation import iou
 

@@ -62,6 +62,7 @@ def test_single_view_capture_with_a_clamp_runs_through_rsl_run(tmp_path, shared_
     assert masks.iou["cam0"] >= 0.85, masks.iou  # the visible object against the truth (clamp pixels removed)
     adapt = AdaptArtefact.load(ws / "adapt.h5")
     assert np.all(np.isfinite(adapt.young)) and np.all(adapt.young > 0)
+    print(f"vision: final E {adapt.young[-1].tolist()} Pa (truth 1e5; one 64² camera, r = 8 PCA, w = 3)")
     # nothing changed: a second run has nothing to do
     p = rsl(*args)
     assert p.returncode == 0 and "0 stages ran, 7 up to date" in " ".join(p.stderr.split()), p.stderr[-2000:]
@@ -70,6 +71,7 @@ def test_single_view_capture_with_a_clamp_runs_through_rsl_run(tmp_path, shared_
     assert p.returncode == 0, p.stderr[-3000:]
     adapt = AdaptArtefact.load(ws / "adapt.h5")
     assert np.all(np.isfinite(adapt.young)) and np.all(adapt.young > 0)
+    print(f"markers.c3d: final E {adapt.young[-1].tolist()} Pa (truth 1e5; full space, w = 3)")
     from stages import mocap
 
     data = mocap.read_c3d(cap / "markers.c3d")

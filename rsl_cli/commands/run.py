@@ -13,9 +13,10 @@ ORDER = 1
 
 
 def register(app: typer.Typer) -> None:
-    @app.command("run", help="Every stage in order (calibrate, segment, tetrahedralize, fit-gaussians, "
-                             "generate-data, train-subspace, adapt), skipping a stage whose artefact is up to "
-                             "date with its inputs and config.")
+    from stages.registry import PIPELINE
+
+    @app.command("run", help=f"Every stage in order ({', '.join(s.name for s in PIPELINE)}), skipping a stage "
+                             "whose artefact is up to date with its inputs and config.")
     def _cmd(
         capture: Path = typer.Argument(..., help="Capture folder."),
         workspace: Path = workspace_option(),

@@ -175,8 +175,14 @@ def snh_point_kernel(x, nodes, grad, weight, mu, lam, want, project, out_index, 
     k = nodes.shape[1]
     nd = 3 * k
     energy = np.zeros(n_out)
-    gout = np.zeros((n_out if want >= 1 else 0, nd))
-    hout = np.zeros((n_out if want >= 2 else 0, nd, nd))
+    gout = np.empty((n_out if want >= 1 else 0, nd))  # a row is zeroed by the first point that adds to it
+    hout = np.empty((n_out if want >= 2 else 0, nd, nd))
+    first = np.full(n_out, -1)  # the first and last point adding to each output row
+    last = np.full(n_out, -1)
+    for p in range(q):
+        if first[out_index[p]] < 0:
+            first[out_index[p]] = p
+        last[out_index[p]] = p
     F = np.empty((3, 3))
     C = np.empty((3, 3))  # cof(F) = ∂J/∂F
     U, Vr, A, Qs, work = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
@@ -218,6 +224,9 @@ def snh_point_kernel(x, nodes, grad, weight, mu, lam, want, project, out_index, 
         d2 = 0.5 * mus * (1.0 - 1.0 / (ic + 1.0))  # ∂Ψ/∂I₂
         dJ = lams * (J - alpha)  # ∂Ψ/∂J
         d22 = 0.5 * mus / (ic + 1.0) ** 2  # ∂²Ψ/∂I₂²
+        if first[o] == p:
+            for c in range(nd):
+                gout[o, c] = 0.0
         for a in range(k):
             for i in range(3):
                 acc = 0.0
@@ -227,6 +236,10 @@ def snh_point_kernel(x, nodes, grad, weight, mu, lam, want, project, out_index, 
         if want < 2:
             continue
         Ho = hout[o]
+        if first[o] == p:
+            for r in range(nd):
+                for c in range(nd):
+                    Ho[r, c] = 0.0
         if not project:
             # exact: ∂²Ψ/∂F_ij∂F_kl = 2Ψ_I₂ δ_ik δ_jl + 4Ψ_I₂I₂ F_ij F_kl + λ' C_ij C_kl + Ψ_J ε_ikp ε_jlq F_pq
             for i in range(3):
@@ -292,16 +305,24 @@ def snh_point_kernel(x, nodes, grad, weight, mu, lam, want, project, out_index, 
                     wk[3 * a + i] = (Q[m9, 3 * i] * G[a, 0] + Q[m9, 3 * i + 1] * G[a, 1]
                                      + Q[m9, 3 * i + 2] * G[a, 2])
             c0 = V * lk
-            for r in range(nd):  # upper triangle here, the lower one after the loop over points
+            for r in range(nd):  # the upper triangle; the lower one once the row's last point is in
                 cr = c0 * wk[r]
                 for c in range(r, nd):
                     Ho[r, c] += cr * wk[c]
-    if want >= 2 and project:
-        for o in range(n_out):
+        if last[o] == p:
             for r in range(nd):
                 for c in range(r):
-                    hout[o, r, c] = hout[o, c, r]
+                    Ho[r, c] = Ho[c, r]
+    for o in range(n_out):  # rows no point adds to
+        if first[o] < 0:
+            for c in range(gout.shape[1] if want >= 1 else 0):
+                gout[o, c] = 0.0
+            if want >= 2:
+                for r in range(nd):
+                    for c in range(nd):
+                        hout[o, r, c] = 0.0
     return energy, gout, hout
+
 
 
 def snh_kernel(x, tets, dm_inv, vol, mu, lam, want, project):
