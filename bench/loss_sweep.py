@@ -12,8 +12,9 @@ through the grid minimum and its neighbours; its ratio to E_true is the loss's b
 
     .venv/bin/python bench/loss_sweep.py [--quick] [--no-vision] [--out docs/results]
 
---quick: P2 truth on the shipped mesh (no refinement), 20 frames, 9 grid points; full: P2 on the
-once-refined mesh, 30 frames, 13 grid points.
+--quick: P2 truth on the shipped mesh (no refinement); full: P2 on the once-refined mesh; both 20
+frames and 9 grid points.  --starts equilibrium / --starts rest run one start state (two processes can share
+the work), --merge A.json B.json writes the report of both.
 """
 from __future__ import annotations
 
@@ -82,19 +83,26 @@ def main() -> None:
     ap.add_argument("--no-vision", action="store_true", help="marker loss only (no pipeline)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
     ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_loss_sweep"))
+    ap.add_argument("--starts", default="equilibrium,rest", help="start states to run, comma-separated")
+    ap.add_argument("--merge", type=Path, nargs="*", default=None,
+                    help="only merge the loss_sweep.json files of separate runs (e.g. one per start) into --out")
     a = ap.parse_args()
+    if a.merge is not None:
+        parts = [json.loads(p.read_text()) for p in a.merge]
+        write([c for d in parts for c in d["cases"]], a.out, parts[0]["mode"] == "quick")
+        return
 
     from stages.artefacts import KIND_FILES, MeshArtefact
     from stages.capture import load_capture
     from stages.sweep import sweep
 
-    frames, refine = (20, 0) if a.quick else (30, 1)
+    frames, refine = (20, 0) if a.quick else (20, 1)
     scales = (np.array([0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.25, 1.4]) if a.quick else
-              np.array([0.5, 0.55, 0.6, 0.65, 0.7, 0.8, 0.9, 0.95, 1.0, 1.05, 1.1, 1.25, 1.4]))
+              np.array([0.55, 0.65, 0.75, 0.85, 0.92, 1.0, 1.08, 1.2, 1.4]))
     grid = E_TRUE * scales
     a.work.mkdir(parents=True, exist_ok=True)
     cases = []
-    for start in ("equilibrium", "rest"):
+    for start in a.starts.split(","):
         cap_dir = a.work / f"bar_cable_{start}"
         t_synth = make_capture(cap_dir, start, frames, refine, 96)
         cap = load_capture(cap_dir)

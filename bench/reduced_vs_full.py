@@ -312,7 +312,8 @@ def markdown(machine: str, date: str, cases: list[dict]) -> str:
         "of the 25cm_dino_low surface at edge 0.015 × diagonal, clamped at its feet, gentler motions), the "
         "last sequence held out. The trajectory error is the mean vertex "
         "distance between the reduced and full trajectories of the held-out sequence over the bounding-box "
-        "diagonal. Each ratio is taken within one run (the machine's load is given above).\n\n" + "\n".join(notes) + "\n\n"
+        "diagonal. Each ratio is taken within one run (the machine's load is given above).\n\n"
+        + "\n".join(notes) + "\n\n"
         "Against the 10× target of forward + backward: " + ", ".join(
             f"{c['name']} {c['ratio']:.1f}× ({'met' if c['ratio'] >= 10 else 'not met'})" for c in cases) + ".\n\n"
         "Interpretation: the hand-written, dated [reduced_vs_full_notes.md](reduced_vs_full_notes.md) "

@@ -75,12 +75,11 @@ def main() -> None:
     except SystemExit:
         raise
     except Exception as e:  # click usage errors and unexpected failures
-        import click
-
-        if isinstance(e, click.exceptions.ClickException):
+        # click's (or typer's vendored click's) usage errors: their own message with the usage line
+        if callable(getattr(e, "show", None)) and isinstance(getattr(e, "exit_code", None), int):
             e.show()
             sys.exit(e.exit_code)
-        if isinstance(e, click.exceptions.Abort):
+        if type(e).__name__ == "Abort":
             error("aborted.")
             sys.exit(1)
         if state["verbose"]:

@@ -6,6 +6,9 @@ Each field of the Config becomes a parameter of the command: the fields the stag
 (``Literal[...]`` → choices, checked by click and shown in --help; ``X | None`` → default None;
 ``bool`` → ``--x/--no-x``), the dataclass default the default, and the docstring under the field
 the help text.  A field without a default is a required option (``workspace`` is ``-w/--workspace``).
+
+`rsl`'s group (:class:`RslGroup`) lists each stage from the registry alone (name and summary) and builds
+its command, importing the stage module, only when that command is run, asked for --help or documented.
 """
 from __future__ import annotations
 
@@ -144,7 +147,8 @@ class LazyStageCommand(TyperCommand):
 
 class RslGroup(TyperGroup):
     """`rsl`'s command group: the hand-written commands typer registered, plus one :class:`LazyStageCommand`
-    per stage declared with :func:`stage_command`, listed in the order of ``ORDERS``."""
+    per stage declared with :func:`stage_command`, listed in the order of ``orders`` (ORDER of a command
+    module; the registry's order for stages)."""
 
     lazy: dict[str, str] = {}  # stage name -> summary, filled by stage_command(...)(app)
     orders: dict[str, float] = {}  # command name -> position in `rsl --help`

@@ -62,8 +62,10 @@ class AdaptConfig:
     """Sliding-window size w: frames re-simulated and compared at each new frame."""
     space: Literal["reduced", "full"] = "reduced"
     """Simulate in the neural subspace (needs subspace.h5) or in the full FEM space."""
-    mode: Literal["online", "offline"] = "online"
-    """online: sliding window, θ updated every frame; offline: one θ fitted to the whole sequence."""
+    mode: Literal["online", "offline", "static"] = "online"
+    """online: sliding window, θ updated every frame; offline: one θ fitted to the whole sequence; static: one θ
+    from the static equilibria of the frames alone (an object at rest under gravity and holds; chosen by itself
+    when no control moves and [capture] start = "equilibrium")."""
     loss: Literal["vision", "markers"] = "vision"
     """Observation: rendered Gaussians vs images (needs gaussians.h5, cameras.h5) or markers.csv."""
     cameras: str = ""
@@ -204,30 +206,30 @@ class _FullSpace:
     def state_grad(self, state: np.ndarray, dL_dx: np.ndarray) -> np.ndarray:
         return dL_dx
 
-    def start(self, young, poisson, kind: str, init=None) -> np.ndarray:
-        """x_0 (n, 3): the rest shape or the static equilibrium under the frame-0 inputs (stages.sim.static)."""
+    def start(self, young, poisson, kind: str, init=None, frame: int = 0) -> np.ndarray:
+        """x_0 (n, 3): the rest shape or the static equilibrium under the frame's inputs (stages.sim.static)."""
         from stages.sim.static import start_state
 
         kw = {} if kind == "rest" else {"x_init": init, "solver": self.solver}
-        return np.asarray(start_state(self.scene, self.inputs(0), young, poisson, kind, **kw))
+        return np.asarray(start_state(self.scene, self.inputs(frame), young, poisson, kind, **kw))
 
-    def start_sensitivity(self, young, poisson, kind: str, x0, d_young, d_poisson) -> np.ndarray:
+    def start_sensitivity(self, young, poisson, kind: str, x0, d_young, d_poisson, frame: int = 0) -> np.ndarray:
         """dx_0/dp (k, n, 3) along k directions of θ (0 for the rest start)."""
         from stages.sim.static import equilibrium_sensitivity
 
         k = len(d_young)
         if kind == "rest":
             return np.zeros((k,) + np.shape(x0))
-        S = equilibrium_sensitivity(self.scene, self.inputs(0), young, poisson, x0, solver=self.solver)  # (2R, n, 3)
+        S = equilibrium_sensitivity(self.scene, self.inputs(frame), young, poisson, x0, solver=self.solver)
         return np.tensordot(np.concatenate([d_young, d_poisson], axis=1), S, axes=1)
 
-    def start_adjoint(self, young, poisson, kind: str, x0, dL_dx0) -> tuple[np.ndarray, np.ndarray]:
+    def start_adjoint(self, young, poisson, kind: str, x0, dL_dx0, frame: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """(dL/dE, dL/dν) (R,) through x_0(θ), for dL/dx_0 (n, 3)."""
         from stages.sim.static import equilibrium_adjoint
 
         if kind == "rest":
             return np.zeros(len(young)), np.zeros(len(young))
-        g = equilibrium_adjoint(self.scene, self.inputs(0), young, poisson, x0, dL_dx0, solver=self.solver)
+        g = equilibrium_adjoint(self.scene, self.inputs(frame), young, poisson, x0, dL_dx0, solver=self.solver)
         return np.asarray(g["young"]), np.asarray(g["poisson"])
 
 
@@ -296,29 +298,29 @@ class _ReducedSpace:
     def state_grad(self, state: np.ndarray, dL_dx: np.ndarray) -> np.ndarray:
         return self.model.jacobian_transpose(state, dL_dx)
 
-    def start(self, young, poisson, kind: str, init=None) -> np.ndarray:
-        """z_0 (r,): ψ(rest) or the reduced static equilibrium under the frame-0 inputs (stages.sim.static)."""
+    def start(self, young, poisson, kind: str, init=None, frame: int = 0) -> np.ndarray:
+        """z_0 (r,): ψ(rest) or the reduced static equilibrium under the frame's inputs (stages.sim.static)."""
         from stages.sim.static import reduced_equilibrium
 
         if kind == "rest":
             return self.rest_state
-        return np.asarray(reduced_equilibrium(self.model, self._inputs(0), young, poisson, z_init=init))
+        return np.asarray(reduced_equilibrium(self.model, self._inputs(frame), young, poisson, z_init=init))
 
-    def start_sensitivity(self, young, poisson, kind: str, z0, d_young, d_poisson) -> np.ndarray:
+    def start_sensitivity(self, young, poisson, kind: str, z0, d_young, d_poisson, frame: int = 0) -> np.ndarray:
         """dz_0/dp (k, r)."""
         from stages.sim.static import reduced_equilibrium_sensitivity
 
         if kind == "rest":
             return np.zeros((len(d_young),) + np.shape(z0))
-        S = reduced_equilibrium_sensitivity(self.model, self._inputs(0), young, poisson, z0)  # (2R, r)
+        S = reduced_equilibrium_sensitivity(self.model, self._inputs(frame), young, poisson, z0)  # (2R, r)
         return np.concatenate([d_young, d_poisson], axis=1) @ S
 
-    def start_adjoint(self, young, poisson, kind: str, z0, dL_dz0) -> tuple[np.ndarray, np.ndarray]:
+    def start_adjoint(self, young, poisson, kind: str, z0, dL_dz0, frame: int = 0) -> tuple[np.ndarray, np.ndarray]:
         from stages.sim.static import reduced_equilibrium_adjoint
 
         if kind == "rest":
             return np.zeros(len(young)), np.zeros(len(young))
-        g = reduced_equilibrium_adjoint(self.model, self._inputs(0), young, poisson, z0, dL_dz=dL_dz0)
+        g = reduced_equilibrium_adjoint(self.model, self._inputs(frame), young, poisson, z0, dL_dz=dL_dz0)
         return np.asarray(g["young"]), np.asarray(g["poisson"])
 
 
@@ -421,8 +423,13 @@ class _Markers:
         self.noise_floor = 1e-4 * diag
 
     def rebind(self, x0: np.ndarray) -> None:
-        """Bind each marker to the point of the frame-0 surface x0 (n, 3) nearest its frame-0 position."""
-        self.binding: MarkerBinding = bind_markers(x0[:self.n], self.faces, self.P[0])
+        """Bind each marker to the triangle of the frame-0 surface x0 (n, 3) nearest its frame-0 position, at
+        the projection of that position on the triangle's plane (the nearest point itself when it projects
+        inside the triangle; unclamped at an edge, so that the binding is a smooth function of x0 for a given
+        triangle — the Gauss–Newton Jacobian differentiates it, :meth:`binding_jacobian`)."""
+        b = bind_markers(x0[:self.n], self.faces, self.P[0])
+        self.binding = b
+        self.binding = MarkerBinding(b.faces, self._plane_bary(x0[:self.n]), b.distance)
 
     def _read(self) -> np.ndarray:
         P = self.capture.markers()
@@ -450,6 +457,41 @@ class _Markers:
         grad = np.zeros_like(X)
         grad[:, :self.n] = self.binding.scatter(2.0 * r, self.n)
         return np.sum(r * r, axis=(1, 2)), grad
+
+    def _plane_bary(self, x0: np.ndarray) -> np.ndarray:
+        """Barycentric coordinates (M, 3) of each frame-0 marker projected on the plane of its bound triangle of
+        x0 — the binding as a smooth function of x0 (the same as the closest point while it lies inside)."""
+        tri = x0[self.binding.faces]  # (M, 3, 3)
+        a, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        d = self.P[0] - a
+        g = np.stack([np.stack([np.sum(e1 * e1, -1), np.sum(e1 * e2, -1)], -1),
+                      np.stack([np.sum(e1 * e2, -1), np.sum(e2 * e2, -1)], -1)], -2)
+        rhs = np.stack([np.sum(e1 * d, -1), np.sum(e2 * d, -1)], -1)
+        uv = np.linalg.solve(g, rhs[..., None])[..., 0]
+        return np.concatenate([1 - uv.sum(-1, keepdims=True), uv], -1)
+
+    def binding_jacobian(self, frames: Sequence[int], X: np.ndarray, x0: np.ndarray, dx0: np.ndarray
+                         ) -> list[np.ndarray]:
+        """Per frame, the part of ∂r_f/∂p (3·M_f, k) that comes from the binding's dependence on the anchor
+        configuration x0 (n, 3) moving by dx0 (k, n, 3): Σ_k (∂b_ik/∂p) x_f[f_ik], ∂b/∂p by central
+        differences of :meth:`_plane_bary` (smooth, cheap: M 2×2 solves)."""
+        x0 = x0[:self.n]
+        scale = float(np.linalg.norm(np.ptp(x0, axis=0)))
+        dB = []
+        for v in dx0[:, :self.n]:
+            vmax = float(np.abs(v).max())
+            if vmax == 0.0:
+                dB.append(np.zeros_like(self.binding.bary))
+                continue
+            h = 1e-6 * scale / vmax
+            dB.append((self._plane_bary(x0 + h * v) - self._plane_bary(x0 - h * v)) / (2 * h))
+        dB = np.stack(dB)  # (k, M, 3)
+        out = []
+        for t, x in zip(frames, X):
+            ok = np.all(np.isfinite(self.P[t]), axis=-1)
+            dm = np.einsum("kmj,mjd->kmd", dB, x[self.binding.faces])[:, ok]  # (k, M_f, 3)
+            out.append(dm.reshape(len(dB), -1).T)
+        return out
 
     def residuals(self, frames: Sequence[int], X: np.ndarray) -> list[np.ndarray]:
         """Per frame, r_f = m_i(x_f) − p_f^i over the observed markers, flattened (3·M_f,), m."""
@@ -777,6 +819,52 @@ class StartWindow:
         return b.decode_sensitivity(states, S)
 
 
+class StaticWindow:
+    """Static identification (``--mode static``): every frame's state is the static equilibrium under that
+    frame's controls, solved with θ (stages.sim.static) — no dynamics, no state carried between frames; the
+    adjoint and the sensitivities pass through each static solve.  Same interface as :class:`StartWindow`."""
+
+    kind = "equilibrium"
+
+    def __init__(self, backend):
+        self.backend = backend
+        self._last: dict[int, np.ndarray] = {}  # frame -> last equilibrium (warm start)
+
+    def forward(self, frames, E, nu, before=None) -> np.ndarray:
+        out = []
+        for t in frames:
+            x = self.backend.start(E, nu, "equilibrium", self._last.get(t), frame=t)
+            self._last[t] = x
+            out.append(x)
+        return np.stack(out)
+
+    def backward(self, frames, E, nu, states, before, dL_dX) -> tuple[np.ndarray, np.ndarray]:
+        b = self.backend
+        gE, gN = np.zeros(len(E)), np.zeros(len(E))
+        for i, t in enumerate(frames):
+            a, c = b.start_adjoint(E, nu, "equilibrium", states[i], b.state_grad(states[i], dL_dX[i]), frame=t)
+            gE, gN = gE + a, gN + c
+        return gE, gN
+
+    def sensitivity(self, frames, E, nu, states, before, d_young, d_poisson, d_before=None) -> np.ndarray:
+        b = self.backend
+        S = np.stack([b.start_sensitivity(E, nu, "equilibrium", states[i], d_young, d_poisson, frame=t)
+                      for i, t in enumerate(frames)], axis=1)  # (k, w, state)
+        self.last_state_sensitivity = S
+        return b.decode_sensitivity(states, S)
+
+
+def controls_static(inputs: Callable[[int], object], frames: Sequence[int]) -> bool:
+    """Whether no control moves over ``frames``: handle targets, loads and obstacle poses all equal frame 0's."""
+    a = inputs(frames[0])
+    for t in frames[1:]:
+        b = inputs(t)
+        if not (all(np.array_equal(p, q) for p, q in zip(a.handle_targets, b.handle_targets))
+                and np.array_equal(a.load_forces, b.load_forces) and np.array_equal(a.obstacle_poses, b.obstacle_poses)):
+            return False
+    return True
+
+
 # =========================================================================== the window objective
 class WindowObjective:
     """L(p) over a window of frames and dL/dp, p = (log E (R,), s (R,)), θ shared by the window:
@@ -839,6 +927,7 @@ class GNWindow:
         self.obj, self.fit_poisson, self.s_fixed = objective, fit_poisson, s_fixed
         self.young_range: tuple[float, float] | None = None  # bounds of E (Pa), [material] young_range
         self.rebind_anchor = True  # re-anchor the observations at x_anchor(θ) (until a material change)
+        self.rebind_next = True  # re-anchor at the next linearisation
         self.R = objective.R
         self.k_theta = self.R * (2 if fit_poisson else 1)
         self.times = [0.0, 0.0, 0.0]  # forward, sensitivity, residuals/render
@@ -864,8 +953,15 @@ class GNWindow:
         c = p[self.k_theta:]
         b = before if D is None or not len(c) else before + np.tensordot(c, D, axes=1)
         t0 = time.perf_counter()
-        if need_jac and rebind and obj.rebind and self.rebind_anchor:
-            obj.obs.rebind(obj.anchor_positions(E, nu))
+        anchored = rebind and obj.rebind and self.rebind_anchor
+        smooth = getattr(obj.obs, "binding_jacobian", None) is not None  # markers: d binding/dθ goes into J
+        x_anchor = None
+        if anchored and (smooth or (need_jac and self.rebind_next)):
+            # markers: re-anchored at every evaluation (r(p) is one smooth function of p, its J includes the
+            # binding's derivative); images: once per solve, at its first linearisation (J leaves it out)
+            self.rebind_next = False
+            x_anchor = obj.anchor_positions(E, nu)
+            obj.obs.rebind(x_anchor)
         states = obj.win.forward(list(frames), E, nu, b)
         X = backend.decode(states)
         t1 = time.perf_counter()
@@ -889,12 +985,18 @@ class GNWindow:
             db[self.k_theta:] = D
         dX = obj.win.sensitivity(list(frames), E, nu, states, b, de, dn, db)
         t3 = time.perf_counter()
+        self.last_state_sens = obj.win.last_state_sensitivity  # (k, w, …) of the window's states
         Js = obj.obs.jacobian(frames, X, dX)
+        if x_anchor is not None and smooth:
+            # the anchor frame's own sensitivity (frame 0 = x_0(θ), or the fit frame simulated from it)
+            ka = obj.anchor_frame + 1
+            sa = obj.win.forward(list(range(ka)), E, nu, None)
+            dXa = obj.win.sensitivity(list(range(ka)), E, nu, sa, None, de, dn)[:, -1]
+            Js = [J + Jb for J, Jb in zip(Js, obj.obs.binding_jacobian(frames, X, x_anchor, dXa))]
         t4 = time.perf_counter()
         self.times[1] += t3 - t2
         self.times[2] += t4 - t3
         self.last_frames, self.last_jac = rs, Js
-        self.last_state_sens = obj.win.last_state_sensitivity
         exact = getattr(obj.obs, "exact_jtwr", None)
         if exact is None:
             return np.concatenate(rs), np.concatenate(Js, axis=0)
@@ -1114,6 +1216,18 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
     params = np.concatenate([log_e, s_nu])
 
     objective = WindowObjective(backend, obs, R, prange, capture.start)
+    if (config.mode == "online" and not config.follow and capture.start == "equilibrium" and last is not None
+            and last - first > 1 and controls_static(inputs, list(range(first, last)))):
+        reporter.info(f"{capture.controls_path}: no control moves over frames {first}..{last - 1}: identifying the "
+                      f"material from the static equilibria (--mode static).")
+        config = dataclasses.replace(config, mode="static")
+    if config.mode == "static":
+        if last is None:
+            raise RslError(f"{capture.toml_path}: --mode static needs a finite frame range (not --follow without "
+                           f"--frames).")
+        objective.win = StaticWindow(backend)
+        if config.loss == "markers":  # the markers bind to the frame-0 equilibrium
+            obs.rebind(backend.decode(objective.win.forward([0], young0, poisson0)[0][None])[0])
 
     def evaluate(frames: list[int], p: np.ndarray, need_grad: bool):
         before = np.stack([state_at(frames[0] - 2), state_at(frames[0] - 1)])
@@ -1123,7 +1237,7 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
         if config.estimator == "gn" and config.mode == "online":
             _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter,
                        backend, mat.young_range)
-        elif config.estimator == "gn":
+        elif config.estimator == "gn":  # offline or static: one θ for every frame
             if last is None:
                 raise RslError(f"{capture.toml_path}: --mode offline needs a finite frame range (not --follow "
                                f"without --frames).")
@@ -1221,6 +1335,7 @@ def _gn_solve(gn: GNWindow, frames, p0, prior, before, D, sigma, obs, iterations
     if gn.young_range is not None:
         lower[:gn.R], upper[:gn.R] = np.log(gn.young_range[0]), np.log(gn.young_range[1])
     cap[:kt] = 0.5
+    gn.rebind_next = True
     res = gauss_newton(lambda pp, nj: gn.evaluate(frames, pp, before, D, nj), p0, prior, sigma,
                        max_iterations=iterations, huber=obs.huber, max_step=cap, lower=lower, upper=upper)
     lin = (list(gn.last_frames), list(gn.last_jac))  # per-frame residuals and Jacobians at res.p_lin
@@ -1342,10 +1457,18 @@ def _offline_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stor
     with reporter.task(f"adapt offline gn ({len(frames)} frames)", None):
         r0, _ = gn.evaluate(frames, p, before, None, False)
         sigma = max(obs.noise_scale(r0), obs.noise_floor)
-        res, _ = _gn_solve(gn, frames, p, _gn_prior(p), before, None, sigma, obs, config.offline_iters)
+        done, q = 0, p.copy()
+        while done < config.offline_iters:  # solves of ≤ 5 iterations, the observations re-anchored before each
+            n_it = min(5, config.offline_iters - done)
+            res, _ = _gn_solve(gn, frames, q, _gn_prior(p), before, None, sigma, obs, n_it)
+            done += n_it
+            moved = float(np.max(np.abs(res.p - q)))
+            q = res.p
+            if moved < 1e-4:
+                break
         # σ of the estimate with the noise level of the final residuals
         sigma2 = max(obs.noise_scale(np.concatenate(gn.last_rs)), obs.noise_floor)
-        res, _ = _gn_solve(gn, frames, res.p, _gn_prior(p), before, None, sigma2, obs, 1)
+        res, _ = _gn_solve(gn, frames, q, _gn_prior(p), before, None, sigma2, obs, 1)
     E, nu, _ = gn.theta(res.p)
     sE, sN = _sigma_from_cov(gn, res.p, res.cov)
     k = len(frames)

@@ -19,6 +19,7 @@ import json
 import os
 import re
 import tempfile
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
@@ -28,19 +29,13 @@ import numpy as np
 
 from stages.domain.cameras import Camera  # noqa: F401 (re-exported; the type lives in the domain layer)
 from stages.errors import RslError
+from stages.registry import STAGES as _REGISTRY
 
 RSL_VERSION = "0.1.0"
 SCHEMA_VERSION = 1
 
-KIND_FILES = {
-    "cameras": "cameras.h5",
-    "masks": "masks.h5",
-    "mesh": "mesh.h5",
-    "gaussians": "gaussians.h5",
-    "snapshots": "snapshots.h5",
-    "subspace": "subspace.h5",
-    "adapt": "adapt.h5",
-}
+# artefact kind -> its file in the workspace: what the stages of stages/registry.py write
+KIND_FILES = {s.produces: s.writes for s in _REGISTRY if s.produces}
 
 
 class ArtefactError(RslError):
@@ -90,11 +85,14 @@ class HashCache:
         return digest
 
     def folder_sha256(self, folder: str | Path) -> tuple[str, int]:
-        """(sha256 over the sorted names and contents of the files in ``folder``, number of files)."""
+        """(sha256 over the sorted relative names and contents of the files under ``folder``, number of files);
+        hidden files are left out."""
         h = hashlib.sha256()
-        files = sorted(p for p in Path(folder).iterdir() if p.is_file() and not p.name.startswith("."))
+        folder = Path(folder)
+        files = sorted(p for p in folder.rglob("*") if p.is_file()
+                       and not any(part.startswith(".") for part in p.relative_to(folder).parts))
         for p in files:
-            h.update(f"{p.name}\0{self.sha256(p)}\n".encode())
+            h.update(f"{p.relative_to(folder).as_posix()}\0{self.sha256(p)}\n".encode())
         return h.hexdigest(), len(files)
 
     def entry_sha256(self, path: str | Path) -> str:
@@ -309,6 +307,12 @@ def clean_stale_temps(folder: str | Path, min_age_s: float = 60.0) -> list[Path]
 
 
 _MANIFESTS: dict[str, dict[str, tuple]] = {}  # temp file -> dataset name -> (shape, dtype, sha256)
+_STAGE_CLOCK = [time.monotonic()]  # when the current stage started (workspace.prepare_workspace resets it)
+
+
+def start_clock() -> None:
+    """Mark the start of a stage: the next artefact written records the seconds since as ``wall_s``."""
+    _STAGE_CLOCK[0] = time.monotonic()
 
 
 def _digest(a: np.ndarray) -> str:
@@ -393,6 +397,7 @@ def atomic_h5(path: str | Path, kind: str, provenance: Provenance) -> Iterator[h
                     f.attrs["capture_root"] = str(Path(str(capture)).resolve())
                 if provenance.mesh_sha256 and kind != "mesh":
                     f.attrs["mesh_sha256"] = provenance.mesh_sha256
+                f.attrs["wall_s"] = float(time.monotonic() - _STAGE_CLOCK[0])  # s the stage took to get here
                 yield f
                 f.flush()
                 _write_file(tmp, f.id.get_file_image())
@@ -403,6 +408,7 @@ def atomic_h5(path: str | Path, kind: str, provenance: Provenance) -> Iterator[h
             raise ArtefactError(f"{path}: the written file did not verify ({problem}); {kept}.")
         try:
             os.replace(tmp, path)
+            start_clock()  # the next artefact of this process times its own stage
         except OSError as e:
             raise ArtefactError(f"{path}: cannot move the written file into place ({_oserror_text(e)}); "
                                 f"{kept}.") from None

@@ -28,7 +28,7 @@ from stages.lazy import lazy_module
 
 torch = lazy_module("torch")  # torch and the render package load on first use
 
-from stages.artefacts import KIND_FILES, CamerasArtefact, MasksArtefact, MeshArtefact, Provenance
+from stages.artefacts import KIND_FILES, CamerasArtefact, GaussiansArtefact, MasksArtefact, MeshArtefact, Provenance
 from stages.capture import load_capture, write_image
 from stages.workspace import prepare_workspace
 from stages.errors import RslError
@@ -240,6 +240,14 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
                        np.zeros(config.gaussians), sh, background, rest=mesh.vertices)
     positions = torch.as_tensor(mesh.vertices, dtype=torch.float32)
 
+    # occluders (controls.json visual, stages/occluders.py): their pixels at the fit frame weigh nothing
+    from stages.occluders import has_occluders, ignore_mask
+
+    controls = cap.controls()
+    ign_t = [torch.as_tensor(ignore_mask(controls, config.frame, c)) if has_occluders(controls) else None
+             for c in cams]
+    if has_occluders(controls):
+        inputs.append(cap.controls_path)
     tgt_t, mask_t, bg_t = [], [], []
     for t, m, p in zip(targets, masks, plates):
         if m is not None:
@@ -263,8 +271,11 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
         for it in range(config.iterations):
             opt.zero_grad(set_to_none=True)
             ps = []
-            for cam, tgt, m, bg in zip(cams, tgt_t, mask_t, bg_t):
+            for cam, tgt, m, bg, ig in zip(cams, tgt_t, mask_t, bg_t, ign_t):
                 out = g.render(positions, cam, bg)
+                if ig is not None:  # an occluder's pixels: the target is the render itself (no loss, no gradient)
+                    tgt = torch.where(ig[..., None], out.image.detach(), tgt)
+                    m = None if m is None else torch.where(ig, out.alpha.detach(), m)
                 loss = (1 - lam) * rloss.l1(out.image, tgt) + lam * (1 - rloss.ssim(out.image, tgt))
                 if m is not None and config.mask_weight > 0:
                     loss = loss + config.mask_weight * (out.alpha - m).abs().mean()
@@ -284,7 +295,7 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
             img = g.render(positions, cam, bg).image
             fit_psnr[cam.name] = round(rloss.psnr(img, tgt), 3)
             write_image(out_dir / f"{cam.name}.png", _side_by_side(img.numpy(), tgt.numpy()))
-    art = g.to_artefact(fit_psnr)
+    art = GaussiansArtefact(**g.arrays(), fit_psnr=fit_psnr)
     path = art.save(ws / KIND_FILES["gaussians"], Provenance.make(config, inputs))
     vals = list(fit_psnr.values())
     reporter.summary(f"fitted {config.gaussians} Gaussians to frame {config.frame} of {len(cams)} cameras "

@@ -443,10 +443,13 @@ def _compute_forces(ctx: Context) -> dict:
         mu, lam = st.tet_lame_from_regions(ad.young[i], ad.poisson[i], mesh.tet_region)
         s = st.tet_stress(ad.positions[i], mesh.tets, mesh.dm_inv, mu, lam, ctx.model)
         f_int = st.nodal_forces(s["P"], mesh.tets, mesh.dm_inv, mesh.rest_volumes, mesh.n_vertices)
-        prev = i - 1 if i > 0 and ad.frames[i - 1] == frame - 1 else None
-        x_prev = ad.positions[prev] if prev is not None else mesh.vertices  # as export: the rest state
-        for sf in st.set_forces(scene, frame_inputs(scene, controls, frame), ad.positions[i], x_prev, f_int,
-                                ctx.config.contact_distance):
+        before = []  # (x_{t−1}, x_{t−2}) as rsl export takes them: earlier rows when consecutive, else the rest state
+        for back in (1, 2):
+            r = i - back
+            ok = r >= 0 and ad.frames[r] == frame - back
+            before.append(ad.positions[r] if ok else (before[-1] if before else mesh.vertices))
+        for sf in st.set_forces(scene, frame_inputs(scene, controls, frame), ad.positions[i], before[0], f_int,
+                                ctx.config.contact_distance, x_prev2=before[1]):
             d = out.setdefault(sf.name, {"t": [], "internal": [], "applied": []})
             d["t"].append(frame * ctx.dt)
             d["internal"].append(np.asarray(sf.internal, np.float64))
@@ -504,19 +507,32 @@ def _artefact_files(ws: Path) -> list[Path]:
 
 
 def section_timings(ctx: Context) -> str:
-    parts, rows = [], []
+    parts, rows, walls = [], [], {}
     for p in _artefact_files(ctx.ws):
         try:
             attrs = read_provenance(p)
         except RslError:
             continue
-        recorded = [f"{k} {attrs[k]:.3g} s" for k in ("wall_s", "elapsed_s") if isinstance(attrs.get(k), (int, float))]
-        if p.name == KIND_FILES["adapt"] and ctx.adapt is not None and "wall_s" in (ctx.adapt.extra or {}):
-            recorded.append(f"wall {float(ctx.adapt.extra['wall_s']):.3g} s")
+        wall = attrs.get("wall_s")  # seconds from the stage's start to this write (stages.artefacts)
+        if not isinstance(wall, (int, float)) and p.name == KIND_FILES["adapt"] and ctx.adapt is not None:
+            wall = (ctx.adapt.extra or {}).get("wall_s")  # older adapt.h5: its own record
+        ok = isinstance(wall, (int, float)) and np.isfinite(wall)
+        if ok:
+            walls[str(p.relative_to(ctx.ws))] = float(wall)
         rows.append([p.relative_to(ctx.ws), attrs.get("rsl_kind", "?"), attrs.get("created", "?"),
-                     ", ".join(recorded) or "not recorded by the stage"])
+                     f"{float(wall):.3g}" if ok else "not recorded by the stage"])
+    if walls:
+        plt = _plt()
+        fig, ax = plt.subplots(figsize=(8, 0.45 * len(walls) + 1.2))
+        names = list(walls)[::-1]
+        ax.barh(names, [walls[n] for n in names], color="C0")
+        ax.set_xlabel("wall time of the stage that wrote it (s)")
+        ax.set_title("time per stage")
+        ax.grid(alpha=0.3, axis="x")
+        fig.tight_layout()
+        parts.append(_img(_fig_png(fig), "time per stage", "plot"))
     if rows:
-        parts.append(_table(["artefact", "kind", "written (UTC)", "time it records"], rows))
+        parts.append(_table(["artefact", "kind", "written (UTC)", "stage wall time (s)"], rows))
     if ctx.adapt is not None:
         ad = ctx.adapt
         plt = _plt()

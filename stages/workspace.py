@@ -16,7 +16,7 @@ from typing import Any
 import os
 
 from stages.artefacts import (KIND_FILES, ArtefactError, HashCache, _jsonable, clean_stale_temps, read_provenance,
-                              resolve_input)
+                              resolve_input, start_clock)
 from stages.errors import RslError
 
 MISSING, OK, STALE, INVALID = "missing", "up to date", "stale", "invalid"
@@ -130,6 +130,7 @@ def prepare_workspace(workspace: str | Path) -> Path:
     except OSError as e:
         raise RslError(f"{ws}: the workspace is not writable ({e.strerror or e}); nothing was computed.") from None
     clean_stale_temps(ws)
+    start_clock()
     return ws
 
 

@@ -19,8 +19,6 @@ HEAVY = ("jax", "torch", "numba", "cv2", "h5py", "rich", "typer", "click", "equi
 
 # Edges that break the rule today, each with what removes it (docs/architecture.md, "what remains").
 KNOWN_EXCEPTIONS = {
-    # BoundGaussians.to_artefact builds the artefact: move it into stages/fit_gaussians.py (the stage that writes it).
-    ("stages.render.gaussians", "stages.artefacts"),
     # mesh_artefact builds a MeshArtefact for tests, synth and bench: move it beside MeshArtefact (artefacts.py).
     ("stages.sim.meshgen", "stages.artefacts"),
 }

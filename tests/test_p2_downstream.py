@@ -184,6 +184,21 @@ def test_p2_reduced_rollout_follows_full_space(p2):
     assert errs["cubature"] < 0.2 * motion, (errs, motion)
 
 
+def test_hard_handle_is_a_spring_of_its_stiffness_in_the_subspace(p2):
+    """The subspace cannot hold vertices exactly: a hard handle acts as its spring, in the fast path and in
+    the reference alike."""
+    import dataclasses
+
+    scene, snaps, _, pca = p2
+    hard = dataclasses.replace(scene, handles=(dataclasses.replace(scene.handles[0], hard=True),))
+    z, z1, z2 = _states(pca, snaps)
+    args = (frame_inputs_bar(scene, 0.01), YOUNG, POISSON, z1, z2)
+    g_spring = ReducedModel(pca, scene).gradient(z, *args)
+    g_fast, g_ref = ReducedModel(pca, hard).gradient(z, *args), ReducedModel(pca, hard, reference=True).gradient(z, *args)
+    assert np.allclose(g_fast, g_spring, rtol=1e-12, atol=0)
+    assert np.linalg.norm(g_ref - g_fast) <= 1e-10 * np.linalg.norm(g_fast)
+
+
 def test_p2_assembled_hessian_equals_forward_over_reverse_on_a_point_subset(p2):
     scene, snaps, ae, pca = p2
     quad = scene_quadrature(scene)

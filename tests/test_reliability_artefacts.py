@@ -54,7 +54,7 @@ def syn(tmp_path_factory) -> Path:
 def good_ws(syn, tmp_path_factory) -> Path:
     """A workspace with mesh.h5, masks.h5 and snapshots.h5 made by the CLI."""
     ws = tmp_path_factory.mktemp("good") / "ws"
-    procs = batch([["tetrahedralize", syn, "-w", ws, "--no-preview"],
+    procs = batch([["tetrahedralize", syn, "-w", ws, "--no-preview", "--order", "1"],
                    ["segment", syn, "-w", ws, "--method", "background"],
                    ["generate-data", syn, "-w", ws, "--sequences", "1", "--frames", "2"]], ws.parent / "run")
     for p in procs:
@@ -109,7 +109,7 @@ def fault_results(syn, good_ws, tmp_path_factory) -> dict:
         ws = tmp_path_factory.mktemp(mode) / "ws"
         shutil.copytree(good_ws, ws)
         before = tree_bytes(ws)
-        procs = batch([["tetrahedralize", syn, "-w", ws, "--no-preview"], ["info", ws / "mesh.h5"]],
+        procs = batch([["tetrahedralize", syn, "-w", ws, "--no-preview", "--order", "1"], ["info", ws / "mesh.h5"]],
                       ws.parent / "run", prelude=_HOOK.format(mode=mode))
         out[name] = (procs, ws, before)
     return out
@@ -143,7 +143,7 @@ def test_disk_full_on_a_tmpfs(case: str, syn, good_ws, tmp_path: Path) -> None:
         finally:
             os.close(fd)
         os.truncate(mnt / "filler", max(0, (mnt / "filler").stat().st_size - 32 * 1024))
-        proc, status = batch([["tetrahedralize", syn, "-w", mnt, "--no-preview"], ["info", mnt / "mesh.h5"]],
+        proc, status = batch([["tetrahedralize", syn, "-w", mnt, "--no-preview", "--order", "1"], ["info", mnt / "mesh.h5"]],
                              tmp_path / "run")
         assert_one_sentence(proc, f"{mnt / 'mesh.h5'}: writing failed", "No space left on device",
                             "the previous mesh.h5 is kept")
@@ -172,7 +172,7 @@ def test_stale_temp_files_are_removed(case: str, syn, good_ws, tmp_path: Path) -
         p.write_bytes(b"\0" * 1000)
     hour_ago = time.time() - 3600
     os.utime(old, (hour_ago, hour_ago))
-    proc, = batch([["tetrahedralize", syn, "-w", ws, "--no-preview"]], tmp_path / "run")
+    proc, = batch([["tetrahedralize", syn, "-w", ws, "--no-preview", "--order", "1"]], tmp_path / "run")
     assert proc.returncode == 0, proc.stderr
     if case.startswith("temp file of a killed"):
         assert not dead.exists()
@@ -241,7 +241,7 @@ def test_read_only_workspace(stage: str, syn, good_ws, tmp_path: Path) -> None:
         before = tree_bytes(mnt)
         if subprocess.run(["mount", "-o", "remount,ro", str(mnt)], capture_output=True).returncode != 0:
             pytest.skip("cannot remount read-only here")
-        args = {"tetrahedralize": ["--no-preview"], "generate-data": ["--sequences", "50", "--frames", "40"]}[stage]
+        args = {"tetrahedralize": ["--no-preview", "--order", "1"], "generate-data": ["--sequences", "50", "--frames", "40"]}[stage]
         proc, = batch([[stage, syn, "-w", mnt, *args]], tmp_path / "run")
         assert_one_sentence(proc, f"{mnt}: the workspace is not writable", "Read-only file system",
                             "nothing was computed")
@@ -265,8 +265,8 @@ def status_results(syn, good_ws, tmp_path_factory) -> dict:
     other = base / "other_ws"
     cap_d = copy_capture(base / "cap_d", syn)
     ws_d = base / "ws_d"
-    setup = batch([["tetrahedralize", SAMPLE / "dino", "-w", other, "--no-preview"],
-                   ["tetrahedralize", cap_d, "-w", ws_d, "--no-preview"]], base / "setup")
+    setup = batch([["tetrahedralize", SAMPLE / "dino", "-w", other, "--no-preview", "--order", "1"],
+                   ["tetrahedralize", cap_d, "-w", ws_d, "--no-preview", "--order", "1"]], base / "setup")
     assert all(p.returncode == 0 for p in setup), [p.stderr for p in setup]
     shutil.copy(other / "mesh.h5", ws_c / "mesh.h5")
     (cap_d / "controls.json").unlink()

@@ -101,7 +101,7 @@ def test_report_loads_in_headless_chromium_with_every_plot(full_ws, rsl, tmp_pat
     assert "<link" not in text and "@import" not in text and "url(" not in text
     alts = [a for a, _ in images(text)]
     for plot in ("E(t) and nu(t) per region", "von Mises stress over time", "handle and contact forces over time",
-                 "adapt time per frame", "stress colour bar"):
+                 "adapt time per frame", "stress colour bar", "time per stage"):
         assert plot in alts, f"plot {plot!r} missing; images: {alts}"
     for frame in (0, FRAMES - 1):  # --frames 2: the first and the last, each camera: photo, render, stress
         for cam in ("cam0", "cam1"):

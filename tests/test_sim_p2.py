@@ -398,3 +398,22 @@ def test_p2_coarse_cantilever_within_3_percent_of_fine_reference():
     assert abs(p2 / ref - 1) < 0.03
     assert p1 / ref < 0.5
     assert abs(ref / bench.euler_bernoulli() - 1) < 0.05  # and the reference agrees with beam theory
+
+
+def test_set_forces_of_a_hard_handle_match_handle_reactions():
+    """stress.set_forces / applied_forces (what export writes) agree with scene.handle_reactions for a
+    hard handle in a dynamic step, and say what they need when x_prev2 is missing."""
+    poses = Track(np.arange(3), np.array([IDENTITY, [0, 0, 0.003, 1, 0, 0, 0], [0, 0, 0.005, 1, 0, 0, 0]]), True)
+    scene, ctl = p2_bar(True, poses=poses)
+    inputs = [frame_inputs(scene, ctl, i) for i in range(3)]
+    X = simulate(scene, inputs, [2e4], [0.45], rtol=1e-12)
+    ref = handle_reactions(scene, inputs[2], X[2], X[1], X[0], [2e4], [0.45])
+    f_int = internal_forces(X[2], scene, [2e4], [0.45])
+    rows = st.set_forces(scene, inputs[2], X[2], X[1], f_int, x_prev2=X[0])
+    np.testing.assert_allclose(rows[0].applied, ref[0], rtol=1e-8, atol=1e-10)
+    per_vertex = st.applied_forces(scene, inputs[2], X[2], X[1], x_prev2=X[0], f_int=f_int)
+    np.testing.assert_allclose(per_vertex.sum(0), ref[0], rtol=1e-8, atol=1e-10)
+    with pytest.raises(ValueError, match="x_prev2"):
+        st.set_forces(scene, inputs[2], X[2], X[1], f_int)
+    with pytest.raises(ValueError, match="point_stress"):
+        st.tet_stress(X[2], scene.tets, scene.dm_inv, np.ones(len(scene.tets)), np.ones(len(scene.tets)))

@@ -164,3 +164,14 @@ def test_export_style_forces_on_the_truth_model_reproduce_truth_forces(p2_captur
                                    atol=1e-6 * scale)
         np.testing.assert_allclose([r["fx_N"], r["fy_N"], r["fz_N"]], sf.internal, atol=1e-6 * scale)
         assert r["magnitude_sum_N"] == pytest.approx(sf.magnitude_sum, rel=1e-6)
+
+
+@pytest.mark.parametrize("args,msg", [(["--truth-order", "3"], "--truth-order should be 1 or 2"),
+                                      (["--substeps", "0"], "--substeps should be at least 1"),
+                                      (["--truth-refine", "5"], "--truth-refine should lie in 0..3")])
+def test_bad_truth_options_fail_with_one_clear_sentence(box_mesh, tmp_path, args, msg):
+    proc = run_rsl("synth", box_mesh, tmp_path / "x", "--frames", "2", "--cameras", "1", "--resolution", "32",
+                   "--calib-views", "0", *args)
+    assert proc.returncode != 0
+    assert msg in " ".join(proc.stderr.split()) and "Traceback" not in proc.stderr
+    assert not (tmp_path / "x").exists()

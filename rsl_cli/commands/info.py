@@ -52,6 +52,13 @@ def _artefact_info(path: Path, as_json: bool, check: bool) -> None:
     out(f"[bold]{escape(str(path))}[/]  kind [cyan]{escape(str(attrs.get('rsl_kind')))}[/]  "
         f"schema {escape(str(attrs.get('schema_version')))}  rsl {escape(str(attrs.get('rsl_version')))}  "
         f"created {escape(str(attrs.get('created')))}")
+    try:
+        extra = json.loads(attrs.get("extra", "{}")) if isinstance(attrs.get("extra"), str) else {}
+    except ValueError:
+        extra = {}
+    if isinstance(extra, dict) and "status" in extra:  # an adapt run: complete | interrupted | failed
+        out(f"status {extra['status']}" + ("" if extra["status"] == "complete" else
+                                           " (unfinished: downstream stages refuse it)"), markup=False)
     config = attrs.get("config") or {}
     if config:
         out("[bold]config[/]")

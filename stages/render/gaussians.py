@@ -19,7 +19,7 @@ API for the stages (adapt, fit-gaussians, export)::
     out.image  # (H, W, 3) float32 = C + (1 − A) · background, differentiable w.r.t. positions
     out.alpha  # (H, W) coverage A
     g.parameters()  # appearance (sh, opacity_logit, log_scales, rotations, bary_logits) for torch.optim
-    g.to_artefact(fit_psnr={...}) -> GaussiansArtefact
+    GaussiansArtefact(**g.arrays(), fit_psnr={...})      # what fit-gaussians writes
 
 ``camera`` is an ``artefacts.Camera`` (or a ``projection.CameraTensors``);
 ``background`` is None (the artefact's colour), a (3,) colour or an (H, W, 3)
@@ -150,16 +150,16 @@ class BoundGaussians(torch.nn.Module):
                    gaussians.rotations, gaussians.opacity_logit, gaussians.sh, gaussians.background,
                    rest=mesh.vertices)
 
-    def to_artefact(self, fit_psnr: dict | None = None):
-        """Current parameters as a GaussiansArtefact (bary renormalised, rotations unit)."""
-        from stages.artefacts import GaussiansArtefact
-
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Current parameters as float64 numpy arrays, named as the fields of a GaussiansArtefact (the stage that
+        writes one builds it from these): host_tet (G,), bary (G, 4) renormalised, log_scales (G, 3),
+        rotations (G, 4) unit wxyz, opacity_logit (G,), sh (G, K, 3), background (3,)."""
         with torch.no_grad():
             q = self.rotations / self.rotations.norm(dim=1, keepdim=True)
-            return GaussiansArtefact(
-                self.host_tet.copy(), self.bary().double().numpy(), self.log_scales.double().numpy(),
-                q.double().numpy(), self.opacity_logit.double().numpy(), self.sh.double().numpy(),
-                dict(fit_psnr or {}), self.background.double().numpy())
+            return {"host_tet": self.host_tet.copy(), "bary": self.bary().double().numpy(),
+                    "log_scales": self.log_scales.double().numpy(), "rotations": q.double().numpy(),
+                    "opacity_logit": self.opacity_logit.double().numpy(), "sh": self.sh.double().numpy(),
+                    "background": self.background.double().numpy()}
 
     @property
     def n(self) -> int:

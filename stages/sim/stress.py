@@ -6,6 +6,8 @@ What the adapted simulation reveals beyond the surface (paper §"Applications"):
   stages/sim/materials, so every material model gets its exact stress),
 - Cauchy stress  σ = J⁻¹ P Fᵀ,  J = det F,
 - von Mises stress  σ_vM = √(1.5 s:s),  s = σ − tr(σ) I / 3,
+- per quadrature point for quadratic tets (point_stress: F_q = Σ_a x_a ⊗ ∇N_a(ξ_q), 4 points per
+  tet; element_average gives one value per element), per tet for linear tets (tet_stress),
 - per-vertex values by volume-weighted averaging of the tets around a vertex,
 - internal nodal forces  f = −∂(Σ_e V_e Ψ(F_e))/∂x, assembled from P:
   for tet e with H_e = −V_e P_e D_m⁻ᵀ, vertices 1..3 get the columns of H_e and
@@ -88,10 +90,17 @@ def tet_stress(x: np.ndarray, tets: np.ndarray, dm_inv: np.ndarray, mu: np.ndarr
     Returns ``F`` (m,3,3), ``J`` (m,), ``P`` (m,3,3) Pa, ``sigma`` (m,3,3) Pa and
     ``von_mises`` (m,) Pa.  μ, λ: (m,) Pa per tet.
     """
+    _linear_only(tets, "tet_stress", "point_stress")
     F = deformation_gradients(np.asarray(x, np.float64), tets, dm_inv)
     P = first_piola(F, mu, lam, model)
     sigma = cauchy_stress(F, P)
     return {"F": F, "J": np.linalg.det(F), "P": P, "sigma": sigma, "von_mises": von_mises(sigma)}
+
+
+def _linear_only(tets, name: str, instead: str) -> None:
+    if np.shape(tets)[-1] != 4:
+        raise ValueError(f"{name} takes linear tets (m, 4); for quadratic tets use {instead} over the "
+                         f"scene's quadrature points")
 
 
 def point_stress(x: np.ndarray, quad, mu: np.ndarray, lam: np.ndarray, model: str = "stable_neohookean"
@@ -163,6 +172,7 @@ def nodal_forces(P: np.ndarray, tets: np.ndarray, dm_inv: np.ndarray, volumes: n
     With F = D_s D_m⁻¹, ∂(V Ψ)/∂D_s = V P D_m⁻ᵀ; so H_e = −V_e P_e D_m⁻ᵀ holds the
     forces on vertices 1..3 as columns and vertex 0 gets −(h1 + h2 + h3).
     """
+    _linear_only(tets, "nodal_forces", "point_nodal_forces")
     H = -np.asarray(volumes, np.float64)[:, None, None] * np.einsum("mij,mkj->mik", P, dm_inv)
     cols = np.swapaxes(H, 1, 2)  # (m, 3 vertices, 3 components)
     f = np.zeros((n_vertices, 3))

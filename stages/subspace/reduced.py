@@ -102,6 +102,13 @@ class ReducedModel:
         self._basis_full = jnp.asarray(basis)
         g_mat = np.einsum("nip,ni,niq->pq", basis, np.repeat(m[:, None], 3, 1), basis)  # Uᵀ M U
         grav_q = np.einsum("nip,ni->p", basis, m[:, None] * np.asarray(scene.gravity)[None, :])  # Uᵀ M g
+        if any(getattr(h, "hard", False) for h in scene.handles):
+            # the subspace cannot hold vertices exactly: a hard handle acts as a spring of its stiffness here
+            # (both the fast path and the reference see the same spring)
+            import dataclasses
+
+            scene = dataclasses.replace(scene, handles=tuple(dataclasses.replace(h, hard=False)
+                                                             for h in scene.handles))
         full = P.scene_data(scene)
         quad = scene_quadrature(scene)
         self.quadrature = quad

@@ -1,0 +1,47 @@
+"""Loss sweeps (stages/sweep.py): the parabolic minimum, and a marker-loss sweep whose minimum is E_true on a
+capture simulated with rsl's own model under each declared start (and off it under the wrong start)."""
+from __future__ import annotations
+
+import meshio
+import numpy as np
+import pytest
+
+from stages.capture import load_capture
+from stages.sim.meshgen import box_tets, mesh_artefact
+from stages.sweep import parabolic_minimum, sweep
+from stages.synth import SynthConfig, prepare_mesh, run
+
+
+def test_parabolic_minimum_finds_the_vertex_on_an_uneven_grid():
+    x = np.array([-1.0, -0.3, 0.2, 1.1, 2.0])
+    y = 3.0 * (x - 0.37) ** 2 + 1.0
+    xm, i, interior = parabolic_minimum(x, y)
+    assert interior and i == 2 and xm == pytest.approx(0.37, abs=1e-12)
+    xm, i, interior = parabolic_minimum(x, -x)  # decreasing: the grid end, flagged
+    assert xm == 2.0 and not interior
+
+
+@pytest.fixture(scope="module")
+def box(tmp_path_factory):
+    v, t = box_tets((6, 2, 2), (0.2, 0.04, 0.04))
+    path = tmp_path_factory.mktemp("mesh") / "bar.mesh"
+    meshio.write(str(path), meshio.Mesh(v, [("tetra", t)]), file_format="medit")
+    return path, v, t
+
+
+@pytest.mark.parametrize("start", ["equilibrium", "rest"])
+def test_marker_sweep_is_lowest_at_the_truth_on_rsls_own_model(box, tmp_path, start):
+    path, v, t = box
+    out = run(SynthConfig(mesh=path, out=tmp_path / start, scenario="cable", cameras=1, frames=8, resolution=32,
+                          markers=12, calib_views=0, young=6e4, start=start, size=0.2))
+    cap = load_capture(out)
+    pm = prepare_mesh(v, t, 0.2, "")
+    mesh = mesh_artefact(pm.vertices, pm.tets, cap.density)
+    grid = 6e4 * np.array([0.7, 0.85, 1.0, 1.15, 1.3])
+    res = sweep(cap, mesh, grid, "markers", poisson=0.45)
+    assert res.interior and res.i_min == 2
+    assert res.young_min == pytest.approx(6e4, rel=0.01)
+    assert res.loss[2] < 1e-12 * res.loss.max()  # the same model: the truth reproduces the markers exactly
+    other = "rest" if start == "equilibrium" else "equilibrium"
+    wrong = sweep(cap, mesh, grid, "markers", poisson=0.45, start=other)
+    assert wrong.loss.min() > 1e3 * res.loss[2] + 1e-12  # the wrong start cannot reproduce the markers
