@@ -106,12 +106,16 @@ def make_mesh(case: Case, path: Path) -> None:
     meshio.write(str(path), meshio.Mesh(v, [("tetra", t)]), file_format="medit")
 
 
-def build(case: Case, work: Path, frames: int, resolution: int, gaussians: int, fit_iters: int) -> tuple[Path, Path]:
+def build(case: Case, work: Path, frames: int, resolution: int, gaussians: int, fit_iters: int,
+          wait: bool = True) -> tuple[Path, Path]:
     """Capture and workspace with mesh.h5, cameras.h5, gaussians.h5, snapshots.h5 and subspace.h5."""
     root = work / case.name
     cap, ws = root / "cap", root / "ws"
     mesh = root / "object.mesh"
     root.mkdir(parents=True, exist_ok=True)
+    lock = root / ".building"  # another process building this case (--build-only): wait for it
+    while wait and lock.exists():
+        time.sleep(10)
     if not mesh.exists():
         make_mesh(case, mesh)
     if not (cap / "capture.toml").exists():
@@ -215,6 +219,9 @@ def main() -> None:
     ap.add_argument("--cases", default=",".join(c.name for c in CASES), help="Comma-separated case names.")
     ap.add_argument("--work", default="/tmp/rsl_bench_table1", help="Folder for captures and workspaces (reused).")
     ap.add_argument("--report-only", action="store_true", help="Rewrite table1.md from table1.json; run nothing.")
+    ap.add_argument("--build-only", action="store_true",
+                    help="Only build the cases' captures and workspaces (e.g. in a second process ahead of the "
+                         "measuring one, which waits for them); measure nothing.")
     args = ap.parse_args()
     if args.report_only:
         data = json.loads((RESULTS / "table1.json").read_text())
@@ -223,7 +230,21 @@ def main() -> None:
         return
     timed, resolution, gaussians, fit_iters = (2, 64, 2000, 10) if args.quick else (4, 128, 5000, 20)
     work = Path(args.work) / ("quick" if args.quick else "full")
-    wanted = [c for c in CASES if c.name in args.cases.split(",")]
+    by_name = {c.name: c for c in CASES}
+    unknown = [n for n in args.cases.split(",") if n not in by_name]
+    if unknown:
+        raise SystemExit(f"--cases: unknown case {unknown[0]!r}; the cases are {', '.join(by_name)}.")
+    wanted = [by_name[n] for n in args.cases.split(",")]  # in the order given
+    if args.build_only:
+        for case in wanted:
+            lock = work / case.name / ".building"
+            lock.parent.mkdir(parents=True, exist_ok=True)
+            lock.touch()
+            try:
+                build(case, work, case.w + timed + 2, resolution, gaussians, fit_iters, wait=False)
+            finally:
+                lock.unlink()
+        return
     t0 = time.perf_counter()
     cases = []
     for case in wanted:
@@ -235,7 +256,8 @@ def main() -> None:
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "settings": {"quick": args.quick, "timed_frames": timed, "resolution": resolution,
                          "gaussians": gaussians, "fit_iterations": fit_iters, "subspace": "pca"},
-            "wall_s": time.perf_counter() - t0, "paper_citation": PAPER_CITATION, "cases": cases}
+            "wall_s": time.perf_counter() - t0, "paper_citation": PAPER_CITATION,
+            "cases": sorted(cases, key=lambda c: [k.name for k in CASES].index(c["name"]))}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "table1.json").write_text(json.dumps(data, indent=1))
     (RESULTS / "table1.md").write_text(markdown(data))

@@ -7,14 +7,21 @@ dL/dθ (θ shared by the window frames: the per-frame gradients are summed), and
 move the parameters p = (log E, s) with ν = ν_lo + (ν_hi − ν_lo)·sigmoid(s).  The window's
 states are then stored; a state is final once its frame leaves the window.
 
-Observations are anchored at frame 0 (one step from rest): markers are bound to the frame-0 surface
-simulated with the current θ, and Gaussians fitted with the mesh at rest to frame f are re-bound to the
-tets of frame f simulated with the current θ (``gaussian_anchor = "rebind"``: rendered at x_f they are
-exactly the fitted Gaussians; the older first-order ``"offset"`` renders at x_t − (x_f − rest), which
-biased E low by 10–20 % on the dinosaur, whose frame 0 sags up to 11 mm below rest); both anchors are
-refreshed as θ changes.  adapt.h5 stores, per frame, θ after
-that frame's Adam steps, the frame's final state (z and positions), the window loss and the time
-spent in forward simulation, adjoint, rendering (loss forward + backward) and in total.
+Start convention ([capture] start, docs/capture.md): frame 0 is x_0(θ) — the rest shape, or the static
+equilibrium under the frame-0 controls solved with the current θ (stages.sim.static) — with x_{−1} = x_{−2} = x_0;
+frame t ≥ 1 is an implicit-Euler step (:class:`StartWindow`).  A window that holds frame 0 differentiates through
+the static solve.  Observations are anchored at frame 0: markers are bound to the frame-0 surface x_0(θ), and
+Gaussians fitted with the mesh at rest to frame f are re-bound to the tets of frame f simulated with the current
+θ (``gaussian_anchor = "rebind"``: rendered at x_f they are exactly the fitted Gaussians; the older first-order
+``"offset"`` renders at x_t − (x_f − rest)); both anchors are refreshed as θ changes.  adapt.h5 stores, per frame,
+θ after that frame's update (and its σ with ``--estimator gn``), the frame's final state (z and positions), the
+window loss and the time spent in forward simulation, adjoint / sensitivities, rendering and in total.
+
+``--estimator gn`` (stages.estimator) replaces the Adam steps by Gauss–Newton / Levenberg–Marquardt on the
+window's residuals (markers, or pixels with Huber IRLS weights) with the forward sensitivities dX/dp
+(stages.sim.sensitivity, stages.subspace.sensitivity), an arrival-cost prior with process noise, change-point
+detection, a correction of the window's starting states, and E ± σ from the normal matrix (:func:`_online_gn`).
+``--mode static`` identifies one θ from the static equilibria of the frames alone (:class:`StaticWindow`).
 
 ``--mode offline`` is the baseline of §5.3: one θ for the whole sequence, fitted by the same
 machinery (forward over all frames, adjoint over all frames, Adam) for a fixed number of
@@ -113,8 +120,9 @@ class AdaptConfig:
     state_correction: Literal["states", "past", "off"] = "states"
     """gn: also estimate a correction of the window's two starting states, so the simulated past cannot drift
     from what is observed.  states: every latent coordinate of both states in the reduced space (2r unknowns),
-    the 12 lowest vibration modes of both in full space (24 unknowns), each with its own prior; past: along
-    their sensitivities to θ only (the past re-simulated with another θ, 2R unknowns); off: kept as stored."""
+    the 12 lowest vibration modes of both in full space (24 unknowns), each with its own prior (markers; with
+    images, where each unknown costs renders, as past); past: along their sensitivities to θ only (the past
+    re-simulated with another θ, 2R unknowns); off: kept as stored."""
     change_threshold: float = 3.0
     """gn: a new frame whose residual RMS at the predicted θ exceeds this many σ (the noise level) is taken as a
     change of material: the θ prior is widened by --change-sigma before the window is solved (0: never)."""
@@ -1394,11 +1402,14 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
                     t0 = T
                     before = np.stack([state_at(t0 - 2), state_at(t0 - 1)])
                     rec.changes = changes
-            sc = None
-            if config.state_correction == "states":
+            sc, past_dirs = None, False
+            if config.state_correction == "states" and obs.kind == "markers":
                 sc = _state_directions(backend, stored, t0, first, 0.05, gn.theta(p_th)[:2])
-            elif config.state_correction == "past":
+            elif config.state_correction != "off":
+                # "past", or "states" with images: there each correction direction costs 2 renders per frame and
+                # camera (the Jacobian's central differences), so the 2R sensitivity directions are used
                 sc = _past_directions(sens, t0, k_th, config.state_prior)
+                past_dirs = True
             D, prior, p0 = None, filt.prior, p_th.copy()
             if sc is not None:
                 D, sd = sc
@@ -1415,8 +1426,7 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
                 S = gn.last_state_sens  # (k, w, …) at the last linearisation
                 # d x_t/dp through the whole past: the window's θ columns plus, by linearity, the columns of the
                 # "past" correction (whose directions are the before states' own sensitivities)
-                sens[t] = S[:k_th, i] + (S[k_th:2 * k_th, i] if config.state_correction == "past" and D is not None
-                                         else 0.0)
+                sens[t] = S[:k_th, i] + (S[k_th:2 * k_th, i] if past_dirs and D is not None else 0.0)
             if D is not None and t0 >= 1:  # the corrected starting states replace the stored ones
                 stored[max(t0 - 2, 0)], stored[t0 - 1] = gn.last_before[0], gn.last_before[1]
             sE, sN = _sigma_from_cov(gn, res.p, res.cov[:k_th, :k_th])

@@ -24,18 +24,16 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from stages.lazy import lazy_module
-
-torch = lazy_module("torch")  # torch and the render package load on first use
+import torch
 
 from stages.artefacts import KIND_FILES, CamerasArtefact, GaussiansArtefact, MasksArtefact, MeshArtefact, Provenance
 from stages.capture import load_capture, write_image
 from stages.workspace import prepare_workspace
 from stages.errors import RslError
 from stages.progress import Reporter, SilentReporter
-gauss = lazy_module("stages.render.gaussians")
-rloss = lazy_module("stages.render.loss")
-proj = lazy_module("stages.render.projection")
+from stages.render import gaussians as gauss
+from stages.render import loss as rloss
+from stages.render import projection as proj
 
 
 @dataclass(frozen=True)

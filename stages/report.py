@@ -37,10 +37,8 @@ from stages.artefacts import (KIND_FILES, AdaptArtefact, ArtefactError, MeshArte
                               read_provenance)
 from stages.capture import Capture, CaptureError, load_capture
 from stages.errors import RslError
-from stages.lazy import lazy_module
 from stages.progress import Reporter, SilentReporter
-
-st = lazy_module("stages.sim.stress")  # jax loads on first use
+from stages.sim import stress as st
 
 REPORT_FILE = "report.html"
 
@@ -85,6 +83,7 @@ class Context:
     why: dict = field(default_factory=dict)  # "adapt" | "mesh" | "capture" -> reason it is None
     _stress: np.ndarray | None = None  # (T, n) von Mises per vertex, Pa
     _stress_tet: np.ndarray | None = None  # (T, m) Pa
+    _f_int: np.ndarray | None = None  # (T, n, 3) N
     model: str = "stable_neohookean"
     dt: float = 1.0 / 30.0
     gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
@@ -99,19 +98,39 @@ class Context:
         return self.adapt.frames.astype(np.float64) * self.dt
 
     def stress(self) -> tuple[np.ndarray, np.ndarray]:
-        """((T, m), (T, n)) von Mises per tet and per vertex of every adapt.h5 frame, Pa."""
+        """((T, m), (T, n)) von Mises per element and per vertex of every adapt.h5 frame, Pa."""
+        self._compute_stress()
+        return self._stress_tet, self._stress
+
+    def internal_forces(self) -> np.ndarray:
+        """(T, n, 3) internal nodal forces of every adapt.h5 frame, N."""
+        self._compute_stress()
+        return self._f_int
+
+    def _compute_stress(self) -> None:
+        """As ``rsl export`` computes them (stages.sim.stress): linear tets per tet; quadratic tets at each
+        quadrature point, averaged per element with the point weights; vertex values volume-averaged."""
         self.need("adapt", "mesh")
-        if self._stress is None:
-            ad, mesh = self.adapt, self.mesh
-            vm_t = np.zeros((len(ad.frames), mesh.n_tets))
-            vm_v = np.zeros((len(ad.frames), mesh.n_vertices))
-            for i in range(len(ad.frames)):
-                mu, lam = st.tet_lame_from_regions(ad.young[i], ad.poisson[i], mesh.tet_region)
+        if self._stress is not None:
+            return
+        from stages.sim.quadrature import build_quadrature, element_order
+
+        ad, mesh = self.adapt, self.mesh
+        T, n, m = len(ad.frames), mesh.n_vertices, mesh.n_tets
+        quad = build_quadrature(mesh.vertices, mesh.tets) if element_order(mesh.tets) == 2 else None
+        vm_t, vm_v, f_int = np.zeros((T, m)), np.zeros((T, n)), np.zeros((T, n, 3))
+        for i in range(T):
+            mu, lam = st.tet_lame_from_regions(ad.young[i], ad.poisson[i], mesh.tet_region)
+            if quad is None:
                 s = st.tet_stress(ad.positions[i], mesh.tets, mesh.dm_inv, mu, lam, self.model)
                 vm_t[i] = s["von_mises"]
-                vm_v[i] = st.vertex_average(s["von_mises"], mesh.tets, mesh.rest_volumes, mesh.n_vertices)
-            self._stress_tet, self._stress = vm_t, vm_v
-        return self._stress_tet, self._stress
+                f_int[i] = st.nodal_forces(s["P"], mesh.tets, mesh.dm_inv, mesh.rest_volumes, n)
+            else:
+                s = st.point_stress(ad.positions[i], quad, mu[quad.element], lam[quad.element], self.model)
+                vm_t[i] = st.element_average(s["von_mises"], quad, m)
+                f_int[i] = st.point_nodal_forces(s["P"], quad, n)
+            vm_v[i] = st.vertex_average(vm_t[i], mesh.tets, mesh.rest_volumes, n)
+        self._stress_tet, self._stress, self._f_int = vm_t, vm_v, f_int
 
 
 # =========================================================================== HTML helpers
@@ -440,9 +459,7 @@ def _compute_forces(ctx: Context) -> dict:
     out: dict = {}
     for i in range(len(ad.frames)):
         frame = int(ad.frames[i])
-        mu, lam = st.tet_lame_from_regions(ad.young[i], ad.poisson[i], mesh.tet_region)
-        s = st.tet_stress(ad.positions[i], mesh.tets, mesh.dm_inv, mu, lam, ctx.model)
-        f_int = st.nodal_forces(s["P"], mesh.tets, mesh.dm_inv, mesh.rest_volumes, mesh.n_vertices)
+        f_int = ctx.internal_forces()[i]
         before = []  # (x_{t−1}, x_{t−2}) as rsl export takes them: earlier rows when consecutive, else the rest state
         for back in (1, 2):
             r = i - back

@@ -31,9 +31,7 @@ from stages.errors import RslError
 from stages.artefacts import check_same_mesh
 from stages.workspace import prepare_workspace
 from stages.progress import Reporter, SilentReporter
-from stages.lazy import lazy_module
-
-st = lazy_module("stages.sim.stress")  # jax loads on first use
+from stages.sim import stress as st
 
 ROLLOUT_FILE = "rollout.h5"
 MATERIALS = ("last", "replay")

@@ -60,8 +60,9 @@ class TetrahedralizeConfig:
     """A tet with |volume| below this fraction of the mean tet volume is degenerate (an error)."""
     preview: bool = True
     """Also draw WS/mesh.png: three views with regions and handles, and the dihedral-angle histogram."""
-    order: int = 1
-    """Element order: 1 = linear 4-node tets, 2 = quadratic 10-node tets (mid-edge nodes on the input surface when it is one)."""
+    order: int = 2
+    """Element order: 2 = quadratic 10-node tets, mid-edge nodes on the input surface (docs/results/convergence.md);
+    1 = linear 4-node tets (faster per DOF, far too stiff in bending)."""
 
 
 def build_mesh(config: TetrahedralizeConfig, reporter: Reporter = SilentReporter()) -> tuple[MeshArtefact, list[Path]]:

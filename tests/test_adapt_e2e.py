@@ -198,7 +198,7 @@ def _objective(cap: Path, ws: Path, loss: str, space: str = "full"):
         obs = _Vision(capture, ws, "", mesh, False)
     else:
         obs = _Markers(capture, mesh.vertices, mesh.surface_faces, mesh.n_vertices)
-    return WindowObjective(backend, obs, scene.n_regions, (0.3, 0.49)), backend
+    return WindowObjective(backend, obs, scene.n_regions, (0.3, 0.49), capture.start), backend
 
 
 def _check_fd(obj, backend, t0, w, h, rtol):

@@ -1,5 +1,5 @@
 """The layering of docs/architecture.md, checked on the source: every import (module level, inside
-functions, and lazy_module("...")) parsed with ast; rotation code only in the chosen helpers."""
+functions, importlib.import_module("...")) parsed with ast; rotation code only in the chosen helpers."""
 from __future__ import annotations
 
 import ast
@@ -38,7 +38,7 @@ MODULES = _modules()
 
 def imports_of(name: str, path: Path) -> list[tuple[str, int]]:
     """(imported module, line) for every import in ``path``: top level, function-local, relative, and the
-    string arguments of lazy_module(...) / importlib.import_module(...)."""
+    string argument of importlib.import_module(...)."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     out: list[tuple[str, int]] = []
@@ -56,7 +56,7 @@ def imports_of(name: str, path: Path) -> list[tuple[str, int]]:
         elif isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.Constant) \
                 and isinstance(node.args[0].value, str):
             fn = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
-            if fn in ("lazy_module", "import_module") and node.args[0].value.startswith(("stages", "rsl_cli")):
+            if fn == "import_module" and node.args[0].value.startswith(("stages", "rsl_cli")):
                 out.append((node.args[0].value, node.lineno))
     return out
 
@@ -109,9 +109,9 @@ def test_known_exceptions_still_exist() -> None:
 
 
 def test_the_checker_sees_violations(tmp_path: Path) -> None:
-    """The checker itself: a function-local upward import and a lazy_module string are seen."""
+    """The checker itself: a function-local upward import and an import_module string are seen."""
     p = tmp_path / "x.py"
-    p.write_text("def f():\n    from stages.adapt import run\n\nst = lazy_module('stages.capture')\n")
+    p.write_text("def f():\n    from stages.adapt import run\n\nst = importlib.import_module('stages.capture')\n")
     got = imports_of("stages.sim.x", p)
     assert ("stages.adapt", 2) in got and ("stages.capture", 4) in got
     assert layer("stages.sim.x") == 1 and layer("stages.adapt") == 3 and layer("stages.domain.controls") == 0

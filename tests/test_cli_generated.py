@@ -203,3 +203,11 @@ def test_pipeline_is_the_registry_order() -> None:
         assert s.produces is None or KIND_FILES[s.produces] == s.writes, s.name
         assert set(s.reads) <= set(KIND_FILES), s.name
     assert set(KIND_FILES) == {s.produces for s in PIPELINE}  # each artefact kind is made by one `rsl run` step
+
+
+def test_cli_reference_is_generated_from_the_cli() -> None:
+    """docs/cli.md is exactly what `rsl help-markdown` prints (every option, default and choice)."""
+    p = run_rsl("help-markdown")
+    assert p.returncode == 0, p.stderr
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "cli.md").read_text()
+    assert p.stdout == doc, "docs/cli.md is out of date: run `rsl help-markdown > docs/cli.md`"

@@ -279,3 +279,49 @@ def test_clean_mask_keeps_an_object_cut_in_two_by_an_occluder() -> None:
     seen[35, 2] = True  # a speck, not connected to the band
     kept = clean_mask(seen, 0, 0, ignore=big)
     np.testing.assert_array_equal(kept, m & ~big)
+
+
+# =========================================================================== rsl fit-gaussians
+def test_fit_gaussians_leaves_the_occluder_pixels_out(scene, tmp_path) -> None:
+    """Fitted with the clamp's pixels marked background in masks.h5 (as segment leaves them), Gaussians under the
+    clamp are driven transparent when controls.json does not declare it; declared (visual), those pixels weigh
+    nothing and they keep their opacity."""
+    import meshio
+
+    from stages.artefacts import CamerasArtefact, GaussiansArtefact, MasksArtefact
+    from stages.capture import write_image
+    from stages.fit_gaussians import FitGaussiansConfig
+    from stages.fit_gaussians import run as fit
+    from stages.render.mesh_raster import project_points as project
+
+    mesh, cam, ign = scene.mesh, scene.cam, scene.ign
+    frame = scene.loss.render(mesh.vertices)[0]
+    obj = np.abs(frame - scene.loss.background).max(-1) > 0.02
+    opac = {}
+    for declared in (True, False):
+        cap = tmp_path / f"cap{declared}"
+        (cap / "frames" / "c0").mkdir(parents=True)
+        meshio.write(str(cap / "object.mesh"), meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)]),
+                     file_format="medit")
+        (cap / "capture.toml").write_text('[capture]\ncameras = ["c0"]\nstart = "rest"\n'
+                                          '[object]\nmesh = "object.mesh"\n')
+        ctl = json.loads(json.dumps(scene.controls))
+        if not declared:
+            del ctl["handles"][0]["visual"]
+        (cap / "controls.json").write_text(json.dumps(ctl))
+        write_image(cap / "frames" / "c0" / "000000.png", np.round(frame * 255).astype(np.uint8))
+        ws = tmp_path / f"ws{declared}"
+        ws.mkdir()
+        mesh.save(ws / "mesh.h5")
+        CamerasArtefact([cam], "json").save(ws / "cameras.h5")
+        MasksArtefact({"c0": (obj & ~ign)[None]}, "lab").save(ws / "masks.h5")
+        fit(FitGaussiansConfig(cap, ws, iterations=25, gaussians=200, seed=0))
+        g = GaussiansArtefact.load(ws / "gaussians.h5")
+        centres = np.einsum("gk,gkd->gd", g.bary, mesh.vertices[mesh.tets[g.host_tet]])
+        uv, _ = project(centres, cam.K, cam.R, cam.t)
+        px = np.clip(np.round(uv).astype(int), 0, 47)
+        under = ign[px[:, 1], px[:, 0]] & obj[px[:, 1], px[:, 0]]
+        assert under.sum() > 10
+        opac[declared] = float(np.mean(1 / (1 + np.exp(-g.opacity_logit[under]))))
+    print("mean opacity of the Gaussians under the clamp: declared", opac[True], "undeclared", opac[False])
+    assert opac[True] > opac[False] + 0.1

@@ -685,3 +685,22 @@ def test_generate_data_and_train_subspace_on_a_p2_mesh_through_the_cli(tmp_path,
     model = ReducedModel.from_artefacts(art, scene)
     Z = model.simulate([frame_inputs(scene, cap.controls(), f) for f in range(3)], np.array([1e5]), np.array([0.4]))
     assert Z.shape == (3, 3) and np.all(np.isfinite(Z))
+
+
+def test_p2_export_forces_match_closed_form(p2_stretch_ws):
+    """forces.csv on the quadratic-tet block: the handles' internal-force sums are ∓P₁₁·area."""
+    import csv
+
+    from stages.export import ExportConfig, run
+    from test_export import snh_uniaxial
+
+    d = p2_stretch_ws
+    out = run(ExportConfig(workspace=d["ws"], forces=True, out=d["root"] / "forces"))
+    with open(out / "forces.csv") as f:
+        rows = list(csv.DictReader(f))
+    area = SIZE_EXPORT[1] * SIZE_EXPORT[2]
+    for i, l1 in enumerate(d["stretches"]):
+        P11 = snh_uniaxial(l1, d["mu"], d["lam"])[1]
+        r = {row["name"]: row for row in rows if int(row["frame"]) == i}
+        assert float(r["right"]["fx_N"]) == pytest.approx(-P11 * area, rel=1e-6, abs=1e-9)
+        assert float(r["left"]["fx_N"]) == pytest.approx(P11 * area, rel=1e-6, abs=1e-9)

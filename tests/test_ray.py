@@ -181,3 +181,12 @@ def test_bench_sweep_on_a_ray_head_equals_the_local_pool(ray_head, tiny, monkeyp
     for s, p, r in zip(serial, pool, on_ray):
         assert np.array_equal(s, p) and np.array_equal(p, r)
     assert not np.array_equal(serial[0], serial[2])  # E changes the result: each run did its own material
+
+
+@pytest.mark.parametrize("address, endpoint", [
+    ("127.0.0.1:6379", ("127.0.0.1", 6379)), ("ray://head.lab:10001", ("head.lab", 10001)),
+    ("[::1]:6379", ("::1", 6379)), ("auto", None), ("local", None), ("head.lab", None)])
+def test_ray_addresses_that_are_checked_for_an_answer_first(address, endpoint):
+    from stages.generate_data import _ray_endpoint
+
+    assert _ray_endpoint(address) == endpoint

@@ -325,7 +325,7 @@ def test_tetrahedralize_order_2_cli_on_a_tet_mesh(sample_data, tmp_path):
     from conftest import run_rsl
     from stages.artefacts import MeshArtefact
 
-    run_rsl("tetrahedralize", sample_data / "bar", "-w", tmp_path / "p1", "--no-preview", check=True)
+    run_rsl("tetrahedralize", sample_data / "bar", "-w", tmp_path / "p1", "--order", "1", "--no-preview", check=True)
     run_rsl("tetrahedralize", sample_data / "bar", "-w", tmp_path / "p2", "--order", "2", "--no-preview", check=True)
     m1, m2 = MeshArtefact.load(tmp_path / "p1" / "mesh.h5"), MeshArtefact.load(tmp_path / "p2" / "mesh.h5")
     assert m1.order == 1 and m2.order == 2 and m2.tets.shape == (m1.n_tets, 10)
@@ -361,7 +361,7 @@ def test_tetrahedralize_order_2_puts_boundary_nodes_on_a_curved_surface(tmp_path
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
     sphere.export(cap / "ball.obj")
     (cap / "capture.toml").write_text('[capture]\nname = "ball"\n[object]\nmesh = "ball.obj"\ndensity = 1000.0\n')
-    m1 = MeshArtefact.load(run(TetrahedralizeConfig(cap, tmp_path / "p1", edge_length=0.25, preview=False)))
+    m1 = MeshArtefact.load(run(TetrahedralizeConfig(cap, tmp_path / "p1", edge_length=0.25, preview=False, order=1)))
     m2 = MeshArtefact.load(run(TetrahedralizeConfig(cap, tmp_path / "p2", edge_length=0.25, preview=False, order=2)))
     assert m2.order == 2 and m2.quality["order"] == 2
     target = sphere.volume
@@ -417,3 +417,18 @@ def test_set_forces_of_a_hard_handle_match_handle_reactions():
         st.set_forces(scene, inputs[2], X[2], X[1], f_int)
     with pytest.raises(ValueError, match="point_stress"):
         st.tet_stress(X[2], scene.tets, scene.dm_inv, np.ones(len(scene.tets)), np.ones(len(scene.tets)))
+
+
+def test_controls_json_hard_handle_is_parsed_and_validated(tmp_path):
+    from stages.capture import CaptureError, parse_controls
+
+    path = tmp_path / "controls.json"
+    data = {"handles": [{"name": "clamp", "select": {"box": [[-1, -1, -1], [0, 1, 1]]}, "hard": True}]}
+    ctl = parse_controls(data, path)
+    assert ctl.handles[0].hard is True
+    assert parse_controls(ctl.to_json(), path).handles[0].hard is True  # written back and read again
+    data["handles"][0]["hard"] = "yes"
+    with pytest.raises(CaptureError, match="hard"):
+        parse_controls(data, path)
+    del data["handles"][0]["hard"]
+    assert parse_controls(data, path).handles[0].hard is False

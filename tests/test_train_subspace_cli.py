@@ -89,7 +89,8 @@ def test_cli_lbs(tmp_path, rsl):
 def test_cli_unknown_kind(tmp_path, rsl):
     ws, _ = _workspace(tmp_path, n_seq=2, per_seq=4)
     proc = rsl("train-subspace", "-w", ws, "--kind", "linear")
-    assert proc.returncode != 0 and "use autoencoder, pca or lbs" in " ".join((proc.stdout + proc.stderr).split())
+    assert proc.returncode != 0 and "'linear' is not one of 'autoencoder', 'pca', 'lbs'" in " ".join(
+        (proc.stdout + proc.stderr).split())  # a usage error now: --kind is a Literal choice
     assert not (ws / "subspace.h5").exists()
 
 

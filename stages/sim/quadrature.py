@@ -202,11 +202,13 @@ def jacobian_ratio(vertices: np.ndarray, tets10: np.ndarray) -> np.ndarray:
 
 
 def mid_edge_closure(ids: np.ndarray, tets10: np.ndarray) -> np.ndarray:
-    """Sorted vertex ids ``ids`` plus every mid-edge node of a quadratic mesh whose two edge ends are in
-    ``ids`` (so a handle or load selected on corners holds whole edges)."""
-    ids = np.unique(np.asarray(ids, np.int64))
+    """Vertex ids ``ids`` (sorted) plus every mid-edge node of a quadratic mesh whose two edge ends are
+    in ``ids`` (so a handle or load selected on corners holds whole edges); linear tets: ids as given."""
     tets10 = np.asarray(tets10, np.int64)
-    if tets10.shape[1] != 10 or ids.size == 0:
+    if tets10.shape[1] != 10:
+        return np.asarray(ids, np.int64)
+    ids = np.unique(np.asarray(ids, np.int64))
+    if ids.size == 0:
         return ids
     a, b, mid = tets10[:, P2_EDGES[:, 0]], tets10[:, P2_EDGES[:, 1]], tets10[:, 4:]
     both = np.isin(a, ids) & np.isin(b, ids)

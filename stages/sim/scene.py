@@ -28,7 +28,7 @@ from . import potential as pot
 from .elements import GRADIENT, HESSIAN, point_terms
 from .linsolve import LinearSolver, NotPositiveDefinite, SparsePattern, resolve_solver
 from .materials import MODELS, lame
-from .quadrature import Quadrature, build_quadrature, element_order, linear_quadrature
+from .quadrature import Quadrature, build_quadrature, element_order, linear_quadrature, mid_edge_closure
 
 jax.config.update("jax_enable_x64", True)
 
@@ -83,6 +83,9 @@ class Scene:
     quad: Quadrature | None = None  # quadrature points of the elastic energy (built from the rest when None)
 
     def __post_init__(self):
+        if self.quad is not None and (self.quad.nodes.shape[1] != np.shape(self.tets)[1]
+                                      or int(self.quad.element.max(initial=-1)) >= len(self.tets)):
+            raise ValueError("the scene's quadrature points do not belong to its tets")
         if self.quad is None:
             tets = np.asarray(self.tets, np.int64)
             q = (linear_quadrature(tets, self.dm_inv, self.volumes) if element_order(tets) == 1
@@ -131,14 +134,14 @@ def make_scene(mesh, controls, material: str, dt: float, gravity, contact_stiffn
     tets = np.ascontiguousarray(mesh.tets, np.int64)
     ids_by_name = dict(getattr(mesh, "handles", {}) or {})
     missing = [h for h in controls.handles if h.name not in ids_by_name]
-    if missing:
-        ids_by_name.update(select_handles(controls, rest))
+    if missing:  # selected on all nodes; of a quadratic mesh, with the mid-edge nodes of selected edges
+        ids_by_name.update({k: mid_edge_closure(v, tets) for k, v in select_handles(controls, rest).items()})
     handles = tuple(HandleSpec(h.name, np.asarray(ids_by_name[h.name], np.int64), float(h.stiffness),
                                bool(getattr(h, "hard", False)))
                     for h in controls.handles)
     load_ids = dict(getattr(mesh, "loads", {}) or {})  # mesh.h5 maps surface ids to tet-mesh vertices
     loads = tuple(LoadSpec(ld.name, np.asarray(load_ids[ld.name] if ld.name in load_ids
-                                               else ld.select.select(rest), np.int64))
+                                               else mid_edge_closure(ld.select.select(rest), tets), np.int64))
                   for ld in controls.loads)
     obstacles = []
     for o in controls.obstacles:

@@ -7,7 +7,8 @@ Modules
             linear skip; stored and used in the jitted solver as named arrays).
   train     pca_basis, lbs_basis (harmonic skinning weights, 12 affine modes per handle), fit_subspace
             (Adam via optax on the equinox module), reconstruction_error.
-  cubature  optimised cubature of the reduced elastic energy (An et al. 2008, greedy NNLS).
+  cubature  optimised cubature of the reduced elastic energy over quadrature points (one per linear tet,
+            four per quadratic tet; An et al. 2008, greedy NNLS).
   reduced   ReducedModel: reduced Newton step / simulate and the window adjoint (paper Eq. 3, 10–12).
 
 API for the adapt stage::
@@ -25,7 +26,7 @@ API for the adapt stage::
 
 ``inputs`` are stages.sim.scene.FrameInputs (or ReducedInputs from model.reduce_inputs, to reuse);
 young/poisson are per region (R,).  ``ReducedModel(sub, scene, reference=True)`` evaluates the full
-potential on φ(z) over every tet: the reference the cubature path is tested against.
+potential on φ(z) over every quadrature point: the reference the cubature path is tested against.
 """
 from stages.subspace.networks import SubspaceMap
 from stages.subspace.reduced import ReducedInputs, ReducedModel, ReducedSolveError
