@@ -137,6 +137,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
     ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_accuracy"))
+    ap.add_argument("--starts", default="equilibrium,rest", help="start states to run, comma-separated")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     if a.quick:
@@ -145,6 +146,7 @@ def main() -> None:
     else:
         plan = dict(cases=["bar", "dino", "beam"], starts=["equilibrium", "rest"], frames=45, refine=1,
                     orders=[1, 2], losses=["markers", "vision"], spaces=["reduced", "full"])
+    plan["starts"] = a.starts.split(",")
     rows = []
     for case in plan["cases"]:
         for start in plan["starts"]:

@@ -74,13 +74,66 @@ def metrics(E, sd, truth, steps: list[int]) -> dict:
     return out
 
 
+def timing_case(work: Path) -> list[dict]:
+    """Per-frame time gn vs adam on bench/adapt.py's bar-like case (a 36×8×8-cell box, ≈9K DOFs, twist, 4 cameras
+    at 128², 5000 Gaussians, PCA r = 30, w = 3), images, reduced space, same run."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    import meshio
+
+    import adapt as bench_adapt  # bench/adapt.py's building blocks
+    from stages.sim.meshgen import box_tets
+
+    mesh = work / "box.mesh"
+    cells = (36, 8, 8)
+    v, t = box_tets(cells, (0.25, 0.25 * cells[1] / cells[0], 0.25 * cells[2] / cells[0]))
+    meshio.write(str(mesh), meshio.Mesh(v, [("tetra", t)]), file_format="medit")
+    frames = 6
+    cap, ws = bench_adapt.make_capture(work, "timing", mesh, "twist", frames=frames, cameras=4, resolution=128,
+                                       young=1e5, markers=0)
+    bench_adapt.with_gaussians(cap, ws, 5000, 20)
+    ws_r = bench_adapt.subspace_ws(cap, ws, 30, "pca", sequences=8, frames=frames)
+    rows = []
+    for est in ("adam", "gn", "adam", "gn"):  # alternating, best of 2 (shared machine)
+        art, _ = bench_adapt.run_adapt(cap, ws_r, work / "timing" / est, space="reduced", loss="vision", window=3,
+                                       iters_per_frame=1 if est == "adam" else 1, frames=f"0:{frames}",
+                                       estimator=est)
+        rows.append({"case": "bar-like timing", "estimator": est, "dofs": 3 * art.positions.shape[1], "r": 30,
+                     "cameras": 4, "resolution": 128, **bench_adapt.times(art)})
+    best = {}
+    for r in rows:
+        if r["estimator"] not in best or r["total_s"] < best[r["estimator"]]["total_s"]:
+            best[r["estimator"]] = r
+    out = list(best.values())
+    for r in out:
+        print(f"timing {r['estimator']}: total {r['total_s']:.3f} s/frame (forward {r['forward_s']:.3f}, "
+              f"sensitivity/adjoint {r['backward_s']:.3f}, render {r['render_s']:.3f})", flush=True)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
+    ap.add_argument("--timing", action="store_true", help="only the bar-like timing case (appended to the json)")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--scenes", default="cable,stretch,twist")
     ap.add_argument("--process-noise", default="0.02")
     ap.add_argument("--substeps", type=int, default=3)
     args = ap.parse_args()
+    if args.timing:
+        with tempfile.TemporaryDirectory() as tmp:
+            rows = timing_case(Path(tmp))
+        data = json.loads((OUT / "estimator.json").read_text())
+        data["timing"] = rows
+        (OUT / "estimator.json").write_text(json.dumps(data, indent=1))
+        md = (OUT / "estimator.md").read_text().split("\n## Per-frame time")[0].rstrip("\n")
+        lines = ["", "## Per-frame time, bar-like case (images, reduced space; measured in one run)", "",
+                 "| estimator | DOFs | r | cameras | forward s | sensitivity/adjoint s | render s | total s/frame |",
+                 "|---|---|---|---|---|---|---|---|"]
+        for r in rows:
+            lines.append(f"| {r['estimator']} | {r['dofs']} | {r['r']} | {r['cameras']} × {r['resolution']}² | "
+                         f"{r['forward_s']:.3f} | {r['backward_s']:.3f} | {r['render_s']:.3f} | {r['total_s']:.3f} |")
+        (OUT / "estimator.md").write_text(md + "\n" + "\n".join(lines) + "\n")
+        print("\n".join(lines))
+        return
     cases = []
     noises = [float(x) for x in args.process_noise.split(",")]
     for scene in args.scenes.split(","):

@@ -33,25 +33,29 @@ def run_tests(xml: Path) -> int:
     return subprocess.run(cmd, cwd=ROOT, env=env).returncode
 
 
-def groups() -> dict[tuple[str, str], str]:
-    """(module, test function) -> group, from each module's GROUPS table."""
+def groups() -> tuple[dict[tuple[str, str], str], dict[tuple[str, str], str]]:
+    """(module, test function) -> group, and -> label of an unparametrised test (GROUPS, LABELS of each module)."""
     sys.path[:0] = [str(ROOT / "tests"), str(ROOT)]
-    out = {}
+    grp, lab = {}, {}
     for m in MODULES:
         mod = importlib.import_module(m)
         for fn, g in getattr(mod, "GROUPS", {}).items():
-            out[(m, fn)] = g
-    return out
+            grp[(m, fn)] = g
+        for fn, t in getattr(mod, "LABELS", {}).items():
+            lab[(m, fn)] = t
+    return grp, lab
 
 
 def read_cases(xml: Path) -> list[dict]:
-    table = groups()
+    table, labels = groups()
     cases = []
     for tc in ET.parse(xml).getroot().iter("testcase"):
         module = tc.get("classname", "").split(".")[-1]
         name = tc.get("name", "")
         m = re.match(r"^([^\[]+)(?:\[(.*)\])?$", name)
         fn, param = m.group(1), m.group(2)
+        if param and "\\u" in param:  # pytest writes non-ASCII ids as escapes
+            param = param.encode("ascii", "backslashreplace").decode("unicode_escape")
         outcome, detail = "passed", ""
         for tag in ("failure", "error", "skipped"):
             el = tc.find(tag)
@@ -59,7 +63,8 @@ def read_cases(xml: Path) -> list[dict]:
                 outcome = {"failure": "failed", "error": "error", "skipped": "skipped"}[tag]
                 detail = (el.get("message") or "").splitlines()[0][:200] if el.get("message") else ""
         cases.append({"group": table.get((module, fn), f"{module}.{fn}"), "test": f"{module}::{name}",
-                      "case": param or fn.removeprefix("test_").replace("_", " "), "outcome": outcome,
+                      "case": param or labels.get((module, fn), fn.removeprefix("test_").replace("_", " ")),
+                      "outcome": outcome,
                       "detail": detail, "time_s": float(tc.get("time", 0.0))})
     return cases
 

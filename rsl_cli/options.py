@@ -21,7 +21,9 @@ from typing import Any, Callable, Optional
 import typer
 from typer.core import TyperCommand, TyperGroup
 
+from rsl_cli.console import RichReporter
 from stages.config import field_default, field_docs
+from stages.registry import STAGES, stage
 
 
 def opt(config_cls: type, name: str, *flags: str, **kw: Any) -> Any:
@@ -93,14 +95,10 @@ def config_command(config_cls: type, action: Callable[[Any], Any], arguments: tu
 def build_stage_command(name: str):
     """The click command of the stage ``name`` of stages/registry.py (imports the stage module): its Config's
     fields as arguments and options, its summary as help; running it runs ``stage.run(config, reporter)``."""
-    from stages.registry import stage
-
     s = stage(name)
     mod = s.load()
 
     def action(config: Any) -> None:
-        from rsl_cli.console import RichReporter
-
         mod.run(config, RichReporter())
 
     sub = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode="rich")
@@ -164,8 +162,6 @@ class RslGroup(TyperGroup):
 def stage_command(name: str) -> Callable[[typer.Typer], None]:
     """``register(app)`` declaring the command of the stage ``name`` of stages/registry.py; the command is built
     from the stage's Config (:func:`build_stage_command`) only when it is run, asked for help, or documented."""
-    from stages.registry import STAGES, stage
-
     s = stage(name)
 
     def register(app: typer.Typer) -> None:

@@ -1372,6 +1372,7 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
     sig_hist: list[float] = []
     changes: list[int] = []  # frames where a change of material was detected
     start_w = first  # the window never reaches before the last change point
+    modes_failed = False
     total = None if last is None else last - first
     with reporter.task(f"adapt online gn ({backend.space}, {obs.kind}, w={w})", total) as task:
         T = first
@@ -1403,9 +1404,15 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
                     before = np.stack([state_at(t0 - 2), state_at(t0 - 1)])
                     rec.changes = changes
             sc, past_dirs = None, False
-            if config.state_correction == "states" and obs.kind == "markers":
-                sc = _state_directions(backend, stored, t0, first, 0.05, gn.theta(p_th)[:2])
-            elif config.state_correction != "off":
+            if config.state_correction == "states" and obs.kind == "markers" and not modes_failed:
+                try:
+                    sc = _state_directions(backend, stored, t0, first, 0.05, gn.theta(p_th)[:2])
+                except (ArithmeticError, RuntimeError, ValueError) as e:  # eigsh / a singular K: fall back
+                    reporter.warn(f"the vibration modes for --state-correction states failed ({e}); correcting "
+                                  f"along the θ sensitivities instead (--state-correction past).")
+                    modes_failed = True
+            if sc is None and config.state_correction != "off" and (modes_failed or obs.kind == "vision"
+                                                                     or config.state_correction == "past"):
                 # "past", or "states" with images: there each correction direction costs 2 renders per frame and
                 # camera (the Jacobian's central differences), so the 2R sensitivity directions are used
                 sc = _past_directions(sens, t0, k_th, config.state_prior)

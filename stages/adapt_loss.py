@@ -374,7 +374,8 @@ class ImageLoss:
         """Renders (H, W, 3) of every camera at positions xt (n, 3), torch, differentiable.
 
         The same image formation as ``BoundGaussians.render`` (the reference the tests hold this to), with
-        the position-dependent geometry computed once for all cameras: μ = Σ βₖ xₖ, Σ = F Σ₀ Fᵀ, where the
+        the position-dependent geometry computed once for all cameras: μ = Σ βₖ xₖ (quadratic tets: Σ N_a x_a,
+        F = Σ x_a ⊗ G_a at the Gaussian), Σ = F Σ₀ Fᵀ, where the
         barycentric weights β and rest covariances Σ₀ = R S² Rᵀ are fixed (only colours and opacities are
         ever refined here) — or those of :meth:`rebind`.
         """

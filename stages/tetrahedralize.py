@@ -201,8 +201,8 @@ def run(config: TetrahedralizeConfig, reporter: Reporter = SilentReporter()) -> 
     q = mesh.quality
     regions = ", ".join(f"{n} {int(np.sum(mesh.tet_region == i))}" for i, n in enumerate(mesh.region_names))
     reporter.summary(
-        f"{out}: {mesh.n_vertices} vertices, {mesh.n_tets} {'quadratic ' if mesh.order == 2 else ''}tets "
-        f"({regions}), {len(mesh.surface_faces)} surface "
+        f"{out}: {mesh.n_vertices} vertices, {mesh.n_tets} tets of order {mesh.order} ({regions}), "
+        f"{len(mesh.surface_faces)} surface "
         f"triangles, {len(mesh.handles)} handles; volume {q['total_volume']:.4g} m³, mass "
         f"{mesh.vertex_masses.sum():.4g} kg; tet volume {q['min_volume']:.3g}–{q['max_volume']:.3g} m³, "
         f"dihedral angles {q['min_dihedral_deg']:.1f}°–{q['max_dihedral_deg']:.1f}°"

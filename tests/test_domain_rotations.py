@@ -131,3 +131,17 @@ def test_torch_twin_matches() -> None:
     R = quat_to_rotmat(torch.as_tensor(qs)).numpy()
     np.testing.assert_allclose(R, rot.quat_wxyz_to_matrix(qs), atol=1e-13)
     np.testing.assert_allclose(rotmat_to_quat(R), qs * np.sign(qs[:, :1]), atol=1e-12)
+
+
+def test_pose_track_interpolates_translation_linearly_and_rotation_by_slerp() -> None:
+    from stages.domain.controls import IDENTITY_POSE, Track, apply_pose
+
+    q1 = rot.axis_angle_quat_wxyz(np.array([0.0, 0.0, 1.0]), 1.2)
+    track = Track(np.array([0, 10]), np.stack([IDENTITY_POSE, np.concatenate([[1.0, 2.0, 3.0], q1])]), True)
+    mid = track.at(5)
+    np.testing.assert_allclose(mid[:3], [0.5, 1.0, 1.5], atol=1e-15)
+    assert rot.rotation_angle(IDENTITY_POSE[3:], mid[3:]) == pytest.approx(0.6, abs=1e-12)
+    np.testing.assert_allclose(track.at(-3), IDENTITY_POSE)  # before the first key: the first value
+    np.testing.assert_allclose(track.at(40)[3:], q1, atol=1e-15)  # after the last: the last
+    p = RNG.normal(size=(5, 3))
+    np.testing.assert_allclose(apply_pose(mid, p), p @ rot.quat_wxyz_to_matrix(mid[3:]).T + mid[:3], atol=1e-15)

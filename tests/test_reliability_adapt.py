@@ -30,6 +30,11 @@ GROUPS = {"test_adapt_case": "rsl adapt: frames, meshes, obstacles, material",
           "test_downstream_refuses_partial": "rsl adapt: unfinished runs never replace adapt.h5",
           "test_mp4_frames_are_read": "legal inputs are accepted (no false alarm)",
           "test_rotation_angle_small_angles": "arithmetic: rotation angle"}
+LABELS = {"test_failed_run_keeps_adapt_h5": "a run that fails after some frames (the mesh collapses): adapt.h5 kept, "
+                                            "the frames done in adapt.partial.h5",
+          "test_ctrl_c_keeps_adapt_h5": "Ctrl-C of a non-follow run: adapt.h5 kept, the frames done in "
+                                        "adapt.partial.h5, the sentence says so",
+          "test_mp4_frames_are_read": "frames given as MP4 videos: the vision loss reads them"}
 
 MARKERS = ["--space", "full", "--loss", "markers", "--window", "2"]
 VISION = ["--space", "full", "--loss", "vision", "--window", "1", "--iters-per-frame", "1", "--frames", "0:2"]
@@ -299,7 +304,7 @@ def test_mp4_frames_are_read(base, tmp_path: Path) -> None:
     assert {"frames/cam0.mp4", "frames/cam1.mp4", "frames/cam2.mp4"} <= inputs, inputs
 
 
-@pytest.mark.parametrize("angle_rad", [1e-12, 1e-8, 1e-4, 0.5, 3.0, np.pi - 1e-6])
+@pytest.mark.parametrize("angle_rad", [1e-12, 1e-8, 1e-4, 0.5, 3.0, np.pi - 1e-6], ids=lambda a: f"angle {a:.9g} rad")
 def test_rotation_angle_small_angles(angle_rad: float) -> None:
     """rotation_angle_deg = atan2(|skew|, tr − 1) keeps full relative precision down to 1e-12 rad (arccos of the
     trace could not resolve angles below ~1e-6°) and up to π; the axis does not matter."""

@@ -28,6 +28,8 @@ GROUPS = {"test_write_fault": "artefact writes: faults while writing",
           "test_read_only_workspace": "workspace: read-only",
           "test_provenance_and_status": "provenance and staleness (rsl status / run)",
           "test_mesh_mismatch_refused": "artefacts made from another mesh.h5"}
+LABELS = {"test_mesh_mismatch_refused": "a renumbered mesh.h5 (same counts) with the old snapshots.h5: "
+                                        "train-subspace refuses"}
 
 
 def _mount_tmpfs(where: Path, size: str) -> None:
@@ -125,7 +127,7 @@ def test_write_fault(case: str, fault_results: dict) -> None:
     assert info.returncode == 0, info.stderr
 
 
-@pytest.mark.parametrize("case", ["tetrahedralize on a full disk"])
+@pytest.mark.parametrize("case", ["a real full disk (1 MiB tmpfs) under tetrahedralize"])
 def test_disk_full_on_a_tmpfs(case: str, syn, good_ws, tmp_path: Path) -> None:
     """A real full disk: a 1 MiB tmpfs holding a good mesh.h5 and a filler; the new write fails, the old stays."""
     mnt = tmp_path / "full"
@@ -231,7 +233,7 @@ def test_generate_data_workers_die_with_their_parent(case: str, syn, good_ws, tm
 
 
 # =========================================================================== read-only workspace
-@pytest.mark.parametrize("stage", ["tetrahedralize", "generate-data"])
+@pytest.mark.parametrize("stage", ["tetrahedralize", "generate-data"], ids=lambda s: f"{s} into a read-only workspace")
 def test_read_only_workspace(stage: str, syn, good_ws, tmp_path: Path) -> None:
     """A workspace that cannot be written is reported before any compute, and nothing in it changes."""
     mnt = tmp_path / "ro"

@@ -22,6 +22,8 @@ GROUPS = {"test_bad_capture_toml": "capture.toml: unknown keys, ranges, cameras"
           "test_bad_controls_json": "controls.json: unknown keys",
           "test_markup_in_user_text": "rich markup in user text",
           "test_good_capture_with_every_new_key": "legal inputs are accepted (no false alarm)"}
+LABELS = {"test_good_capture_with_every_new_key": "every key other parts of rsl added ([capture] start, handle "
+                                                  "hard, visual) is accepted"}
 
 TOML = (SAMPLE / "bar" / "capture.toml").read_text()
 

@@ -11,7 +11,7 @@ import pytest
 from stages.capture import Controls, Handle, Selection, Track
 from stages.sim import potential as pot
 from stages.sim import stress as st
-from stages.sim.elements import GRADIENT, HESSIAN, element_terms_jax, point_terms, point_terms_jax
+from stages.sim.elements import HESSIAN, element_terms_jax, point_terms, point_terms_jax
 from stages.sim.materials import MODELS, lame
 from stages.sim.mesh import rest_quantities
 from stages.sim.meshgen import box_tets, mesh_artefact

@@ -153,7 +153,7 @@ def test_sample_dino_standing_on_floor(sample_data: Path, tmp_path: Path) -> Non
 
 def test_box_stl_with_ftetwild(shared_data: Path, tmp_path: Path) -> None:
     cap = make_capture(tmp_path / "box", shared_data / "pytetwild_testdata" / "box.stl", density=500.0)
-    m = MeshArtefact.load(run(TetrahedralizeConfig(cap, tmp_path / "ws", edge_length=0.15)))
+    m = MeshArtefact.load(run(TetrahedralizeConfig(cap, tmp_path / "ws", edge_length=0.15, order=1)))
     surface = trimesh.load(cap / "box.stl")
     check_mesh(m, 500.0, surface.volume, rel=0.01)
     assert m.quality["source"] == "ftetwild" and m.quality["flipped_tets"] == m.n_tets  # fTetWild's are negative
@@ -174,7 +174,7 @@ def test_dino_surface_retetrahedralized(sample_data: Path, tmp_path: Path) -> No
     root.mkdir()
     trimesh.Trimesh(m0.vertices, m0.surface_faces).export(root / "dino.obj")
     make_capture(root, mesh_name="dino.obj", density=1070.0)
-    m = MeshArtefact.load(run(TetrahedralizeConfig(root, tmp_path / "ws", edge_length=0.08)))
+    m = MeshArtefact.load(run(TetrahedralizeConfig(root, tmp_path / "ws", edge_length=0.08, order=1)))
     check_mesh(m, 1070.0, trimesh.load(root / "dino.obj").volume, rel=0.01)
 
 

@@ -1,7 +1,11 @@
 """Full-space implicit-Euler FEM: the scene, one time step by Newton, a sequence, and the window adjoint.
 
-Step (paper Eq. 1):  x_t = argmin_x Φ_t(x),  Φ_t = ½/Δt² ‖x − y_t‖²_M + Σ_e V_e Ψ(F_e; θ_t)
+Step (paper Eq. 1):  x_t = argmin_x Φ_t(x),  Φ_t = ½/Δt² ‖x − y_t‖²_M + Σ_q w_q Ψ(F_q; θ_t)
                      − (M g + f_t)·x + Σ_h ½ k_h ‖x_h − x̄_h,t‖² + contact,   y_t = 2x_{t−1} − x_{t−2}.
+The elastic energy is a sum over quadrature points (stages.sim.quadrature): one per linear tet
+(w = V, F = Ds Dm⁻¹), four per quadratic (10-node) tet.  Hard (Dirichlet) handles have no spring term:
+their vertices are put at the targets x̄_h,t and Newton runs on the free DOFs (their rows and columns
+of the Hessian replaced by the identity, their gradient entries zeroed).
 Newton: H Δx = −∇Φ with the exact Hessian while it is positive definite, else with element Hessians
 projected to PSD by the absolute value of their eigenvalues (analytic eigensystem, elements.py) —
 SNH is indefinite near rest and under compression —,
@@ -11,7 +15,8 @@ search on Φ; converged when ‖∇Φ‖ ≤ rtol · (‖∇Φ(x_init)‖ + ‖M
 Adjoint over a window (paper Eqs. 9–12 in full space): with r_t = ∇_x Φ_t(x_t; x_{t−1}, x_{t−2}, θ_t) = 0,
     H_t a_t = ∂L/∂x_t − (∂r_{t+1}/∂x_t)ᵀ a_{t+1} − (∂r_{t+2}/∂x_t)ᵀ a_{t+2}     (backward in t)
     dL/dθ_t = −(∂r_t/∂θ_t)ᵀ a_t,
-H_t the exact (unprojected) Hessian; the cross terms are JAX vector–Jacobian products.
+H_t the exact (unprojected) Hessian; the cross terms are JAX vector–Jacobian products.  On the DOFs of
+hard handles x_t is an input (the target), so a_t = 0 there.
 """
 from __future__ import annotations
 
