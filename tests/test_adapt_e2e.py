@@ -34,7 +34,7 @@ def _make_capture(root: Path, frames: int = 36, young_schedule: str = "", camera
     toml = cap / "capture.toml"
     toml.write_text(toml.read_text().replace('mesh = "object.obj"', 'mesh = "truth/object.mesh"'))
     ws = root / "ws"
-    tetrahedralize.run(tetrahedralize.TetrahedralizeConfig(capture=cap, workspace=ws))
+    tetrahedralize.run(tetrahedralize.TetrahedralizeConfig(capture=cap, workspace=ws, order=1))  # same-model regression
     calibrate.run(calibrate.CalibrateConfig(capture=cap, workspace=ws, from_json=str(cap / "cameras.json")))
     return cap, ws
 

@@ -78,9 +78,9 @@ def test_stage_help_comes_from_config_docstrings(session: dict) -> None:
 def test_tetrahedralize_info_status(session: dict) -> None:
     tet = session["tet"]
     assert tet.returncode == 0, tet.stderr
-    assert "341 vertices, 979 tets" in _flat(tet.stderr)
+    assert "1959 vertices, 979 tets of order 2" in _flat(tet.stderr)  # quadratic tets by default
     info = _flat(session["info"].stdout)
-    assert "kind mesh" in info and "vertices (341, 3) float64" in info and "tets (979, 4) int64" in info
+    assert "kind mesh" in info and "vertices (1959, 3) float64" in info and "tets (979, 10) int64" in info
     assert "object.mesh sha256" in info and "edge_length = 0.05" in info
     data = json.loads(session["info_json"].stdout)
     assert data["attrs"]["rsl_kind"] == "mesh" and len(data["attrs"]["inputs"]) == 3

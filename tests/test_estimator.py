@@ -199,9 +199,23 @@ def test_state_correction_recovers_young_from_perturbed_starting_states():
 # --------------------------------------------------------------------------- rsl adapt --estimator gn
 @pytest.fixture(scope="module")
 def beam(tmp_path_factory):
-    from test_adapt_e2e import _make_capture
+    """test_adapt_e2e's cable-pulled beam (97 vertices) filmed by `rsl synth`, with a workspace whose mesh.h5 is
+    the simulated linear-tet mesh itself (order 1: the same model as the truth, so E is comparable)."""
+    from stages import calibrate, synth, tetrahedralize
+    from test_adapt_e2e import BEAM, E_TRUE
 
-    return _make_capture(tmp_path_factory.mktemp("gn"))
+    if not BEAM.is_file():
+        pytest.skip(f"{BEAM} not present")
+    root = tmp_path_factory.mktemp("gn")
+    cap = root / "cap"
+    synth.run(synth.SynthConfig(mesh=BEAM, out=cap, scenario="cable", cameras=1, frames=36, resolution=32,
+                                young=E_TRUE, markers=30, calib_views=0, seed=0))
+    toml = cap / "capture.toml"
+    toml.write_text(toml.read_text().replace('mesh = "object.obj"', 'mesh = "truth/object.mesh"'))
+    ws = root / "ws"
+    tetrahedralize.run(tetrahedralize.TetrahedralizeConfig(capture=cap, workspace=ws, order=1))
+    calibrate.run(calibrate.CalibrateConfig(capture=cap, workspace=ws, from_json=str(cap / "cameras.json")))
+    return cap, ws
 
 
 def _gn_window(cap, ws, loss):

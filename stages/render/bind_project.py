@@ -116,7 +116,8 @@ def _geometry(g, x, hv, dm_inv, bl, ls, rot, beta, P, Ds, F, Rq, sc, RS, M, cach
 
 
 @nb.njit(inline="always")
-def _geometry_p2(g, x, hv, xr, bl, ls, rot, beta, N, dNx, Dx, J, Ji, F, Rq, sc, RS, M, cache, reuse):  # pragma: no cover
+def _geometry_p2(g, x, hv, xr, bl, ls, rot, beta, N, dNx, Dx, J, Ji, F, Rq, sc, RS, M, cache,
+                 reuse):  # pragma: no cover - compiled
     """Quadratic tets: β = softmax(logits), N_a(β), ∂N_a/∂ξ (10, 3), D_x = Σ x_a ⊗ ∂N_a/∂ξ,
     J = Σ X_a ⊗ ∂N_a/∂ξ (rest nodes xr (G, 10, 3)), F = D_x J⁻¹, M = F R S; returns (μ, |q|, q̂)."""
     if reuse:
