@@ -17,7 +17,9 @@ per-frame time of adapt.
     .venv/bin/python bench/accuracy.py [--quick] [--out docs/results]
 
 --quick: the bar only, 24 frames, P2 truth on the shipped mesh, markers only, P1 and P2, full space;
-full: all cases, 45 frames, both losses and spaces.
+full: all cases, 45 frames, both losses and spaces.  --starts, --orders and --estimator narrow the run or pass
+rsl adapt's estimator; with RSL_BENCH_REUSE=1 in the environment, captures and meshes already in --work are
+reused.
 """
 from __future__ import annotations
 
@@ -41,6 +43,7 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 E0 = 1.0e5
 POISSON = 0.45
 WINDOW = 3
+EXTRA: list = []  # extra rsl adapt options (--estimator)
 
 
 def rsl(*args) -> float:
@@ -82,15 +85,16 @@ def run_case(work: Path, case: str, start: str, frames: int, refine: int, orders
     from stages.capture import load_capture, read_truth
 
     cap = work / f"{case}_{start}"
-    t_synth = rsl("synth", *scene_args(case, frames), cap, "--cameras", 3, "--frames", frames, "--resolution", 96,
+    t_synth = 0.0 if (cap / "capture.toml").is_file() and os.environ.get("RSL_BENCH_REUSE") else rsl("synth", *scene_args(case, frames), cap, "--cameras", 3, "--frames", frames, "--resolution", 96,
                   "--markers", 40, "--calib-views", 0, "--poisson", POISSON, "--start", start, "--truth-order", 2,
                   "--truth-refine", refine, "--substeps", 3, "--handles", "hard", "--seed", 0, "--overwrite")
     truth = read_truth(load_capture(cap))
     rows = []
     for order in orders:
         ws = work / f"ws_{case}_{start}_p{order}"
-        rsl("calibrate", cap, "-w", ws, "--from-json", cap / "cameras.json")
-        rsl("tetrahedralize", cap, "-w", ws, "--order", order)
+        if not ((ws / "mesh.h5").is_file() and os.environ.get("RSL_BENCH_REUSE")):
+            rsl("calibrate", cap, "-w", ws, "--from-json", cap / "cameras.json")
+            rsl("tetrahedralize", cap, "-w", ws, "--order", order)
         if "vision" in losses:
             rsl("segment", cap, "-w", ws, "--method", "background")
             rsl("fit-gaussians", cap, "-w", ws, "--frame", 0)
@@ -101,7 +105,7 @@ def run_case(work: Path, case: str, start: str, frames: int, refine: int, orders
             for space in spaces:
                 try:
                     t_adapt = rsl("adapt", cap, "-w", ws, "--window", WINDOW, "--space", space, "--loss", loss,
-                                  "--young-init", f"{0.5 * E0:g}")
+                                  "--young-init", f"{0.5 * E0:g}", *EXTRA)
                 except RuntimeError as e:
                     rows.append({"case": case, "start": start, "order": order, "loss": loss, "space": space,
                                  "error": str(e)[-500:]})
@@ -138,6 +142,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
     ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_accuracy"))
     ap.add_argument("--starts", default="equilibrium,rest", help="start states to run, comma-separated")
+    ap.add_argument("--estimator", default="", help="rsl adapt --estimator (default: adapt's own default)")
+    ap.add_argument("--orders", default="", help="element orders in adapt, e.g. 1,2 (default: the mode's)")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     if a.quick:
@@ -147,6 +153,10 @@ def main() -> None:
         plan = dict(cases=["bar", "dino", "beam"], starts=["equilibrium", "rest"], frames=45, refine=1,
                     orders=[1, 2], losses=["markers", "vision"], spaces=["reduced", "full"])
     plan["starts"] = a.starts.split(",")
+    if a.orders:
+        plan["orders"] = [int(o) for o in a.orders.split(",")]
+    global EXTRA
+    EXTRA = ["--estimator", a.estimator] if a.estimator else []
     rows = []
     for case in plan["cases"]:
         for start in plan["starts"]:

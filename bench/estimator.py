@@ -98,7 +98,7 @@ def timing_case(work: Path) -> list[dict]:
     tetrahedralize.run(tetrahedralize.TetrahedralizeConfig(capture=cap, workspace=ws, order=1))
     calibrate.run(calibrate.CalibrateConfig(capture=cap, workspace=ws, from_json=str(cap / "cameras.json")))
     bench_adapt.with_gaussians(cap, ws, 5000, 20)
-    ws_r = bench_adapt.subspace_ws(cap, ws, 30, "pca", sequences=8, frames=frames)
+    ws_r = bench_adapt.subspace_ws(cap, ws, 30, "pca", sequences=8, frames=10)
     rows = []
     for est in ("adam", "gn"):  # one run each (time-boxed on a shared machine)
         art, _ = bench_adapt.run_adapt(cap, ws_r, work / "timing" / est, space="reduced", loss="vision", window=3,

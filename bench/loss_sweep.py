@@ -14,7 +14,8 @@ through the grid minimum and its neighbours; its ratio to E_true is the loss's b
 
 --quick: P2 truth on the shipped mesh (no refinement); full: P2 on the once-refined mesh; both 20
 frames and 9 grid points.  --starts equilibrium / --starts rest run one start state (two processes can share
-the work), --merge A.json B.json writes the report of both.
+the work), --rows picks the rows, --merge A.json B.json writes the report of separate runs.  With
+RSL_BENCH_REUSE=1 in the environment, captures already in --work are reused.
 """
 from __future__ import annotations
 
@@ -84,6 +85,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
     ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_loss_sweep"))
     ap.add_argument("--starts", default="equilibrium,rest", help="start states to run, comma-separated")
+    ap.add_argument("--rows", default="p1,p1r,p2,p2s3,wrongstart,vision",
+                    help="rows to compute: p1, p1r (P1 refined once), p2, p2s3 (P2 with 3 substeps per frame), "
+                         "wrongstart (P1 assuming the other start), vision")
     ap.add_argument("--merge", type=Path, nargs="*", default=None,
                     help="only merge the loss_sweep.json files of separate runs (e.g. one per start) into --out")
     a = ap.parse_args()
@@ -104,23 +108,30 @@ def main() -> None:
     cases = []
     for start in a.starts.split(","):
         cap_dir = a.work / f"bar_cable_{start}"
-        t_synth = make_capture(cap_dir, start, frames, refine, 96)
+        reuse = (cap_dir / "capture.toml").is_file() and os.environ.get("RSL_BENCH_REUSE")
+        t_synth = 0.0 if reuse else make_capture(cap_dir, start, frames, refine, 96)
         cap = load_capture(cap_dir)
         truth_desc = f"P2{' refined ×1' if refine else ''}, 3 substeps, hard handles"
         print(f"capture {cap_dir.name}: synth {t_synth:.0f} s", flush=True)
-        for label, order, ref in (("P1", 1, 0), ("P1 refined ×1", 1, 1), ("P2", 2, 0)):
+        rows = a.rows.split(",")
+        for key, label, order, ref, sub in (("p1", "P1", 1, 0, 1), ("p1r", "P1 refined ×1", 1, 1, 1),
+                                            ("p2", "P2", 2, 0, 1), ("p2s3", "P2, 3 substeps per frame", 2, 0, 3)):
+            if key not in rows:
+                continue
             t0 = time.perf_counter()
-            res = sweep(cap, shipped_mesh(cap.density, order), grid, "markers", refine=ref, poisson=POISSON)
+            res = sweep(cap, shipped_mesh(cap.density, order), grid, "markers", refine=ref, poisson=POISSON,
+                        substeps=sub)
             cases.append(_case(start, truth_desc, "markers", label, res, time.perf_counter() - t0))
             print(_row(cases[-1]), flush=True)
         # the start convention's weight: rsl's P1 model assuming the other start state than the capture's
         other = "rest" if start == "equilibrium" else "equilibrium"
-        t0 = time.perf_counter()
-        res = sweep(cap, shipped_mesh(cap.density, 1), grid, "markers", poisson=POISSON, start=other)
-        cases.append(_case(start, truth_desc, "markers", f"P1, assuming start = {other}", res,
-                           time.perf_counter() - t0))
-        print(_row(cases[-1]), flush=True)
-        if not a.no_vision:
+        if "wrongstart" in rows:
+            t0 = time.perf_counter()
+            res = sweep(cap, shipped_mesh(cap.density, 1), grid, "markers", poisson=POISSON, start=other)
+            cases.append(_case(start, truth_desc, "markers", f"P1, assuming start = {other}", res,
+                               time.perf_counter() - t0))
+            print(_row(cases[-1]), flush=True)
+        if not a.no_vision and "vision" in rows:
             ws = a.work / f"ws_{start}"
             try:
                 pipeline(cap_dir, ws)

@@ -167,18 +167,26 @@ def measure(case: Case, work: Path, timed: int, resolution: int, gaussians: int,
     t0 = time.perf_counter()
     cap, ws = build(case, work, n_frames + 2, resolution, gaussians, fit_iters)
     setup_s = time.perf_counter() - t0
-    red = run_adapt(cap, ws, work / case.name / "reduced", "reduced", case.w, n_frames)
-    full = run_adapt(cap, ws, work / case.name / "full", "full", case.w, n_frames)
-    tr, tf = per_frame(red, case.w), per_frame(full, case.w)
+    run_adapt(cap, ws, work / case.name / "reduced", "reduced", case.w, n_frames)
+    run_adapt(cap, ws, work / case.name / "full", "full", case.w, n_frames)
+    return dict(collect(case, work, resolution, gaussians), setup_s=setup_s)
+
+
+def collect(case: Case, work: Path, resolution: int, gaussians: int) -> dict:
+    """The row of a case from the adapt.h5 files its reduced and full runs wrote under ``work``."""
     from stages.artefacts import MeshArtefact
 
+    ws = work / case.name / "ws"
+    red = AdaptArtefact.load(work / case.name / "reduced" / "adapt.h5")
+    full = AdaptArtefact.load(work / case.name / "full" / "adapt.h5")
+    tr, tf = per_frame(red, case.w), per_frame(full, case.w)
     mesh = MeshArtefact.load(ws / "mesh.h5")
     return {"name": case.name, "shape": case.shape, "scenario": case.scenario, "dofs": 3 * mesh.n_vertices,
             "tets": int(mesh.n_tets), "regions": list(mesh.region_names), "r": case.r, "w": case.w, "c": case.c,
             "resolution": resolution, "gaussians": gaussians, "reduced": tr, "full": tf,
             "ratio": tf["total_s"] / tr["total_s"], "physics_ratio":
             (tf["forward_s"] + tf["backward_s"]) / (tr["forward_s"] + tr["backward_s"]),
-            "setup_s": setup_s, "paper": PAPER[case.name]}
+            "paper": PAPER[case.name]}
 
 
 def markdown(data: dict) -> str:
@@ -187,7 +195,10 @@ def markdown(data: dict) -> str:
              f"Machine: {data['machine']}; {data['date']}; {'sized-down run (--quick)' if s['quick'] else 'full-size run'}: "
              f"{s['timed_frames']} timed frames per case after the window fills, images {s['resolution']}², "
              f"{s['gaussians']} Gaussians, PCA subspace (train-subspace --kind pca), vision loss, one Adam step "
-             f"per frame; wall time of the whole run {data['wall_s'] / 60:.1f} min.", "",
+             f"per frame; "
+             + (f"wall time of the whole run {data['wall_s'] / 60:.1f} min." if data.get("wall_s") else
+                "rows collected from the adapt.h5 files of the runs (bench/table1.py --collect)."),
+             "",
              "Per frame, seconds (median over the timed frames). Reduced: forward / backward / render / total; "
              "full: total; ratio = full total / reduced total, both from the same run. Paper: "
              + PAPER_CITATION + ".", "",
@@ -219,6 +230,9 @@ def main() -> None:
     ap.add_argument("--cases", default=",".join(c.name for c in CASES), help="Comma-separated case names.")
     ap.add_argument("--work", default="/tmp/rsl_bench_table1", help="Folder for captures and workspaces (reused).")
     ap.add_argument("--report-only", action="store_true", help="Rewrite table1.md from table1.json; run nothing.")
+    ap.add_argument("--collect", action="store_true",
+                    help="Measure nothing: make the table from the adapt.h5 files an earlier run of the same mode "
+                         "left under --work (e.g. after that run was stopped).")
     ap.add_argument("--build-only", action="store_true",
                     help="Only build the cases' captures and workspaces (e.g. in a second process ahead of the "
                          "measuring one, which waits for them); measure nothing.")
@@ -249,14 +263,18 @@ def main() -> None:
     cases = []
     for case in wanted:
         print(f"== {case.name}", flush=True)
-        cases.append(measure(case, work, timed, resolution, gaussians, fit_iters))
+        if args.collect:
+            cases.append(collect(case, work, resolution, gaussians))
+        else:
+            cases.append(measure(case, work, timed, resolution, gaussians, fit_iters))
     load = os.getloadavg()[0]
     data = {"machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs, {platform.python_version()}, "
                        f"load average {load:.1f} at the end (a shared machine)",
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "settings": {"quick": args.quick, "timed_frames": timed, "resolution": resolution,
                          "gaussians": gaussians, "fit_iterations": fit_iters, "subspace": "pca"},
-            "wall_s": time.perf_counter() - t0, "paper_citation": PAPER_CITATION,
+            "wall_s": None if args.collect else time.perf_counter() - t0, "collected": args.collect,
+            "paper_citation": PAPER_CITATION,
             "cases": sorted(cases, key=lambda c: [k.name for k in CASES].index(c["name"]))}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "table1.json").write_text(json.dumps(data, indent=1))

@@ -575,8 +575,8 @@ class _Vision:
         self.anchor_kind = anchor
 
         self.fit_frame = int(read_provenance(ws / KIND_FILES["gaussians"]).get("config", {}).get("frame", 0) or 0)
-        self.rest = mesh.vertices
-        self.anchor = np.zeros_like(mesh.vertices)  # (n, 3) x_fit − rest
+        self.rest = self.loss_fn.fit_positions  # (n, 3) where the Gaussians were fitted (rest for older files)
+        self.anchor = np.zeros_like(mesh.vertices)  # (n, 3) x_fit(θ) − fit_positions
 
     def rebind(self, x_fit: np.ndarray) -> None:
         """Anchor the Gaussians at the simulated fit-frame positions x_fit (n, 3)."""

@@ -9,9 +9,10 @@ Two observation models, each a pure function of simulated positions X (w, n, 3):
 * vision (paper Eq. 7): L = Σ_t Σ_c |R(G(x_t), c) − Ĩ_t^c|, the L1 distance between the
   render of the Gaussians bound to the mesh and the masked image Ĩ = I·m + bg·(1 − m);
   dL/dx_t comes from torch autograd through the rasterizer (stages/render).  The Gaussians were
-  fitted with the mesh at rest to the images of one frame; :meth:`ImageLoss.rebind` re-binds them
-  to the tets of that frame's simulated configuration (so that rendered there they are exactly the
-  fitted ones), see :func:`locate_in_tets`.
+  fitted to the images of one frame with the mesh posed at x_fit (gaussians.h5 ``fit_positions``: that
+  frame's state under the capture's start convention with the initial θ; the rest shape for older files);
+  :meth:`ImageLoss.rebind` re-binds them to the tets of that frame's configuration simulated with the
+  current θ (so that rendered there they are exactly the fitted ones), see :func:`locate_in_tets`.
 
 Nothing here reads files or prints.
 """
@@ -295,12 +296,12 @@ class ImageLoss:
     ``appearance`` the Gaussians' colours and opacities take an Adam step on the same loss at each
     evaluation (paper §4.3: θ and the Gaussian attributes are optimised together).
 
-    The Gaussians are bound to the tets of the mesh *at rest* (``fit-gaussians`` poses the rest mesh in
-    front of one frame's images).  When the object in that frame is not at rest — a synthetic capture's
-    frame 0 is one time step into a gravity sag — :meth:`rebind` moves each Gaussian (centre μ and
-    covariance Σ as fitted, in world space) into the tet of the simulated fit-frame configuration x_f that
-    holds μ, with barycentric β = bary(μ; x_f) and rest covariance F_f⁻¹ Σ F_f⁻ᵀ: rendered at x_f the
-    Gaussians are then exactly the fitted ones, and at x_t they follow the motion from x_f to x_t.
+    The Gaussians are bound to the tets in the rest frame (host, β, Σ₀) and were fitted with the mesh posed
+    at x_fit (gaussians.h5 ``fit_positions``; the rest shape when absent): fitted centre μ = Σ_a N_a(β) x_fit,a
+    and world covariance Σ = F_fit Σ₀ F_fitᵀ.  The simulated fit-frame configuration x_f(θ) differs from
+    x_fit as θ changes: :meth:`rebind` moves each Gaussian (μ and Σ as fitted, in world space) into the tet
+    of x_f that holds μ, with barycentric β = bary(μ; x_f) and rest covariance F_f⁻¹ Σ F_f⁻ᵀ: rendered at x_f
+    the Gaussians are then exactly the fitted ones, and at x_t they follow the motion from x_f to x_t.
     """
 
     def __init__(self, gaussians, mesh, cameras: list, appearance: bool = False, lr_appearance: float = 2e-3,
@@ -317,13 +318,23 @@ class ImageLoss:
         self._dm_inv_all = np.asarray(mesh.dm_inv, np.float64)
         self._rest = np.asarray(mesh.vertices, np.float64)
         self.quadratic = self._tets.shape[1] == 10
-        with torch.no_grad():  # the binding as fitted: host tets, barycentrics, world covariances at rest
+        fit_x = getattr(gaussians, "fit_positions", None)
+        if fit_x is not None and np.shape(fit_x) != self._rest.shape:
+            raise ValueError(f"the Gaussians were fitted at {np.shape(fit_x)[0]} vertex positions but the mesh "
+                             f"has {len(self._rest)} vertices")
+        #: (n, 3) m, the mesh positions the Gaussians were fitted at (the rest shape for older files)
+        self.fit_positions = self._rest if fit_x is None else np.asarray(fit_x, np.float64)
+        with torch.no_grad():  # the binding as fitted: host tets, barycentrics, rest-frame covariances Σ₀
             self._fit_host = np.asarray(gaussians.host_tet, np.int64)
             self._fit_bary = self.g.bary().double().numpy()
-            self._fit_cov = self.g.rest_covariances().double().numpy()
-            N, _, _ = point_map(self._rest, self._tets, self._fit_host, self._fit_bary)
-            self._fit_means = np.einsum("gk,gkd->gd", N, self._rest[self._tets[self._fit_host]])
-        self._set_binding(self._fit_host, self._fit_bary, self._fit_cov)
+            self._fit_cov0 = self.g.rest_covariances().double().numpy()
+        # the fitted Gaussians in world space: μ = Σ_a N_a x_fit,a and Σ = F_fit Σ₀ F_fitᵀ at x_fit
+        N, G, _ = point_map(self._rest, self._tets, self._fit_host, self._fit_bary)
+        xe = self.fit_positions[self._tets[self._fit_host]]
+        self._fit_means = np.einsum("gk,gkd->gd", N, xe)
+        F_fit = np.einsum("gki,gkj->gij", xe, G)
+        self._fit_cov = F_fit @ self._fit_cov0 @ F_fit.transpose(0, 2, 1)
+        self._set_binding(self._fit_host, self._fit_bary, self._fit_cov0)
         self.cams = [self.g.camera(c) for c in cameras]
         self.background = self.g.background.detach().numpy().astype(np.float32)  # (3,)
         self.rasterizer = rasterizer
@@ -350,10 +361,10 @@ class ImageLoss:
             self._N, self._G = torch.as_tensor(N, dtype=dt), torch.as_tensor(G, dtype=dt)
 
     def rebind(self, x_fit: np.ndarray | None) -> None:
-        """Bind the fitted Gaussians to the tets of configuration x_fit (n, 3) (None: back to the fitted
-        binding at rest); see the class docstring.  Always starts from the fitted binding."""
+        """Bind the fitted Gaussians to the tets of configuration x_fit (n, 3) (None: back to the binding as
+        fitted, in the rest frame); see the class docstring.  Always starts from the fitted Gaussians."""
         if x_fit is None:
-            self._set_binding(self._fit_host, self._fit_bary, self._fit_cov)
+            self._set_binding(self._fit_host, self._fit_bary, self._fit_cov0)
             return
         x = np.asarray(x_fit, np.float64)
         host, bary = locate_in_elements(self._fit_means, x, self._tets)

@@ -760,6 +760,10 @@ class GaussiansArtefact:
     sh: np.ndarray  # (G, K, 3) SH coefficients, K = (degree+1)^2
     fit_psnr: dict[str, float] = field(default_factory=dict)  # camera -> PSNR dB
     background: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) RGB in [0,1]
+    # (n, 3) m: the mesh's positions the Gaussians were fitted at (the fit frame's start state, e.g. the frame-0
+    # equilibrium sag); rendered there with this binding they are the fitted Gaussians.  None: at rest (old files).
+    fit_positions: np.ndarray | None = None
+    fit_state: dict = field(default_factory=dict)  # how fit_positions were made: start, frame, young, poisson
 
     kind = "gaussians"
 
@@ -773,6 +777,9 @@ class GaussiansArtefact:
             for k in ("bary", "log_scales", "rotations", "opacity_logit", "sh", "background"):
                 _put(f, k, np.asarray(getattr(self, k), np.float32))
             f.attrs["fit_psnr"] = json.dumps(self.fit_psnr)
+            if self.fit_positions is not None:
+                _put(f, "fit_positions", np.asarray(self.fit_positions, np.float64))
+            f.attrs["fit_state"] = json.dumps(self.fit_state)
         return Path(path)
 
     @classmethod
@@ -790,6 +797,8 @@ class GaussiansArtefact:
                 host, bary, r.array("log_scales", shape=(g, 3)), r.array("rotations", shape=(g, 4)),
                 r.array("opacity_logit", shape=(g,)), sh, json.loads(r.attr("fit_psnr", "{}")),
                 r.array("background", shape=(3,)),
+                r.array("fit_positions", shape=(None, 3)) if "fit_positions" in r.f else None,
+                json.loads(r.attr("fit_state", "{}")),
             )
 
 

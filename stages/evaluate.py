@@ -169,7 +169,7 @@ def _psnr(config, ws, capture, adapt, mesh, reporter) -> tuple[list[float], list
     renderer.set_backgrounds([None if p is None else p.astype(np.float32) / 255.0 for p in plates])
     # The Gaussians follow the mesh as rsl adapt made them follow it (adapt.h5 extra "gaussian_anchor"):
     # "rebind" — re-bound to the tets of the adapted fit-frame shape; "offset" (older files) — rendered at
-    # x_t − (x_fit − rest).
+    # x_t − (x_fit − fit_positions).
     from stages.artefacts import read_provenance
 
     fit_frame = int(read_provenance(gpath).get("config", {}).get("frame", 0) or 0)
@@ -178,7 +178,7 @@ def _psnr(config, ws, capture, adapt, mesh, reporter) -> tuple[list[float], list
     if len(at) and (adapt.extra or {}).get("gaussian_anchor", "offset") == "rebind":
         renderer.rebind(adapt.positions[at[0]])
     elif len(at):
-        anchor = adapt.positions[at[0]] - mesh.vertices
+        anchor = adapt.positions[at[0]] - renderer.fit_positions
     pick = np.unique(np.linspace(0, len(adapt.frames) - 1, min(config.psnr_frames, len(adapt.frames))).round()
                      .astype(int))
     out = []

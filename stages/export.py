@@ -362,10 +362,11 @@ def compute_forces(seq: Sequence, field: StressField, config: ExportConfig, repo
         for i in range(seq.n_frames):
             frame = int(seq.adapt.frames[i])
             inputs = frame_inputs(scene, controls, frame)
-            x, (x_prev, _) = seq.adapt.positions[i], seq.previous(i)
-            for f in st.set_forces(scene, inputs, x, x_prev, field.forces[i], config.contact_distance):
+            x, (x_prev, x_prev2) = seq.adapt.positions[i], seq.previous(i)
+            for f in st.set_forces(scene, inputs, x, x_prev, field.forces[i], config.contact_distance,
+                                   x_prev2=x_prev2):
                 rows.append(ForceRow(frame, float(seq.times[i]), f))
-            applied[i] = st.applied_forces(scene, inputs, x, x_prev)
+            applied[i] = st.applied_forces(scene, inputs, x, x_prev, x_prev2=x_prev2, f_int=field.forces[i])
             task.advance(1)
     return rows, applied
 

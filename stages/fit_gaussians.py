@@ -1,4 +1,4 @@
-"""`rsl fit-gaussians`: 3D Gaussians bound to the rest mesh, fitted to one frame's views (paper §4.1).
+"""`rsl fit-gaussians`: 3D Gaussians bound to the tet mesh, fitted to one frame's views (paper §4.1).
 
 Reads WS/mesh.h5, WS/cameras.h5, WS/masks.h5 when present, and frame
 ``--frame`` of every camera.  Gaussians are seeded inside the tets (host tet
@@ -15,6 +15,15 @@ per-pixel background (and the whole photo is the target); without either, a
 constant background (the median border colour) is assumed.  Writes
 WS/gaussians.h5 (with the fit PSNR per camera) and WS/fit_gaussians/CAM.png
 (render | photo side by side).
+
+The mesh is posed as the object is in the fit frame (``--pose capture``, docs/capture.md): frame 0 is
+x_0 = the rest shape or, with ``[capture] start = "equilibrium"``, the static equilibrium under gravity and
+the frame-0 controls (stages.sim.static.start_state) with capture.toml's E and ν per region; a later frame
+is simulated from x_0 (stages.sim.static.simulate_from_start, one implicit-Euler step per frame, as rsl adapt
+simulates).  The Gaussians are bound in the rest frame (host element, barycentric coordinates, rest
+covariance Σ₀) and rendered at those positions x_f: centre Σ_a N_a x_a, covariance F Σ₀ Fᵀ.  gaussians.h5
+records x_f (``fit_positions``) and how it was made (``fit_state``), so rsl adapt's re-binding starts from the
+configuration the Gaussians were really fitted at.
 """
 from __future__ import annotations
 
@@ -22,6 +31,7 @@ import math
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -43,7 +53,9 @@ class FitGaussiansConfig:
     workspace: Path
     """Workspace folder (reads mesh.h5, cameras.h5, masks.h5; writes gaussians.h5)."""
     frame: int = 0
-    """Frame the Gaussians are fitted to (the rest shape should match it)."""
+    """Frame the Gaussians are fitted to."""
+    pose: Literal["capture", "rest"] = "capture"
+    """Mesh configuration the Gaussians are fitted at: capture — the fit frame's state under the capture's [capture] start (rest, or the static equilibrium under gravity and the frame-0 controls with capture.toml's E and ν; later frames simulated from it); rest — the rest shape, whatever the frame shows."""
     iterations: int = 300
     """Adam iterations (each renders every camera once)."""
     gaussians: int = 10000
@@ -105,13 +117,46 @@ def seed_gaussians(mesh: MeshArtefact, n: int, surface_bias: float, rng: np.rand
     return host, bary, np.log(0.5 * spacing)
 
 
-def rest_centres(mesh: MeshArtefact, host: np.ndarray, bary: np.ndarray) -> np.ndarray:
-    """Rest positions (n, 3) m of points of host elements (n,) at barycentric (corner) coordinates (n, 4):
-    Σ_a N_a(β) X_a (= Σ β_k X_k for linear tets; the quadratic map for quadratic ones)."""
+def rest_centres(mesh: MeshArtefact, host: np.ndarray, bary: np.ndarray, positions: np.ndarray | None = None
+                 ) -> np.ndarray:
+    """Positions (g, 3) m of points of host elements (g,) at barycentric (corner) coordinates (g, 4) with the mesh
+    at ``positions`` (n, 3) (default its rest shape X): Σ_a N_a(β) x_a (= Σ β_k x_k for linear tets; the
+    quadratic map for quadratic ones)."""
     from stages.sim.quadrature import point_map
 
+    x = mesh.vertices if positions is None else np.asarray(positions, np.float64)
     N, _, _ = point_map(mesh.vertices, mesh.tets, host, bary)
-    return np.einsum("gk,gkd->gd", N, mesh.vertices[mesh.tets[host]])
+    return np.einsum("gk,gkd->gd", N, x[mesh.tets[host]])
+
+
+def fit_pose(cap, mesh: MeshArtefact, frame: int) -> tuple[np.ndarray, dict]:
+    """(x_f (n, 3) m, description): the mesh as the object is in frame ``frame`` under the capture's start
+    convention with capture.toml's E and ν per region — frame 0: stages.sim.static.start_state (the rest shape,
+    or the static equilibrium under gravity and the frame-0 controls); frame f > 0: simulated from it, one
+    implicit-Euler step per frame (stages.sim.static.simulate_from_start), as rsl adapt simulates.  An object
+    that nothing holds (no handle, no obstacle) has no static equilibrium: it is posed from its rest shape
+    (description "start" = "rest", "declared_start" = "equilibrium")."""
+    from stages.sim.scene import SimulationError, frame_inputs, make_scene
+    from stages.sim.static import simulate_from_start, start_state
+
+    controls = cap.controls()
+    scene = make_scene(mesh, controls, cap.material.model, cap.dt, cap.gravity)
+    names = list(scene.region_names)
+    young = np.array([cap.material.region_young(r) for r in names], float)
+    poisson = np.array([cap.material.region_poisson(r) for r in names], float)
+    start = cap.start if (scene.handles or scene.obstacles) else "rest"
+    state = {"pose": "capture", "start": start, "declared_start": cap.start, "frame": int(frame), "regions": names,
+             "young": young.tolist(), "poisson": poisson.tolist()}
+    try:
+        if frame == 0:
+            x = start_state(scene, frame_inputs(scene, controls, 0), young, poisson, start)
+        else:
+            x = simulate_from_start(scene, lambda f: frame_inputs(scene, controls, f), young, poisson, frame + 1,
+                                    start)[-1]
+    except SimulationError as e:
+        raise RslError(f"{cap.toml_path}: cannot pose the mesh as frame {frame} shows it (start = '{cap.start}', "
+                       f"E = {young.tolist()} Pa): {e} Fix the capture, or fit at rest with --pose rest.") from None
+    return np.asarray(x, np.float64), state
 
 
 def _sample_colours(centres: np.ndarray, cams: list, images: list, masks: list) -> tuple[np.ndarray, list]:
@@ -222,9 +267,21 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
         reporter.warn("no masks.h5 and no background plates: fitting the whole image with a constant "
                       "background colour; run `rsl segment` first for a clean fit.")
 
+    # ---------------------------------------------------------------- the fit frame's configuration
+    if config.pose == "capture":
+        x_fit, fit_state = fit_pose(cap, mesh, config.frame)
+        inputs += [cap.toml_path] + ([cap.controls_path] if cap.controls_path.exists() else [])
+        if fit_state["start"] != fit_state["declared_start"]:
+            reporter.warn(f"{cap.toml_path}: start = '{cap.start}' but nothing holds the object (no handle or "
+                          f"obstacle in controls.json): fitting with the mesh at rest.")
+    elif config.pose == "rest":
+        x_fit, fit_state = np.array(mesh.vertices, np.float64), {"pose": "rest", "frame": int(config.frame)}
+    else:
+        raise RslError(f"--pose should be capture or rest, found '{config.pose}'.")
+
     # ---------------------------------------------------------------- seeding
     host, bary, log_sigma = seed_gaussians(mesh, config.gaussians, config.surface_bias, rng)
-    centres = rest_centres(mesh, host, bary)
+    centres = rest_centres(mesh, host, bary, x_fit)
     colour, seen = _sample_colours(centres, cams, targets, masks)
     for cam, s in zip(cams, seen):
         if s == 0:
@@ -236,7 +293,7 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
     g = gauss.BoundGaussians(mesh.tets, mesh.dm_inv, host, bary, np.repeat(log_sigma[:, None], 3, 1),
                        np.tile([1.0, 0.0, 0.0, 0.0], (config.gaussians, 1)),
                        np.zeros(config.gaussians), sh, background, rest=mesh.vertices)
-    positions = torch.as_tensor(mesh.vertices, dtype=torch.float32)
+    positions = torch.as_tensor(x_fit, dtype=torch.float32)  # the Gaussians are rendered (and fitted) at x_f
 
     # occluders (controls.json visual, stages/occluders.py): their pixels at the fit frame weigh nothing
     from stages.occluders import has_occluders, ignore_mask
@@ -244,7 +301,7 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
     controls = cap.controls()
     ign_t = [torch.as_tensor(ignore_mask(controls, config.frame, c)) if has_occluders(controls) else None
              for c in cams]
-    if has_occluders(controls):
+    if has_occluders(controls) and cap.controls_path not in inputs:
         inputs.append(cap.controls_path)
     tgt_t, mask_t, bg_t = [], [], []
     for t, m, p in zip(targets, masks, plates):
@@ -293,10 +350,12 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
             img = g.render(positions, cam, bg).image
             fit_psnr[cam.name] = round(rloss.psnr(img, tgt), 3)
             write_image(out_dir / f"{cam.name}.png", _side_by_side(img.numpy(), tgt.numpy()))
-    art = GaussiansArtefact(**g.arrays(), fit_psnr=fit_psnr)
+    art = GaussiansArtefact(**g.arrays(), fit_psnr=fit_psnr, fit_positions=x_fit, fit_state=fit_state)
     path = art.save(ws / KIND_FILES["gaussians"], Provenance.make(config, inputs))
     vals = list(fit_psnr.values())
+    where = (f"the mesh posed as frame {config.frame} under start = '{fit_state['start']}'"
+             if fit_state["pose"] == "capture" else "the mesh at rest")
     reporter.summary(f"fitted {config.gaussians} Gaussians to frame {config.frame} of {len(cams)} cameras "
-                     f"({mode}): PSNR {np.mean(vals):.2f} dB mean, {np.min(vals):.2f} dB worst, "
+                     f"({mode}; {where}): PSNR {np.mean(vals):.2f} dB mean, {np.min(vals):.2f} dB worst, "
                      f"in {time.perf_counter() - t0:.1f} s → {path}")
     return path

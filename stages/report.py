@@ -359,7 +359,7 @@ def section_renders(ctx: Context, reporter: Reporter) -> str:
     if len(at) and (ad.extra or {}).get("gaussian_anchor", "offset") == "rebind":
         renderer.rebind(ad.positions[at[0]])
     elif len(at):
-        anchor = ad.positions[at[0]] - ctx.mesh.vertices
+        anchor = ad.positions[at[0]] - renderer.fit_positions
     rows = _render_rows(ctx)
     _, vm_v = ctx.stress()
     vmax = float(np.percentile(vm_v[rows], 99)) or 1.0

@@ -148,9 +148,10 @@ def run(config: RolloutConfig, reporter: Reporter = SilentReporter()) -> Path:
                                           z_prev2=z2, callback=lambda t: task.advance(1)))
             X = np.asarray(model.decode(Z))
             x_prev = np.asarray(model.decode(z1))
+            x_prev2 = np.asarray(model.decode(z2))
     t_sim = time.perf_counter() - t0
 
-    summary, worst = _summaries(scene, inputs, X, young, poisson, x_prev, mesh, capture.material.model,
+    summary, worst = _summaries(scene, inputs, X, young, poisson, (x_prev, x_prev2), mesh, capture.material.model,
                                 config.contact_distance)
     per_frame = np.full(T, t_sim / T)
     extra = {
@@ -174,24 +175,25 @@ def run(config: RolloutConfig, reporter: Reporter = SilentReporter()) -> Path:
     return out
 
 
-def _summaries(scene, inputs, X, young, poisson, x_start, mesh, model, contact_distance) -> tuple[dict, float]:
+def _summaries(scene, inputs, X, young, poisson, x_before, mesh, model, contact_distance) -> tuple[dict, float]:
     """Per-frame von Mises summaries and handle/obstacle forces, as JSON-able lists."""
     stress = {k: [] for k in ("max_pa", "mean_pa", "p50_pa", "p90_pa", "p99_pa")}
     forces: dict[str, dict] = {}
-    x_prev = x_start
+    x_prev, x_prev2 = x_before  # (x_{−1}, x_{−2}) before the first rolled-out frame
+    quad = scene.quad  # quadrature points: one per linear tet, 4 per quadratic tet
     for t in range(X.shape[0]):
         mu, lam = st.tet_lame_from_regions(young[t], poisson[t], mesh.tet_region)
-        s = st.tet_stress(X[t], mesh.tets, mesh.dm_inv, mu, lam, model)
-        for k, v in st.stress_summary(s["von_mises"], mesh.rest_volumes).items():
+        s = st.point_stress(X[t], quad, mu[quad.element], lam[quad.element], model)
+        for k, v in st.stress_summary(s["von_mises"], quad.weight).items():
             stress[k].append(v)
-        f_int = st.nodal_forces(s["P"], mesh.tets, mesh.dm_inv, mesh.rest_volumes, mesh.n_vertices)
-        for f in st.set_forces(scene, inputs[t], X[t], x_prev, f_int, contact_distance):
+        f_int = st.point_nodal_forces(s["P"], quad, mesh.n_vertices)
+        for f in st.set_forces(scene, inputs[t], X[t], x_prev, f_int, contact_distance, x_prev2=x_prev2):
             d = forces.setdefault(f.name, {"kind": f.kind, "internal_N": [], "magnitude_sum_N": [],
                                            "applied_N": [], "n_vertices": []})
             d["internal_N"].append(np.asarray(f.internal).tolist())
             d["magnitude_sum_N"].append(f.magnitude_sum)
             d["applied_N"].append(np.asarray(f.applied).tolist())
             d["n_vertices"].append(f.n_vertices)
-        x_prev = X[t]
+        x_prev2, x_prev = x_prev, X[t]
     worst = max(stress["max_pa"]) if stress["max_pa"] else 0.0
     return {"stress": stress, "forces": forces}, worst
