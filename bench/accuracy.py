@@ -16,7 +16,7 @@ per-frame time of adapt.
 
     .venv/bin/python bench/accuracy.py [--quick] [--out docs/results]
 
---quick: the bar only, 24 frames, P2 truth on the shipped mesh, markers only, P1 and P2, full space;
+--quick: the bar only, 36 frames, P2 truth on the shipped mesh, markers only, P1 and P2, full space;
 full: all cases, 45 frames, both losses and spaces.  --starts, --orders and --estimator narrow the run or pass
 rsl adapt's estimator; with RSL_BENCH_REUSE=1 in the environment, captures and meshes already in --work are
 reused.
@@ -147,7 +147,7 @@ def main() -> None:
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     if a.quick:
-        plan = dict(cases=["bar"], starts=["equilibrium", "rest"], frames=24, refine=0, orders=[1, 2],
+        plan = dict(cases=["bar"], starts=["equilibrium", "rest"], frames=36, refine=0, orders=[1, 2],
                     losses=["markers"], spaces=["full"])
     else:
         plan = dict(cases=["bar", "dino", "beam"], starts=["equilibrium", "rest"], frames=45, refine=1,

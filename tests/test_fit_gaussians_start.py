@@ -1,7 +1,7 @@
 """fit-gaussians poses the mesh as the fit frame shows the object ([capture] start, docs/capture.md).
 
 The capture, built here: a soft cantilever (0.2 × 0.04 × 0.04 m, linear tets) held at x = −0.1 by a hard
-handle, ``start = "equilibrium"``: frame 0 shows the beam sagged under gravity (tip ≈ 2 cm down).  Its two
+handle, ``start = "equilibrium"``: frame 0 shows the beam sagged under gravity (tip ≈ 4 cm down).  Its two
 64² frames are rendered from known, position-coloured Gaussians bound to the mesh at that equilibrium
 (stages.sim.static.start_state with capture.toml's E, ν); masks = coverage ≥ ½.
 
@@ -28,8 +28,8 @@ from stages.capture import load_capture, write_image
 from stages.sim.mesh import rest_quantities
 
 SIZE = (0.2, 0.04, 0.04)  # m
-YOUNG, POISSON, DENSITY = 4.0e5, 0.4, 1000.0
-CAMS = ("side", "oblique")
+YOUNG, POISSON, DENSITY = 1.5e5, 0.4, 1000.0
+CAMS = ("side", "back")
 PSNR_GAIN_DB = 3.0
 """How much better (dB, every camera) the posed fit must be than the fit at rest on the sagged beam."""
 
@@ -95,7 +95,7 @@ def make_capture(root: Path, ws: Path) -> dict:
     from stages.render.gaussians import BoundGaussians, color_to_sh0
 
     mesh = beam_mesh()
-    cams = [look_at("side", (0.0, -0.45, 0.0)), look_at("oblique", (0.25, -0.3, 0.2))]
+    cams = [look_at("side", (0.0, -0.45, 0.0)), look_at("back", (0.08, 0.45, 0.1))]
     root.mkdir(parents=True)
     ws.mkdir(parents=True)
     (root / "capture.toml").write_text(
@@ -154,7 +154,7 @@ def fits(tmp_path_factory):
 def test_the_beam_sags_visibly(fits):
     """The case is meaningful: the frame-0 equilibrium is far from the rest shape at the image's scale."""
     sag = np.max(fits["mesh"].vertices[:, 2] - fits["x_sag"][:, 2])
-    assert sag > 0.01, sag  # m; the beam is 0.04 m thick, a side-camera pixel ≈ 6 mm there
+    assert sag > 0.03, sag  # m; the beam is 0.04 m thick, a camera pixel ≈ 6 mm there
 
 
 def test_fit_is_posed_at_the_start_state_and_records_it(fits):
