@@ -93,7 +93,11 @@ def main() -> None:
     a = ap.parse_args()
     if a.merge is not None:
         parts = [json.loads(p.read_text()) for p in a.merge]
-        write([c for d in parts for c in d["cases"]], a.out, parts[0]["mode"] == "quick")
+        cases = [c for d in parts for c in d["cases"]]
+        for c in cases:  # runs made before the label named the element order: read it from the workspace
+            if c["loss"] == "vision" and (a.work / f"ws_{c['start']}" / "mesh.h5").is_file():
+                c["adapt_mesh"] = _vision_label(a.work / f"ws_{c['start']}")
+        write(cases, a.out, parts[0]["mode"] == "quick")
         return
 
     from stages.artefacts import KIND_FILES, MeshArtefact
@@ -123,6 +127,7 @@ def main() -> None:
                         substeps=sub)
             cases.append(_case(start, truth_desc, "markers", label, res, time.perf_counter() - t0))
             print(_row(cases[-1]), flush=True)
+            _partial(cases, a.out, a.quick)
         # the start convention's weight: rsl's P1 model assuming the other start state than the capture's
         other = "rest" if start == "equilibrium" else "equilibrium"
         if "wrongstart" in rows:
@@ -131,6 +136,7 @@ def main() -> None:
             cases.append(_case(start, truth_desc, "markers", f"P1, assuming start = {other}", res,
                                time.perf_counter() - t0))
             print(_row(cases[-1]), flush=True)
+            _partial(cases, a.out, a.quick)
         if not a.no_vision and "vision" in rows:
             ws = a.work / f"ws_{start}"
             try:
@@ -141,10 +147,24 @@ def main() -> None:
             except (SystemExit, Exception) as e:  # the pipeline is another helper's: report, keep the markers
                 print(f"vision sweep for start = {start} failed: {e}", flush=True)
                 continue
-            cases.append(_case(start, truth_desc, "vision", "P1 (rsl tetrahedralize)", res,
-                               time.perf_counter() - t0))
+            cases.append(_case(start, truth_desc, "vision", _vision_label(ws), res, time.perf_counter() - t0))
             print(_row(cases[-1]), flush=True)
+            _partial(cases, a.out, a.quick)
     write(cases, a.out, a.quick)
+
+
+def _partial(cases: list[dict], out: Path, quick: bool) -> None:
+    """The rows so far, in out/loss_sweep.partial.json (a long run that is stopped keeps what it measured)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "loss_sweep.partial.json").write_text(json.dumps({"mode": "quick" if quick else "full", "cases": cases}))
+
+
+def _vision_label(ws: Path) -> str:
+    """'P1|P2 (rsl tetrahedralize)': the element order of the workspace's mesh.h5 (the Gaussians' mesh)."""
+    from stages.artefacts import KIND_FILES, MeshArtefact
+
+    tets = MeshArtefact.load(ws / KIND_FILES["mesh"]).tets
+    return f"P{2 if np.asarray(tets).shape[1] == 10 else 1} (rsl tetrahedralize)"
 
 
 def _case(start, truth, loss, adapt_mesh, res, seconds) -> dict:

@@ -100,10 +100,10 @@ class AdaptConfig:
     appearance: bool = False
     """Vision loss: also refine Gaussian colours and opacities by the same loss."""
     gaussian_anchor: Literal["rebind", "offset"] = "rebind"
-    """Vision loss: how the Gaussians (fitted with the mesh at rest to the images of their fit frame f) follow
-    the simulation.  rebind: each Gaussian is re-bound to the tet of frame f simulated with the current θ that
-    holds it (exact at frame f); offset: rendered at x_t − (x_f − rest) (first order in x_f − rest; biased
-    when frame f is far from rest)."""
+    """Vision loss: how the Gaussians (fitted to the images of their fit frame f with the mesh posed at x_fit,
+    gaussians.h5 fit_positions: frame f under the start convention with capture.toml's θ; rest for older files)
+    follow the simulation.  rebind: each Gaussian is re-bound to the tet of frame f simulated with the current
+    θ that holds it (exact at frame f); offset: rendered at x_t − (x_f − x_fit) (first order in x_f − x_fit)."""
     follow: bool = False
     """Process frames as they appear in the capture folder; Ctrl-C ends with everything saved."""
     follow_timeout: float = 0.0
