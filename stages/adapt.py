@@ -110,11 +110,11 @@ class AdaptConfig:
     """With --follow: stop after this many seconds without a new frame (0: wait until Ctrl-C)."""
     solver: Literal["auto", "cholmod", "splu"] = "auto"
     """Linear solver of the full-space Newton steps (passed to stages.sim)."""
-    seed: int = 0
-    """Seed of every random choice (none at present; kept for reruns)."""
-    estimator: Literal["adam", "gn"] = "adam"
+    estimator: Literal["auto", "adam", "gn"] = "auto"
     """adam: a few Adam steps on the window loss per frame; gn: Gauss–Newton / Levenberg–Marquardt on the window
-    residuals with an arrival-cost prior and process noise (a moving-horizon filter), reporting E ± σ."""
+    residuals with an arrival-cost prior and process noise (a moving-horizon filter), reporting E ± σ; auto: gn
+    with markers (it settles in 4 frames against Adam's 33, docs/results/estimator.md), adam with images (whose
+    Gauss–Newton Jacobian is not validated yet)."""
     process_noise: float = 0.02
     """gn: σ of the random walk of log E (and of the ν parameter) per frame — how fast the material may change."""
     state_correction: Literal["states", "past", "off"] = "states"
@@ -131,6 +131,13 @@ class AdaptConfig:
     state_prior: float = 0.5
     """gn, --state-correction past: prior σ of the correction coefficients (in log E units: the past may look
     as if simulated with E off by this factor's exponent)."""
+
+
+def resolve_estimator(config: AdaptConfig) -> str:
+    """The estimator an "auto" config runs: gn with markers, adam with images (docs/results/estimator.md)."""
+    if config.estimator != "auto":
+        return config.estimator
+    return "gn" if config.loss == "markers" else "adam"
 
 
 # =========================================================================== backends
@@ -1123,8 +1130,9 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
     prepare_workspace(ws)  # writable? (checked before any compute) and no stale temp files
     if config.window < 1:
         raise RslError(f"{capture.toml_path}: --window must be at least 1, found {config.window}.")
-    if config.estimator not in ("adam", "gn"):
-        raise RslError(f"{capture.toml_path}: --estimator should be adam or gn, found '{config.estimator}'.")
+    if config.estimator not in ("auto", "adam", "gn"):
+        raise RslError(f"{capture.toml_path}: --estimator should be auto, adam or gn, found '{config.estimator}'.")
+    estimator = resolve_estimator(config)
     if not config.process_noise >= 0:
         raise RslError(f"{capture.toml_path}: --process-noise must be 0 or more, found {config.process_noise}.")
     if config.iters_per_frame < 1 or config.offline_iters < 1:
@@ -1242,10 +1250,10 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
         return objective(frames, p, before, need_grad)
 
     try:
-        if config.estimator == "gn" and config.mode == "online":
+        if estimator == "gn" and config.mode == "online":
             _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter,
                        backend, mat.young_range)
-        elif config.estimator == "gn":  # offline or static: one θ for every frame
+        elif estimator == "gn":  # offline or static: one θ for every frame
             if last is None:
                 raise RslError(f"{capture.toml_path}: --mode offline needs a finite frame range (not --follow "
                                f"without --frames).")
@@ -1294,7 +1302,7 @@ def _online(config, obs, capture, first, last, params, adam, evaluate, stored, r
     with reporter.task(f"adapt online ({backend.space}, {obs.kind}, w={w})", total) as task:
         T = first
         while last is None or T < last:
-            if config.follow and not _wait_for(obs, T, config.follow_timeout):
+            if config.follow and not _wait_for(obs, T, config.follow_timeout, reporter=reporter):
                 break
             frames = list(range(max(first, T - w + 1), T + 1))
             tt = time.perf_counter()
@@ -1377,7 +1385,7 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
     with reporter.task(f"adapt online gn ({backend.space}, {obs.kind}, w={w})", total) as task:
         T = first
         while last is None or T < last:
-            if config.follow and not _wait_for(obs, T, config.follow_timeout):
+            if config.follow and not _wait_for(obs, T, config.follow_timeout, reporter=reporter):
                 break
             frames = list(range(max(start_w, T - w + 1), T + 1))
             t0 = frames[0]
@@ -1506,9 +1514,12 @@ def _offline_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stor
         rec.t_tot.append((tf + tb + tr) / k)
 
 
-def _wait_for(obs, t: int, timeout: float, poll: float = 0.1) -> bool:
-    """Wait until frame t is observed; False after ``timeout`` s without it (0: wait for ever)."""
+def _wait_for(obs, t: int, timeout: float, poll: float = 0.1, reporter: Reporter = SilentReporter()) -> bool:
+    """Wait until frame t is observed; False after ``timeout`` s without it (0: wait for ever).
+    Says once that it waits, so a user (or a script) sees the frames so far are done."""
     t0 = time.monotonic()
+    if obs.available() <= t:
+        reporter.info(f"waiting for frame {t} (frames 0–{t - 1} done; Ctrl-C ends and saves them)")
     while obs.available() <= t:
         if timeout and time.monotonic() - t0 > timeout:
             return False
@@ -1563,7 +1574,7 @@ def _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs, statu
         "gaussian_anchor": getattr(obs, "anchor_kind", None),
         "refine": config.refine,
         "status": status,  # complete | interrupted | failed
-        "estimator": config.estimator,
+        "estimator": resolve_estimator(config),
         "material_changes_detected": list(getattr(rec, "changes", [])),  # gn: frames whose innovation widened θ
         "ended": "ctrl-c" if ended_by_ctrl_c else ("last frame" if status == "complete" else "error"),
         "wall_s": wall_s,

@@ -3,6 +3,7 @@ the Kalman filter of a random walk, and a nonlinear fit against scipy; Huber IRL
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -379,3 +380,13 @@ def test_adapt_gn_cli_short_run_writes_sigma(beam, tmp_path, rsl):
     assert np.all(np.isfinite(art.young_sigma)) and np.all(np.isfinite(art.poisson_sigma))
     assert abs(art.young[-1, 0] / E_TRUE - 1) < 0.10, art.young[:, 0]
     assert art.extra["estimator"] == "gn"
+
+
+def test_auto_estimator_is_gn_for_markers_and_adam_for_images():
+    from stages.adapt import AdaptConfig, resolve_estimator
+
+    base = dict(capture=Path("cap"), workspace=Path("ws"))
+    assert resolve_estimator(AdaptConfig(**base, loss="markers")) == "gn"
+    assert resolve_estimator(AdaptConfig(**base, loss="vision")) == "adam"
+    assert resolve_estimator(AdaptConfig(**base, loss="vision", estimator="gn")) == "gn"
+    assert resolve_estimator(AdaptConfig(**base, loss="markers", estimator="adam")) == "adam"
