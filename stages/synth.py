@@ -9,7 +9,13 @@ temporary folder renamed into place):
 
     capture.toml  controls.json  object.obj  regions/NAME.obj  cameras.json
     background/CAM.png  frames/CAM/000000.png  calib/CAM/viewNN.png  markers.csv
-    truth/material.csv  truth/surface.npz  truth/masks/CAM/000000.png  truth/object.mesh
+    truth/material.csv  truth/surface.npz  truth/masks/CAM/000000.png  truth/forces.csv
+    truth/object.mesh (linear truth) or truth/object.vtu (quadratic truth)
+
+Frame 0 is the declared start state ([capture] start, docs/capture.md): the static equilibrium under the
+frame-0 controls or the rest shape, at rest; later frames are ``--substeps`` implicit steps each.  The truth
+may use another discretisation than rsl adapt will (``--truth-order 2``, ``--truth-refine K``, substeps, hard
+handles): object.obj is always the rest surface of the given mesh, the truth mesh stays in truth/.
 """
 from __future__ import annotations
 

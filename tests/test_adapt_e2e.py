@@ -389,7 +389,7 @@ def test_online_markers_with_gaps_still_recovers_young(beam, tmp_path):
     ws2.mkdir()
     shutil.copy(ws / "mesh.h5", ws2 / "mesh.h5")
     art = AdaptArtefact.load(run(AdaptConfig(capture=cap2, workspace=ws2, space="full", loss="markers", window=5,
-                                             young_init=E_TRUE / 4)))
+                                             young_init=E_TRUE / 4, estimator="adam")))
     assert list(art.frames) == list(range(36)) and np.all(np.isfinite(art.young))
     assert art.young[0, 0] < 0.5 * E_TRUE
     assert abs(np.median(art.young[-8:, 0]) - E_TRUE) / E_TRUE < 0.10, art.young[:, 0]

@@ -246,3 +246,34 @@ def test_an_object_nothing_holds_is_posed_at_rest(fits, tmp_path):
     x, st = fit_pose(load_capture(cap), fits["mesh"], 0)
     np.testing.assert_array_equal(x, fits["mesh"].vertices)
     assert st["start"] == "rest" and st["declared_start"] == "equilibrium"
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_rebind_at_the_fit_positions_is_exact_for_linear_and_quadratic_tets(order):
+    """Gaussians with fit_positions x_fit (a bent beam, not the rest shape): re-bound to x_fit they render exactly
+    as the binding as fitted renders at x_fit (centre Σ N_a x_a and F Σ₀ Fᵀ at the Gaussian, P1 and P2)."""
+    from stages.adapt_loss import ImageLoss
+    from stages.fit_gaussians import seed_gaussians
+    from stages.render.gaussians import color_to_sh0
+    from stages.sim.meshgen import mesh_artefact
+
+    base = beam_mesh(4, 1, 1)
+    mesh = mesh_artefact(base.vertices, base.tets, DENSITY, order=order)
+    X = mesh.vertices
+    bend = 0.4 * (X[:, 0] + SIZE[0] / 2) ** 2  # m, a smooth downward bend
+    x_fit = X + np.stack([np.zeros_like(bend), 0.1 * bend, -bend], 1)
+    rng = np.random.default_rng(0)
+    n = 400
+    host, bary, log_s = seed_gaussians(mesh, n, 4.0, rng)
+    q = rng.normal(size=(n, 4))
+    art = GaussiansArtefact(host, bary, np.repeat(log_s[:, None], 3, 1) + rng.normal(0, 0.2, (n, 3)),
+                            q / np.linalg.norm(q, axis=1, keepdims=True), np.full(n, 2.0),
+                            color_to_sh0(rng.uniform(0.2, 0.9, (n, 3)))[:, None, :], fit_positions=x_fit)
+    cams = [look_at("side", (0.0, -0.45, 0.0))]
+    il = ImageLoss(art, mesh, cams)
+    fitted = il.render(x_fit)[0]
+    assert fitted.max() > 0.2  # the beam is in view
+    il.rebind(x_fit)
+    np.testing.assert_allclose(il.render(x_fit)[0], fitted, rtol=0, atol=2e-4)
+    il.rebind(None)  # back to the binding as fitted
+    np.testing.assert_array_equal(il.render(x_fit)[0], fitted)
