@@ -45,16 +45,29 @@ class _NullTask:
         pass
 
 
+class _LineTask:
+    """Not a terminal but --verbose: one plain line per step, so a log (or a script) sees each one finish."""
+
+    def __init__(self, description: str, total: float | None):
+        self.description, self.total, self.done = description, total, 0.0
+
+    def advance(self, n: float = 1, **fields: object) -> None:
+        self.done += n
+        of = f"/{self.total:g}" if self.total is not None else ""
+        text = "  ".join(f"{k}={_fmt(v)}" for k, v in fields.items())
+        console.print(escape(f"{self.description}: {self.done:g}{of}  {text}"), soft_wrap=True)
+
+
 class RichReporter:
     """Progress bars with rate and ETA on stderr; --quiet keeps only warnings and summaries."""
 
     @contextlib.contextmanager
     def task(self, description: str, total: float | None) -> Iterator[object]:
-        if state["quiet"] or not console.is_terminal and not state["verbose"]:
-            # Not a terminal (a log, CI): no bar redraws; one line at start.
+        if state["quiet"] or not console.is_terminal:
+            # Not a terminal (a log, CI): no bar redraws; one line at start (and one per step with --verbose).
             if not state["quiet"]:
                 console.print(f"[dim]{escape(description)} …[/]")
-            yield _NullTask()
+            yield _LineTask(description, total) if state["verbose"] and not state["quiet"] else _NullTask()
             return
         columns = [SpinnerColumn(), TextColumn("[bold]{task.description}"), BarColumn(),
                    MofNCompleteColumn(), RateColumn(), TimeElapsedColumn(), TextColumn("eta"),

@@ -47,7 +47,7 @@ import numpy as np
 
 from stages.adapt_loss import (Adam, MarkerBinding, bind_markers, chain_params, marker_residuals,
                                params_from_theta, theta_from_params)
-from stages.artefacts import (KIND_FILES, AdaptArtefact, MeshArtefact, Provenance, check_mesh_source,
+from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, MeshArtefact, Provenance, check_mesh_source,
                               check_same_mesh)
 from stages.capture import (IMAGE_SUFFIXES, Capture, CaptureError, check_obstacles_clear, load_capture,
                             read_image)
@@ -56,7 +56,6 @@ from stages.progress import Reporter, SilentReporter
 from stages.sim.meshgen import refine_tets  # noqa: F401  (re-exported: stages.adapt.refine_tets)
 from stages.workspace import prepare_workspace
 
-PARTIAL_ADAPT = "adapt.partial.h5"  # an interrupted or failed run; adapt.h5 only ever holds a complete one
 
 
 @dataclass(frozen=True)

@@ -36,6 +36,7 @@ SCHEMA_VERSION = 1
 
 # artefact kind -> its file in the workspace: what the stages of stages/registry.py write
 KIND_FILES = {s.produces: s.writes for s in _REGISTRY if s.produces}
+PARTIAL_ADAPT = "adapt.partial.h5"  # an interrupted or failed adapt run; adapt.h5 only ever holds a complete one
 
 
 class ArtefactError(RslError):

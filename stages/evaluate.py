@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.artefacts import KIND_FILES, AdaptArtefact, MeshArtefact, Provenance, _jsonable
+from stages.artefacts import KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, MeshArtefact, Provenance, _jsonable
 from stages.capture import load_capture, read_truth
 from stages.errors import RslError
 from stages.artefacts import check_same_mesh
@@ -40,6 +40,8 @@ class EvaluateConfig:
     """Frames (evenly spaced) at which renders are compared with the images (0: skip PSNR)."""
     plot: bool = True
     """Write evaluation_young.png (E(t) estimated vs truth)."""
+    partial: bool = False
+    """Evaluate adapt.partial.h5, the frames an interrupted or failed `rsl adapt` kept (refused otherwise)."""
 
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -87,8 +89,9 @@ def run(config: EvaluateConfig, reporter: Reporter = SilentReporter()) -> Path:
     ws = Path(config.workspace)
     capture = load_capture(config.capture)
     truth = read_truth(capture)
-    adapt_path, mesh_path = ws / KIND_FILES["adapt"], ws / KIND_FILES["mesh"]
-    adapt = AdaptArtefact.load(adapt_path)
+    adapt_path = ws / (PARTIAL_ADAPT if config.partial else KIND_FILES["adapt"])
+    mesh_path = ws / KIND_FILES["mesh"]
+    adapt = AdaptArtefact.load(adapt_path, allow_partial=config.partial)
     mesh = MeshArtefact.load(mesh_path)
     check_same_mesh(mesh_path, adapt_path)  # made from this very mesh.h5, whatever the counts
     frames = adapt.frames

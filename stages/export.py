@@ -33,7 +33,7 @@ from typing import Any, Iterator, Literal
 
 import numpy as np
 
-from stages.artefacts import (KIND_FILES, AdaptArtefact, MeshArtefact, Provenance, StressArtefact,
+from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, MeshArtefact, Provenance, StressArtefact,
                               read_provenance)
 from stages.capture import Capture, CaptureError, Controls, load_capture, load_controls
 from stages.errors import RslError
@@ -54,8 +54,9 @@ class ExportConfig:
     """Workspace folder holding adapt.h5 (or rollout.h5) and mesh.h5."""
     out: Path | None = None
     """Output folder; default WORKSPACE/export (WORKSPACE/export_rollout with --source rollout)."""
-    source: Literal["adapt", "rollout"] = "adapt"
-    """Which trajectory to export: adapt.h5 (the adapted sequence) or rollout.h5 (a prediction)."""
+    source: Literal["adapt", "partial", "rollout"] = "adapt"
+    """Which trajectory to export: adapt.h5 (the adapted sequence), adapt.partial.h5 (the frames an interrupted or
+    failed `rsl adapt` kept; refused unless asked for this way) or rollout.h5 (a prediction)."""
     stress: bool = False
     """Cauchy and von Mises stress per tet and vertex (stress.h5) with a per-frame summary CSV."""
     forces: bool = False
@@ -168,13 +169,13 @@ def load_sequence(config: ExportConfig) -> Sequence:
     ws = Path(config.workspace)
     if not ws.is_dir():
         raise ExportError(f"{ws}: workspace folder not found.")
-    if config.source not in ("adapt", "rollout"):
-        raise ExportError(f"--source '{config.source}' is neither adapt nor rollout.")
-    src = ws / (KIND_FILES["adapt"] if config.source == "adapt" else ROLLOUT_FILE)
+    if config.source not in ("adapt", "partial", "rollout"):
+        raise ExportError(f"--source '{config.source}' is none of adapt, partial, rollout.")
+    src = ws / {"adapt": KIND_FILES["adapt"], "partial": PARTIAL_ADAPT, "rollout": ROLLOUT_FILE}[config.source]
     if not src.exists():
-        hint = "rsl adapt" if config.source == "adapt" else "rsl rollout"
+        hint = "rsl rollout" if config.source == "rollout" else "rsl adapt"
         raise ExportError(f"{src}: file not found; run `{hint}` first.")
-    adapt = AdaptArtefact.load(src)
+    adapt = AdaptArtefact.load(src, allow_partial=config.source == "partial")
     mesh_path = ws / KIND_FILES["mesh"]
     mesh = MeshArtefact.load(mesh_path)
     check_same_mesh(mesh_path, src)  # made from this very mesh.h5, whatever the counts
@@ -842,7 +843,7 @@ def run(config: ExportConfig, reporter: Reporter = SilentReporter()) -> Path:
     ws = Path(config.workspace)
     seq = load_sequence(config)
     out = Path(config.out) if config.out is not None else \
-        ws / ("export" if config.source == "adapt" else "export_rollout")
+        ws / {"adapt": "export", "partial": "export_partial", "rollout": "export_rollout"}[config.source]
     out.mkdir(parents=True, exist_ok=True)
     chosen = chosen_products(config, ws)
     if "forces" in chosen and seq.controls is None:

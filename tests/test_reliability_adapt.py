@@ -15,7 +15,6 @@ import json
 import re
 import shutil
 import signal
-import time
 from pathlib import Path
 
 import numpy as np
@@ -217,13 +216,12 @@ def interrupted(base, tmp_path_factory) -> dict:
     root = tmp_path_factory.mktemp("ctrl_c")
     cap, ws = _copy(base, root)
     before = tree_bytes(ws)
-    proc = rsl_proc("adapt", cap, "-w", ws, *MARKERS, "--frames", "0:40", "--iters-per-frame", "8")
+    proc = rsl_proc("-v", "adapt", cap, "-w", ws, *MARKERS, "--frames", "0:40", "--iters-per-frame", "8")
     lines = []
-    for line in proc.stderr:  # wait for the loop to start, then for a few frames
+    for line in proc.stderr:  # --verbose without a terminal: a line per frame; stop after the third
         lines.append(line)
-        if "adapt online" in line:
+        if "adapt online" in line and ": 3/40" in line:
             break
-    time.sleep(15)  # a frame takes ~1 s here (8 Adam steps); 40 take far longer
     proc.send_signal(signal.SIGINT)
     rest = proc.stderr.read()
     code = proc.wait()
@@ -235,7 +233,9 @@ def interrupted(base, tmp_path_factory) -> dict:
     down = batch([["export", "-w", ws2, "--stress", "--no-plots", "--no-render", "--no-vtk", "--no-forces"],
                   ["evaluate", cap, "-w", ws2], ["info", ws2 / "adapt.h5"], ["info", ws / "adapt.partial.h5"],
                   ["status", "-w", ws2], ["run", cap, "-w", ws2, "--only", "adapt", "--dry-run"],
-                  ["status", "-w", ws]], root / "down")
+                  ["status", "-w", ws],
+                  ["export", "-w", ws, "--source", "partial", "--stress", "--no-plots", "--no-render", "--no-vtk",
+                   "--no-forces"], ["evaluate", cap, "-w", ws, "--partial"]], root / "down")
     return {"code": code, "stderr": "".join(lines) + rest, "before": before, "after": after, "ws": ws,
             "ws2": ws2, "down": down}
 
@@ -278,6 +278,18 @@ def test_downstream_refuses_partial(case: str, interrupted: dict) -> None:
         assert i == 5 or "holds an unfinished (interrupted) run, not a complete one" in out, proc.stdout
     else:
         assert_one_sentence(proc, text, "not a complete one")
+
+
+def test_downstream_takes_the_partial_run_when_asked(interrupted: dict) -> None:
+    """export --source partial and evaluate --partial read adapt.partial.h5 on purpose."""
+    import json
+
+    ws = interrupted["ws"]
+    export, evaluate = interrupted["down"][7], interrupted["down"][8]
+    assert export.returncode == 0, export.stderr
+    assert (ws / "export_partial" / "stress.h5").exists() and not (ws / "export").exists()
+    assert evaluate.returncode == 0, evaluate.stderr
+    assert len(json.loads((ws / "evaluation.json").read_text())["young_rel_error_per_frame"]) >= 3
 
 
 def test_mp4_frames_are_read(base, tmp_path: Path) -> None:
