@@ -325,3 +325,25 @@ def test_rotation_angle_small_angles(angle_rad: float) -> None:
     for axis in (np.array([1.0, 0, 0]), np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])):
         got = rotation_angle_deg(rotvec_to_matrix(angle_rad * axis))
         assert got == pytest.approx(np.degrees(angle_rad), rel=1e-9, abs=0.0)
+
+
+def test_solve_guard_tolerates_a_sliver_but_not_a_collapse(tmp_path: Path) -> None:
+    """One inverted sliver among many elements is no collapse; many inverted elements, NaN or a blow-up are."""
+    from stages.adapt import SolveCollapsed, _SolveGuard
+    from stages.sim.meshgen import box_tets
+
+    v, t = box_tets((6, 3, 3), (0.3, 0.1, 0.1))
+    guard = _SolveGuard(v, t, ["body"], tmp_path / "capture.toml", 1e5)
+    young = np.array([[1e5]])
+    x = v.copy()
+    guard([0], x[None], young)  # rest: fine
+    one = x.copy()
+    one[t[0, 0]] = 2 * one[t[0, 1]] - one[t[0, 0]]  # fold one corner across its neighbour: a few slivers invert
+    p = one[t]
+    bad = int(np.sum(np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) <= 0))
+    assert 1 <= bad <= 0.01 * len(t)
+    guard([0], one[None], young)
+    with pytest.raises(SolveCollapsed, match="inverted"):
+        guard([3], (x * np.array([1.0, 1.0, -1.0]))[None], young)  # mirrored: every element inverted
+    with pytest.raises(SolveCollapsed, match="NaN"):
+        guard([1], np.full_like(x, np.nan)[None], young)
