@@ -227,7 +227,7 @@ def test_mesh_mismatch_and_bad_frames(stretch_ws, tmp_path):
         run(ExportConfig(workspace=ws, stress=True))
     with pytest.raises(RslError, match="--frames 'x:y' is not all, last"):
         select_rows(load_sequence(ExportConfig(workspace=stretch_ws["ws"])), "x:y")
-    with pytest.raises(RslError, match="--source 'both' is neither"):
+    with pytest.raises(RslError, match="--source 'both' is none of adapt, partial, rollout"):
         run(ExportConfig(workspace=stretch_ws["ws"], source="both"))
 
 
