@@ -743,7 +743,7 @@ def write_truth(folder: str | Path, young: np.ndarray, poisson: np.ndarray, regi
                         vertices=np.asarray(vertices, np.float64))
 
 
-# the columns of truth/forces.csv, identical to those of `rsl export --forces` (stages/export.py FORCE_HEADER):
+# the columns of truth/forces.csv and of `rsl export --forces`'s forces.csv (one definition for both):
 # fx..fz = Σ internal nodal force over the handle's / obstacle's vertices, magnitude_sum = Σ of their norms,
 # applied_* = the force the handle or obstacle exerts on the object, N
 FORCE_HEADER = ["frame", "time_s", "name", "kind", "fx_N", "fy_N", "fz_N", "magnitude_sum_N",

@@ -35,7 +35,7 @@ import numpy as np
 
 from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, MeshArtefact, Provenance, StressArtefact,
                               read_provenance)
-from stages.capture import Capture, CaptureError, Controls, load_capture, load_controls
+from stages.capture import FORCE_HEADER, Capture, CaptureError, Controls, load_capture, load_controls
 from stages.errors import RslError
 from stages.artefacts import check_same_mesh
 from stages.progress import Reporter, SilentReporter
@@ -342,8 +342,6 @@ class ForceRow:
     force: st.SetForce
 
 
-FORCE_HEADER = ["frame", "time_s", "name", "kind", "fx_N", "fy_N", "fz_N", "magnitude_sum_N",
-                "applied_fx_N", "applied_fy_N", "applied_fz_N", "n_vertices"]
 
 
 def compute_forces(seq: Sequence, field: StressField, config: ExportConfig, reporter: Reporter
