@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from stages.capture import load_capture, read_truth
 from stages.errors import RslError
 from stages.artefacts import check_same_mesh
 from stages.progress import Reporter, SilentReporter
+from stages.workspace import write_text_atomic
 
 _QUAD = np.array([[2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])  # (3, 3) barycentrics
 
@@ -70,18 +70,6 @@ def symmetric_surface_distance(va: np.ndarray, fa: np.ndarray, vb: np.ndarray, f
     pa, wa = surface_samples(va, fa)
     pb, wb = surface_samples(vb, fb)
     return 0.5 * (float(wa @ point_surface_distance(pa, vb, fb)) + float(wb @ point_surface_distance(pb, va, fa)))
-
-
-def _write_json_atomic(path: Path, data: dict) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(_jsonable(data), f, indent=1)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
 
 
 def run(config: EvaluateConfig, reporter: Reporter = SilentReporter()) -> Path:
@@ -143,7 +131,7 @@ def run(config: EvaluateConfig, reporter: Reporter = SilentReporter()) -> Path:
         "provenance": Provenance.make(config, [adapt_path, mesh_path]).inputs,
     }
     path = ws / "evaluation.json"
-    _write_json_atomic(path, out)
+    write_text_atomic(path, json.dumps(_jsonable(out), indent=1))
     if config.plot:
         _plot(ws / "evaluation_young.png", frames, adapt, truth, idx, vert_err)
     ps = f", PSNR {out['psnr_mean']:.2f} dB" if psnr else ""

@@ -27,7 +27,6 @@ import html
 import io
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,6 +37,7 @@ from stages.artefacts import (KIND_FILES, AdaptArtefact, ArtefactError, MeshArte
 from stages.capture import Capture, CaptureError, load_capture
 from stages.errors import RslError
 from stages.progress import Reporter, SilentReporter
+from stages.workspace import write_text_atomic
 from stages.sim import stress as st
 
 REPORT_FILE = "report.html"
@@ -719,20 +719,6 @@ def render_page(ctx: Context, sections: list[Section]) -> str:
             f"<script>{_CHECK}</script></body></html>\n")
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
-
-
 def run(config: ReportConfig, reporter: Reporter = SilentReporter()) -> Path:
     """Write the HTML report of config.workspace; returns its path."""
     ws = Path(config.workspace)
@@ -745,7 +731,7 @@ def run(config: ReportConfig, reporter: Reporter = SilentReporter()) -> Path:
     ctx = load_context(config)
     sections = make_sections(ctx, reporter)
     out = Path(config.out) if config.out is not None else ws / REPORT_FILE
-    _write_atomic(out, render_page(ctx, sections))
+    write_text_atomic(out, render_page(ctx, sections))
     made = [s.title.split(":")[0] for s in sections if not s.missing]
     reporter.summary(f"report: {len(made)} of {len(sections)} sections ({', '.join(made) or 'none'}), "
                      f"{out.stat().st_size / 1e6:.2f} MB → {out}")

@@ -159,3 +159,21 @@ def config_differences(stored: dict | None, config: Any, ignore: tuple[str, ...]
         elif _norm(key, stored[key]) != _norm(key, current[key]):
             diffs.append(f"{key} was {stored[key]!r}, now {current[key]!r}")
     return diffs
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write a text file (JSON, HTML) under a temporary name in its folder, then rename it into place,
+    readable by all (0644); a failure leaves the previous file as it was."""
+    import tempfile
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
