@@ -17,7 +17,7 @@ import sys
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any, Callable, Sequence
 
-_ENV = {"JAX_ENABLE_X64": "1", "JAX_PLATFORMS": "cpu"}  # as stages.generate_data.RAY_ENV
+_ENV = {"JAX_ENABLE_X64": "1", "JAX_PLATFORMS": "cpu"}  # as stages.steps.generate_data.RAY_ENV
 
 
 def add_parallel_args(parser: argparse.ArgumentParser) -> None:
@@ -54,7 +54,7 @@ def map_tasks(fn: Callable, arg_list: Sequence[tuple], workers: int = 1, ray: st
 
 def _map_ray(fn: Callable, arg_list: list[tuple], address: str) -> list:
     from stages.errors import RslError
-    from stages.generate_data import connect_ray  # one way to reach a cluster, shared with rsl generate-data
+    from stages.steps.generate_data import connect_ray  # one way to reach a cluster, shared with rsl generate-data
 
     try:
         ray, started_here = connect_ray(address)

@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/adapt.py [--cases step,markers_vs_vision,regions,ablation,timing] [--work DIR]
 
-Cases (each builds its capture with stages.synth, a workspace whose mesh.h5 is the simulated tet mesh
+Cases (each builds its capture with stages.steps.synth, a workspace whose mesh.h5 is the simulated tet mesh
 — truth/object.mesh — so that identified and true E refer to one discretisation, and runs rsl adapt /
 rsl evaluate in-process):
 
@@ -63,7 +63,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from stages import adapt, calibrate, evaluate, fit_gaussians, generate_data, synth, tetrahedralize, train_subspace  # noqa: E402
+from stages.steps import adapt, calibrate, evaluate, fit_gaussians, generate_data, synth, tetrahedralize, train_subspace  # noqa: E402
 from stages.artefacts import AdaptArtefact  # noqa: E402
 from stages.progress import SilentReporter  # noqa: E402
 

@@ -31,7 +31,7 @@ W = 3
 
 
 def make_capture(root: Path, scenario: str, seed: int, schedule: str, frames: int, substeps: int):
-    from stages import synth, tetrahedralize
+    from stages.steps import synth, tetrahedralize
 
     cap = root / "cap"
     synth.run(synth.SynthConfig(mesh=BEAM, out=cap, scenario=scenario, cameras=1, frames=frames, resolution=32,
@@ -46,7 +46,7 @@ def make_capture(root: Path, scenario: str, seed: int, schedule: str, frames: in
 
 
 def run_adapt(cap: Path, ws: Path, estimator: str, process_noise: float):
-    from stages import adapt
+    from stages.steps import adapt
     from stages.artefacts import AdaptArtefact
 
     adapt.run(adapt.AdaptConfig(capture=cap, workspace=ws, space="full", loss="markers", window=W,
@@ -88,7 +88,7 @@ def timing_case(work: Path) -> list[dict]:
     v, t = box_tets(cells, (0.25, 0.25 * cells[1] / cells[0], 0.25 * cells[2] / cells[0]))
     meshio.write(str(mesh), meshio.Mesh(v, [("tetra", t)]), file_format="medit")
     frames = 4
-    from stages import calibrate, synth, tetrahedralize
+    from stages.steps import calibrate, synth, tetrahedralize
 
     cap, ws = work / "timing" / "cap", work / "timing" / "ws"  # bench/adapt.py's make_capture, linear tets
     synth.run(synth.SynthConfig(mesh=mesh, out=cap, scenario="twist", cameras=4, frames=frames, resolution=128,

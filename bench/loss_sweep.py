@@ -63,7 +63,7 @@ def shipped_mesh(density: float, order: int):
     import meshio
 
     from stages.sim.meshgen import mesh_artefact
-    from stages.synth import prepare_mesh
+    from stages.steps.synth import prepare_mesh
 
     m = meshio.read(str(ROOT / "sample_data/bar/object.mesh"))
     pm = prepare_mesh(np.asarray(m.points, float), np.asarray(m.cells_dict["tetra"]), 0.25, "")

@@ -39,7 +39,7 @@ import numba  # noqa: E402
 import torch  # noqa: E402
 
 from stages.artefacts import Camera, GaussiansArtefact, MeshArtefact  # noqa: E402
-from stages.fit_gaussians import seed_gaussians  # noqa: E402
+from stages.steps.fit_gaussians import seed_gaussians  # noqa: E402
 from stages.render import _torch_ref  # noqa: E402
 from stages.render import rasterize as rast  # noqa: E402
 from stages.render.bind_project import bind_project  # noqa: E402

@@ -35,7 +35,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from stages import adapt, calibrate, fit_gaussians, generate_data, synth, tetrahedralize, train_subspace  # noqa: E402
+from stages.steps import adapt, calibrate, fit_gaussians, generate_data, synth, tetrahedralize, train_subspace  # noqa: E402
 from stages.artefacts import AdaptArtefact  # noqa: E402
 from stages.progress import SilentReporter  # noqa: E402
 

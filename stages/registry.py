@@ -26,7 +26,7 @@ class Stage:
     dataclass of its options (field docstrings are the --help text)."""
 
     name: str  # CLI command, e.g. "fit-gaussians"
-    module: str  # e.g. "stages.fit_gaussians"
+    module: str  # e.g. "stages.steps.fit_gaussians"
     config_class: str  # e.g. "FitGaussiansConfig"
     produces: str | None  # artefact kind written into the workspace (stages.artefacts.KIND_FILES); None: elsewhere
     reads: tuple[str, ...] = ()  # artefact kinds it reads when present
@@ -83,55 +83,55 @@ class Stage:
 
 # The commands in the order `rsl --help` lists them; the `pipeline` ones are `rsl run`'s steps, in order.
 STAGES: tuple[Stage, ...] = (
-    Stage("synth", "stages.synth", "SynthConfig", None, writes="a capture folder", arguments=("mesh", "out"),
+    Stage("synth", "stages.steps.synth", "SynthConfig", None, writes="a capture folder", arguments=("mesh", "out"),
           flags=(("ramp", ("--ramp/--steps",)), ("region", ("--region", "--region-young"))),
           summary="Simulate a scenario (stretch, twist, push, drop, cable) on a mesh and film it with a ring of "
                   "cameras → a complete capture folder with ground truth (truth/material.csv, truth/surface.npz, "
                   "truth masks, markers.csv)."),
-    Stage("calibrate", "stages.calibrate", "CalibrateConfig", "cameras", writes="cameras.h5", needs_cameras=True,
+    Stage("calibrate", "stages.steps.calibrate", "CalibrateConfig", "cameras", writes="cameras.h5", needs_cameras=True,
           pipeline=True,
           summary="Camera intrinsics, distortion and poses in one world frame -> cameras.h5."),
-    Stage("tetrahedralize", "stages.tetrahedralize", "TetrahedralizeConfig", "mesh", writes="mesh.h5",
+    Stage("tetrahedralize", "stages.steps.tetrahedralize", "TetrahedralizeConfig", "mesh", writes="mesh.h5",
           volatile=("threads",), pipeline=True,
           summary="Tet mesh of the object (fTetWild from its surface, or its tet mesh as it is) with regions, "
                   "handles, rest quantities and a quality report → mesh.h5."),
-    Stage("segment", "stages.segment", "SegmentConfig", "masks", writes="masks.h5", reads=("cameras", "mesh"),
+    Stage("segment", "stages.steps.segment", "SegmentConfig", "masks", writes="masks.h5", reads=("cameras", "mesh"),
           needs_cameras=True, pipeline=True,
           summary="Masks of the object in every frame (plates, chroma, GrabCut, SAM 2) -> masks.h5."),
-    Stage("fit-gaussians", "stages.fit_gaussians", "FitGaussiansConfig", "gaussians", writes="gaussians.h5",
+    Stage("fit-gaussians", "stages.steps.fit_gaussians", "FitGaussiansConfig", "gaussians", writes="gaussians.h5",
           reads=("mesh", "cameras", "masks"), needs_cameras=True, pipeline=True,
           summary="Seed 3D Gaussians in the tets and fit their appearance to one frame's masked views "
                   "(L1 + D-SSIM) → gaussians.h5 and fit_gaussians/CAM.png."),
-    Stage("generate-data", "stages.generate_data", "GenerateDataConfig", "snapshots", writes="snapshots.h5",
+    Stage("generate-data", "stages.steps.generate_data", "GenerateDataConfig", "snapshots", writes="snapshots.h5",
           reads=("mesh",), volatile=("workers", "ray"), pipeline=True,
           summary="Simulate random interaction sequences within the envelope of the capture's controls, with E "
                   "and ν sampled per frame across the prior range of capture.toml → snapshots.h5 (training data "
                   "of the subspace)."),
-    Stage("train-subspace", "stages.train_subspace", "TrainSubspaceConfig", "subspace", writes="subspace.h5",
+    Stage("train-subspace", "stages.steps.train_subspace", "TrainSubspaceConfig", "subspace", writes="subspace.h5",
           reads=("snapshots", "mesh"), arguments=(), pipeline=True,
           summary="Fit x = φ(z) to the snapshots (autoencoder of Fulton et al. 2019, PCA, or linear-blend-skinning "
                   "modes) and the optimised cubature of its reduced energy → subspace.h5."),
-    Stage("adapt", "stages.adapt", "AdaptConfig", "adapt", writes="adapt.h5",
+    Stage("adapt", "stages.steps.adapt", "AdaptConfig", "adapt", writes="adapt.h5",
           reads=("mesh", "cameras", "masks", "gaussians", "subspace"),
           flags=(("fit_poisson", ("--fit-poisson/--fixed-poisson",)),), pipeline=True,
           summary="Adapt the material (E, ν per region) to the capture, frame by frame, over a sliding window; "
                   "writes WS/adapt.h5."),
-    Stage("evaluate", "stages.evaluate", "EvaluateConfig", None, writes="evaluation.json, evaluation_young.png",
+    Stage("evaluate", "stages.steps.evaluate", "EvaluateConfig", None, writes="evaluation.json, evaluation_young.png",
           reads=("adapt", "mesh", "gaussians", "cameras", "masks"),
           summary="Compare adapt.h5 with CAPTURE/truth (E, ν, surface distance, PSNR); writes WS/evaluation.json "
                   "and WS/evaluation_young.png."),
-    Stage("export", "stages.export", "ExportConfig", None, writes="export/", reads=("adapt", "mesh", "gaussians",
+    Stage("export", "stages.steps.export", "ExportConfig", None, writes="export/", reads=("adapt", "mesh", "gaussians",
                                                                                    "cameras"),
           arguments=(), flags=(("out", ("--out", "-o")),),
           summary="Export what the adapted simulation reveals: stress, handle and contact forces, a ParaView "
                   "series, 3DGS PLYs, stress renders and plots. With no product flag, everything the workspace "
                   "allows."),
-    Stage("report", "stages.report", "ReportConfig", None, writes="report.html",
+    Stage("report", "stages.steps.report", "ReportConfig", None, writes="report.html",
           reads=("adapt", "mesh", "gaussians", "cameras"), arguments=(), flags=(("out", ("--out", "-o")),),
           summary="Write one self-contained HTML page (WS/report.html): E(t) ± σ per region against the truth, "
                   "renders beside the photos, stress renders, handle/contact forces, timings and every "
                   "artefact's provenance. Sections the workspace cannot make say why."),
-    Stage("rollout", "stages.rollout", "RolloutConfig", None, writes="rollout.h5", reads=("adapt", "mesh", "subspace"),
+    Stage("rollout", "stages.steps.rollout", "RolloutConfig", None, writes="rollout.h5", reads=("adapt", "mesh", "subspace"),
           summary="Simulate new controls (handle and obstacle motions) with the adapted material, from the adapted "
                   "state or from rest; writes WS/rollout.h5 (read it with `rsl export --source rollout`)."),
 )

@@ -23,7 +23,7 @@ def _make_capture(root: Path, frames: int = 36, young_schedule: str = "", camera
                   ) -> tuple[Path, Path]:
     """A cable-pulled beam (97 vertices, 204 tets) filmed by `rsl synth`, and a workspace whose mesh.h5
     is the simulated tet mesh itself (so the identified E is comparable with the truth)."""
-    from stages import calibrate, synth, tetrahedralize
+    from stages.steps import calibrate, synth, tetrahedralize
 
     if not BEAM.is_file():
         pytest.skip(f"{BEAM} not present")
@@ -90,7 +90,7 @@ def test_online_markers_full_space_recovers_young_from_4x_off(beam, rsl):
 
 
 def test_offline_markers_fits_one_theta_and_writes_a_valid_artefact(beam, tmp_path):
-    from stages.adapt import AdaptConfig, run
+    from stages.steps.adapt import AdaptConfig, run
     from stages.progress import SilentReporter
 
     cap, ws = beam
@@ -109,7 +109,7 @@ def test_offline_markers_fits_one_theta_and_writes_a_valid_artefact(beam, tmp_pa
 
 
 def test_follow_processes_marker_frames_as_they_arrive(beam, tmp_path):
-    from stages.adapt import AdaptConfig, run
+    from stages.steps.adapt import AdaptConfig, run
 
     cap, ws = beam
     cap2 = tmp_path / "cap"
@@ -139,7 +139,7 @@ def test_follow_processes_marker_frames_as_they_arrive(beam, tmp_path):
 
 
 def test_frame_ready_waits_for_complete_pngs(beam, tmp_path):
-    from stages.adapt import _frame_ready
+    from stages.steps.adapt import _frame_ready
 
     cap, _ = beam
     cap2 = tmp_path / "cap"
@@ -178,7 +178,7 @@ def test_adapt_cli_reports_bad_input_in_one_sentence(beam, rsl, tmp_path):
 
 # =========================================================================== gradients
 def _objective(cap: Path, ws: Path, loss: str, space: str = "full"):
-    from stages.adapt import WindowObjective, _FullSpace, _Markers, _ReducedSpace, _Vision
+    from stages.steps.adapt import WindowObjective, _FullSpace, _Markers, _ReducedSpace, _Vision
     from stages.sim.scene import frame_inputs, make_scene
 
     capture = load_capture(cap)
@@ -381,7 +381,7 @@ def test_marker_loss_with_gaps_gradient_through_adjoint_matches_finite_differenc
 
 
 def test_online_markers_with_gaps_still_recovers_young(beam, tmp_path):
-    from stages.adapt import AdaptConfig, run
+    from stages.steps.adapt import AdaptConfig, run
 
     cap, ws = beam
     cap2 = _gappy_capture(cap, tmp_path, empty_frames=(7, 8, 20))
@@ -399,7 +399,7 @@ def test_online_markers_with_gaps_still_recovers_young(beam, tmp_path):
 @pytest.fixture(scope="module")
 def beam_reduced(beam, tmp_path_factory) -> tuple[Path, Path]:
     """The beam workspace plus a PCA subspace (r = 8) trained on generate-data snapshots."""
-    from stages import generate_data, train_subspace
+    from stages.steps import generate_data, train_subspace
 
     cap, ws = beam
     ws2 = tmp_path_factory.mktemp("reduced") / "ws"
@@ -420,7 +420,7 @@ def test_marker_loss_gradient_through_reduced_adjoint_matches_finite_differences
 
 
 def test_online_reduced_space_writes_z_and_decoded_positions(beam_reduced):
-    from stages.adapt import AdaptConfig, run
+    from stages.steps.adapt import AdaptConfig, run
 
     cap, ws = beam_reduced
     path = run(AdaptConfig(capture=cap, workspace=ws, space="reduced", loss="markers", window=3, frames="0:10",
@@ -441,7 +441,7 @@ def test_online_reduced_space_writes_z_and_decoded_positions(beam_reduced):
 def test_online_vision_reduced_space_recovers_young_from_4x_off(tmp_path, rsl):
     """The paper's configuration: images of 2 cameras, Gaussians fitted by fit-gaussians, a subspace from
     generate-data + train-subspace, online in the reduced space, starting 4x too soft."""
-    from stages import fit_gaussians, generate_data, train_subspace
+    from stages.steps import fit_gaussians, generate_data, train_subspace
 
     cap, ws = _make_capture(tmp_path, cameras=2, resolution=48)
     fit_gaussians.run(fit_gaussians.FitGaussiansConfig(capture=cap, workspace=ws, iterations=80, gaussians=1500))

@@ -130,7 +130,7 @@ def test_adam_minimises_a_quadratic_and_ignores_round_off_components():
 
 
 def test_refine_tets_keeps_volume_orientation_and_coarse_vertices():
-    from stages.adapt import refine_tets
+    from stages.steps.adapt import refine_tets
     from stages.sim.mesh import signed_volumes
 
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], float)
@@ -148,7 +148,7 @@ def test_refine_tets_keeps_volume_orientation_and_coarse_vertices():
 def test_camera_choice_by_index_or_name_and_its_errors():
     from pathlib import Path
 
-    from stages.adapt import _pick_cameras
+    from stages.steps.adapt import _pick_cameras
     from stages.errors import RslError
 
     names = ["cam0", "cam1", "cam2"]
@@ -164,7 +164,7 @@ def test_camera_choice_by_index_or_name_and_its_errors():
 def test_frame_range_parsing():
     from pathlib import Path
 
-    from stages.adapt import _parse_frames
+    from stages.steps.adapt import _parse_frames
     from stages.errors import RslError
 
     assert _parse_frames("", 40, Path("c")) == (0, 40)

@@ -11,7 +11,7 @@ import pytest
 from stages.registry import STAGES
 
 ROOT = Path(__file__).resolve().parents[1]
-STAGE_MODULES = {s.module for s in STAGES} | {"stages.report"}
+STAGES_PACKAGE = "stages.steps"  # every stage module lives here (tested below against the registry)
 ENGINES = ("stages.sim", "stages.subspace", "stages.render", "stages.vision")
 DOMAIN = ("stages.domain", "stages.errors")
 IO_PACKAGES = ("h5py", "rich", "typer", "click")
@@ -71,7 +71,7 @@ def layer(mod: str) -> int:
         return 0
     if _under(mod, ENGINES):
         return 1
-    if mod in STAGE_MODULES:
+    if _under(mod, (STAGES_PACKAGE,)):
         return 3
     if _under(mod, ("rsl_cli",)):
         return 4
@@ -98,6 +98,11 @@ def _violations() -> list[str]:
     return bad
 
 
+def test_every_registered_stage_is_in_the_stages_package() -> None:
+    assert all(s.module.startswith(STAGES_PACKAGE + ".") for s in STAGES)
+    assert {s.module for s in STAGES} == {n for n in MODULES if n.startswith(STAGES_PACKAGE + ".")}
+
+
 def test_import_graph_follows_the_layers() -> None:
     assert _violations() == []
 
@@ -111,10 +116,10 @@ def test_known_exceptions_still_exist() -> None:
 def test_the_checker_sees_violations(tmp_path: Path) -> None:
     """The checker itself: a function-local upward import and an import_module string are seen."""
     p = tmp_path / "x.py"
-    p.write_text("def f():\n    from stages.adapt import run\n\nst = importlib.import_module('stages.capture')\n")
+    p.write_text("def f():\n    from stages.steps.adapt import run\n\nst = importlib.import_module('stages.capture')\n")
     got = imports_of("stages.sim.x", p)
-    assert ("stages.adapt", 2) in got and ("stages.capture", 4) in got
-    assert layer("stages.sim.x") == 1 and layer("stages.adapt") == 3 and layer("stages.domain.controls") == 0
+    assert ("stages.steps.adapt", 2) in got and ("stages.capture", 4) in got
+    assert layer("stages.sim.x") == 1 and layer("stages.steps.adapt") == 3 and layer("stages.domain.controls") == 0
     assert layer("stages.capture") == 2 and layer("rsl_cli.app") == 4
 
 

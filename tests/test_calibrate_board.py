@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from stages.artefacts import CamerasArtefact
-from stages.calibrate import CalibrateConfig, run
+from stages.steps.calibrate import CalibrateConfig, run
 from stages.progress import SilentReporter
 from stages.capture import matrix_to_quat, read_image
 from stages.vision.boards import board_poses_json, center_offset, detect, parse_board, render_board
@@ -247,8 +247,8 @@ def test_synth_calibration_views_align_to_cameras_json(shared_data, tmp_path, rs
     """`rsl synth` renders chessboard views (seen from the board's back, i.e. mirrored for OpenCV);
     calibrating them and aligning the rig to the capture's cameras.json recovers its cameras."""
     from stages.capture import load_capture, read_cameras_json
-    from stages.synth import SynthConfig
-    from stages.synth import run as synth
+    from stages.steps.synth import SynthConfig
+    from stages.steps.synth import run as synth
 
     cap = synth(SynthConfig(mesh=shared_data / "autodef_fulton" / "onekbar.mesh", out=tmp_path / "cap", frames=2,
                             resolution=256, cameras=3, markers=0, calib_views=8))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from stages.artefacts import Camera, CamerasArtefact
-from stages.calibrate import CalibrateConfig, run
+from stages.steps.calibrate import CalibrateConfig, run
 from stages.capture import write_cameras_json, write_image
 from test_calibrate_board import make_capture
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from stages.artefacts import CamerasArtefact
-from stages.calibrate import CalibrateConfig, run
+from stages.steps.calibrate import CalibrateConfig, run
 from stages.vision.boards import parse_board, render_board
 from stages.vision.geometry import compose, mean_rotation, rotation_angle_deg, rotvec_to_matrix
 from stages.vision.sfm import SfmResult, scale_by_board, scale_by_distance

@@ -15,7 +15,7 @@ from stages.config import field_docs
 from stages.errors import RslError
 from stages.pipeline import Stage, parse_sets, run_pipeline
 from stages.progress import SilentReporter
-from stages.tetrahedralize import TetrahedralizeConfig
+from stages.steps.tetrahedralize import TetrahedralizeConfig
 from stages.workspace import MISSING, OK, STALE, artefact_state, config_differences
 from test_bad_inputs import run_batch
 
@@ -246,8 +246,8 @@ def test_real_pipeline_names_every_stage() -> None:
     assert names == ["calibrate", "tetrahedralize", "segment", "fit-gaussians", "generate-data",
                      "train-subspace", "adapt"]
     assert [s.module for s in pipeline.STAGES] == [
-        "stages.calibrate", "stages.tetrahedralize", "stages.segment", "stages.fit_gaussians",
-        "stages.generate_data", "stages.train_subspace", "stages.adapt"]
+        "stages.steps.calibrate", "stages.steps.tetrahedralize", "stages.steps.segment", "stages.steps.fit_gaussians",
+        "stages.steps.generate_data", "stages.steps.train_subspace", "stages.steps.adapt"]
     t = pipeline.stage("tetrahedralize")
     cfg = t.make_config(Path("c"), Path("w"), {"max_tets": "500", "optimize": "false"})
     assert cfg == TetrahedralizeConfig(Path("c"), Path("w"), max_tets=500, optimize=False)

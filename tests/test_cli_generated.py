@@ -169,7 +169,7 @@ def test_a_stage_command_imports_only_its_stage() -> None:
             "print('MODULES', sorted(m for m in sys.modules if m in " + repr(sorted({s.module for s in STAGES})) + "))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert "--psnr-frames" in out
-    assert out.strip().splitlines()[-1] == "MODULES ['stages.evaluate']"
+    assert out.strip().splitlines()[-1] == "MODULES ['stages.steps.evaluate']"
 
 
 def test_a_stage_that_cannot_load_breaks_only_its_command(monkeypatch: pytest.MonkeyPatch, capsys) -> None:

@@ -202,7 +202,7 @@ def test_state_correction_recovers_young_from_perturbed_starting_states():
 def beam(tmp_path_factory):
     """test_adapt_e2e's cable-pulled beam (97 vertices) filmed by `rsl synth`, with a workspace whose mesh.h5 is
     the simulated linear-tet mesh itself (order 1: the same model as the truth, so E is comparable)."""
-    from stages import calibrate, synth, tetrahedralize
+    from stages.steps import calibrate, synth, tetrahedralize
     from test_adapt_e2e import BEAM, E_TRUE
 
     if not BEAM.is_file():
@@ -220,7 +220,7 @@ def beam(tmp_path_factory):
 
 
 def _gn_window(cap, ws, loss):
-    from stages.adapt import GNWindow
+    from stages.steps.adapt import GNWindow
     from test_adapt_e2e import _objective
 
     obj, backend = _objective(cap, ws, loss)
@@ -247,7 +247,7 @@ def test_marker_residual_jacobian_matches_finite_differences(beam):
 def test_marker_jacobian_with_the_binding_to_the_equilibrium_start_matches_finite_differences(beam):
     """With start = equilibrium the markers are bound to x_0(θ): r(p) re-binds at every evaluation and ∂r/∂p
     includes the binding's derivative (through the static sensitivity of x_0); against central differences."""
-    from stages.adapt import StartWindow
+    from stages.steps.adapt import StartWindow
     from test_adapt_e2e import _window
 
     cap, ws = beam
@@ -383,7 +383,7 @@ def test_adapt_gn_cli_short_run_writes_sigma(beam, tmp_path, rsl):
 
 
 def test_auto_estimator_is_gn_for_markers_and_adam_for_images():
-    from stages.adapt import AdaptConfig, resolve_estimator
+    from stages.steps.adapt import AdaptConfig, resolve_estimator
 
     base = dict(capture=Path("cap"), workspace=Path("ws"))
     assert resolve_estimator(AdaptConfig(**base, loss="markers")) == "gn"

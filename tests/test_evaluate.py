@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.evaluate import point_surface_distance, surface_samples, symmetric_surface_distance
+from stages.steps.evaluate import point_surface_distance, surface_samples, symmetric_surface_distance
 
 
 def _square(z: float, k: int = 4, size: float = 1.0):

@@ -10,7 +10,7 @@ import pytest
 from scipy.optimize import brentq
 
 from stages.artefacts import AdaptArtefact, Provenance
-from stages.export import ExportConfig, read_pvd, run, select_rows, load_sequence
+from stages.steps.export import ExportConfig, read_pvd, run, select_rows, load_sequence
 from stages.sim.materials import lame
 from test_stress_meshes import block_artefact
 

@@ -6,7 +6,7 @@ import pytest
 
 from stages.artefacts import AdaptArtefact, Provenance
 from stages.capture import load_capture
-from stages.export import ExportConfig, run
+from stages.steps.export import ExportConfig, run
 from stages.sim.scene import frame_inputs, make_scene, simulate
 from test_export import read_csv, write_capture
 from test_stress_meshes import block_artefact

@@ -69,7 +69,7 @@ def look_at(name: str, eye, size: int = 64, f: float = 90.0) -> Camera:
 
 def truth_gaussians(mesh: MeshArtefact, n: int, seed: int) -> GaussiansArtefact:
     """Opaque Gaussians on the box's faces, coloured by position (red along x, green along y, blue along z)."""
-    from stages.fit_gaussians import seed_gaussians
+    from stages.steps.fit_gaussians import seed_gaussians
     from stages.render.gaussians import color_to_sh0
 
     rng = np.random.default_rng(seed)
@@ -137,7 +137,7 @@ def test_fit_gaussians_reaches_psnr(fitted):
 
 def test_fit_gaussians_is_reproducible(fitted, tmp_path):
     """Same seed and inputs → bit-identical parameters (a shorter run, through the library)."""
-    from stages.fit_gaussians import FitGaussiansConfig, run
+    from stages.steps.fit_gaussians import FitGaussiansConfig, run
 
     cap, ws, _ = fitted
     arrays = []

@@ -91,7 +91,7 @@ def sagged(cap, mesh) -> np.ndarray:
 
 def make_capture(root: Path, ws: Path) -> dict:
     """capture/ (toml, controls.json, object.obj, frame 0 of two cameras) and ws/ (mesh.h5, cameras.h5, masks.h5)."""
-    from stages.fit_gaussians import rest_centres, seed_gaussians
+    from stages.steps.fit_gaussians import rest_centres, seed_gaussians
     from stages.render.gaussians import BoundGaussians, color_to_sh0
 
     mesh = beam_mesh()
@@ -136,8 +136,8 @@ def fits(tmp_path_factory):
     """The same capture fitted twice: posed (the real CLI, default --pose) and at rest (--pose rest)."""
     from conftest import run_rsl
 
-    from stages.fit_gaussians import FitGaussiansConfig
-    from stages.fit_gaussians import run as fit
+    from stages.steps.fit_gaussians import FitGaussiansConfig
+    from stages.steps.fit_gaussians import run as fit
 
     base = tmp_path_factory.mktemp("fitstart")
     cap, ws = base / "capture", base / "ws"
@@ -238,7 +238,7 @@ def test_gaussians_h5_without_fit_positions_still_loads(fits, tmp_path):
 def test_an_object_nothing_holds_is_posed_at_rest(fits, tmp_path):
     """start = "equilibrium" without a handle or an obstacle: no static equilibrium exists; fit_pose uses the
     rest shape and says so."""
-    from stages.fit_gaussians import fit_pose
+    from stages.steps.fit_gaussians import fit_pose
 
     cap = tmp_path / "free"
     shutil.copytree(fits["cap"], cap)
@@ -253,7 +253,7 @@ def test_rebind_at_the_fit_positions_is_exact_for_linear_and_quadratic_tets(orde
     """Gaussians with fit_positions x_fit (a bent beam, not the rest shape): re-bound to x_fit they render exactly
     as the binding as fitted renders at x_fit (centre Σ N_a x_a and F Σ₀ Fᵀ at the Gaussian, P1 and P2)."""
     from stages.adapt_loss import ImageLoss
-    from stages.fit_gaussians import seed_gaussians
+    from stages.steps.fit_gaussians import seed_gaussians
     from stages.render.gaussians import color_to_sh0
     from stages.sim.meshgen import mesh_artefact
 

@@ -11,7 +11,7 @@ import pytest
 
 from stages.artefacts import Provenance, SnapshotsArtefact
 from stages.capture import load_capture, quat_to_matrix, select_handles
-from stages.generate_data import (GenerateDataConfig, plan_sequences, random_controls, run,
+from stages.steps.generate_data import (GenerateDataConfig, plan_sequences, random_controls, run,
                                   sample_material)
 from stages.sim.meshgen import box_tets, mesh_artefact
 

@@ -211,10 +211,10 @@ def test_synth_clamp_draws_the_handle_visual_and_no_plates_leaves_background_out
 
 # =========================================================================== rsl adapt's vision observations
 def test_adapt_vision_observations_leave_the_occluder_out(scene, tmp_path) -> None:
-    """stages.adapt._Vision on a capture whose handle carries a visual: the L1 loss it passes ImageLoss carries
+    """stages.steps.adapt._Vision on a capture whose handle carries a visual: the L1 loss it passes ImageLoss carries
     the occluder's ignore mask, and the Gauss–Newton residuals, their Jacobian columns and Jᵀ W r are zero /
     unchanged under it, whatever the frame holds there."""
-    from stages.adapt import _Vision
+    from stages.steps.adapt import _Vision
     from stages.artefacts import CamerasArtefact
     from stages.capture import load_capture, write_image
 
@@ -290,8 +290,8 @@ def test_fit_gaussians_leaves_the_occluder_pixels_out(scene, tmp_path) -> None:
 
     from stages.artefacts import CamerasArtefact, GaussiansArtefact, MasksArtefact
     from stages.capture import write_image
-    from stages.fit_gaussians import FitGaussiansConfig
-    from stages.fit_gaussians import run as fit
+    from stages.steps.fit_gaussians import FitGaussiansConfig
+    from stages.steps.fit_gaussians import run as fit
     from stages.render.mesh_raster import project_points as project
 
     mesh, cam, ign = scene.mesh, scene.cam, scene.ign

@@ -590,7 +590,7 @@ def test_p2_export_stress_per_point_and_vtk_quadratic_tetra(p2_stretch_ws):
     import pyvista
 
     from stages.artefacts import StressArtefact
-    from stages.export import ExportConfig, read_pvd, run
+    from stages.steps.export import ExportConfig, read_pvd, run
     from test_export import snh_uniaxial
 
     d = p2_stretch_ws
@@ -619,7 +619,7 @@ def test_p2_export_stress_per_point_and_vtk_quadratic_tetra(p2_stretch_ws):
 
 
 def test_p2_gaussian_values_follow_the_quadratic_field(p2_stretch_ws):
-    from stages.export import gaussian_values
+    from stages.steps.export import gaussian_values
 
     mesh = p2_stretch_ws["mesh"]
     art = p2_gaussians(mesh, 20, 12)
@@ -692,7 +692,7 @@ def test_p2_export_forces_match_closed_form(p2_stretch_ws):
     """forces.csv on the quadratic-tet block: the handles' internal-force sums are ∓P₁₁·area."""
     import csv
 
-    from stages.export import ExportConfig, run
+    from stages.steps.export import ExportConfig, run
     from test_export import snh_uniaxial
 
     d = p2_stretch_ws

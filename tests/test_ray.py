@@ -18,7 +18,7 @@ ray = pytest.importorskip("ray", reason="Ray is a test dependency (pip install -
 
 from stages.artefacts import Provenance, SnapshotsArtefact  # noqa: E402
 from stages.capture import load_capture, select_handles  # noqa: E402
-from stages.generate_data import GenerateDataConfig, run  # noqa: E402
+from stages.steps.generate_data import GenerateDataConfig, run  # noqa: E402
 from stages.sim.meshgen import box_tets, mesh_artefact  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -187,6 +187,6 @@ def test_bench_sweep_on_a_ray_head_equals_the_local_pool(ray_head, tiny, monkeyp
     ("127.0.0.1:6379", ("127.0.0.1", 6379)), ("ray://head.lab:10001", ("head.lab", 10001)),
     ("[::1]:6379", ("::1", 6379)), ("auto", None), ("local", None), ("head.lab", None)])
 def test_ray_addresses_that_are_checked_for_an_answer_first(address, endpoint):
-    from stages.generate_data import _ray_endpoint
+    from stages.steps.generate_data import _ray_endpoint
 
     assert _ray_endpoint(address) == endpoint

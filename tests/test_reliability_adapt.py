@@ -329,7 +329,7 @@ def test_rotation_angle_small_angles(angle_rad: float) -> None:
 
 def test_solve_guard_tolerates_a_sliver_but_not_a_collapse(tmp_path: Path) -> None:
     """One inverted sliver among many elements is no collapse; many inverted elements, NaN or a blow-up are."""
-    from stages.adapt import SolveCollapsed, _SolveGuard
+    from stages.steps.adapt import SolveCollapsed, _SolveGuard
     from stages.sim.meshgen import box_tets
 
     v, t = box_tets((20, 6, 6), (1.0, 0.3, 0.3))

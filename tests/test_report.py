@@ -68,7 +68,7 @@ def images(page_html: str) -> list[tuple[str, bytes]]:
 def full_ws(tmp_path_factory) -> dict:
     """A tiny synthetic capture run through calibrate, segment, tetrahedralize, fit-gaussians, adapt
     (full space, markers), evaluate and export --forces, in this process."""
-    from stages import adapt, calibrate, evaluate, export, fit_gaussians, segment, synth, tetrahedralize
+    from stages.steps import adapt, calibrate, evaluate, export, fit_gaussians, segment, synth, tetrahedralize
 
     if not BEAM.is_file():
         pytest.skip(f"{BEAM} not present")
@@ -127,7 +127,7 @@ def test_report_loads_in_headless_chromium_with_every_plot(full_ws, rsl, tmp_pat
 
 
 def test_report_forces_equal_export_forces_csv(full_ws):
-    from stages.report import ReportConfig, _compute_forces, load_context
+    from stages.steps.report import ReportConfig, _compute_forces, load_context
 
     ctx = load_context(ReportConfig(workspace=full_ws["ws"]))
     ours = _compute_forces(ctx)
@@ -146,7 +146,7 @@ def test_report_forces_equal_export_forces_csv(full_ws):
 def test_report_draws_sigma_band_and_truth_forces_when_present(full_ws, tmp_path):
     """adapt.h5 with σ of E, and a capture with truth/forces.csv: the table shows σ, no 'missing' notes."""
     from stages.progress import SilentReporter
-    from stages.report import ReportConfig, run
+    from stages.steps.report import ReportConfig, run
 
     ws, cap = tmp_path / "ws", tmp_path / "cap"
     shutil.copytree(full_ws["ws"], ws)

@@ -8,9 +8,9 @@ import pytest
 
 from stages.artefacts import AdaptArtefact, Provenance
 from stages.capture import load_capture
-from stages.export import ExportConfig
-from stages.export import run as export_run
-from stages.rollout import RolloutConfig, run
+from stages.steps.export import ExportConfig
+from stages.steps.export import run as export_run
+from stages.steps.rollout import RolloutConfig, run
 from stages.sim.scene import frame_inputs, make_scene, simulate
 from test_export import read_csv, write_capture
 from test_stress_meshes import block_artefact
@@ -106,7 +106,7 @@ def test_export_reads_rollout(adapted):
 
 
 def test_material_schedule_replay_holds_the_last_value(adapted):
-    from stages.rollout import material_schedule
+    from stages.steps.rollout import material_schedule
 
     a = AdaptArtefact.load(adapted["ws"] / "adapt.h5")
     E, nu = material_schedule(a, "replay", T1 + 3)

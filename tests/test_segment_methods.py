@@ -9,7 +9,7 @@ import pytest
 from stages.artefacts import MasksArtefact
 from stages.capture import write_image
 from stages.errors import RslError
-from stages.segment import SegmentConfig, run
+from stages.steps.segment import SegmentConfig, run
 from stages.vision.segmentation import (background_difference, chroma_key, clean_mask, iou, mesh_silhouette,
                                         temporal_majority)
 from test_calibrate_board import make_capture

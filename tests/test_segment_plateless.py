@@ -27,8 +27,8 @@ RES, T = 96, 8
 @pytest.fixture(scope="module")
 def plateless(tmp_path_factory, shared_data) -> Path:
     """A stretch capture from rsl synth with its background/ plates deleted."""
-    from stages.synth import SynthConfig
-    from stages.synth import run as synth
+    from stages.steps.synth import SynthConfig
+    from stages.steps.synth import run as synth
 
     root = tmp_path_factory.mktemp("plateless")
     cap = synth(SynthConfig(mesh=shared_data / "autodef_fulton" / "onekbar.mesh", out=root / "cap", frames=T,
@@ -136,12 +136,12 @@ def test_a_visible_gripper_is_left_out_of_the_masks(plateless, tmp_path) -> None
     """A clamp drawn over the moving end (the 'right' handle's visual, moved with its poses): with the visual
     in controls.json its pixels are in no mask and the rest matches the truth; without it, GrabCut takes
     part of the clamp for the object."""
-    from stages.calibrate import CalibrateConfig
-    from stages.calibrate import run as calibrate
+    from stages.steps.calibrate import CalibrateConfig
+    from stages.steps.calibrate import run as calibrate
     from stages.occluders import draw_occluders, ignore_mask
     from stages.progress import SilentReporter
-    from stages.segment import SegmentConfig
-    from stages.segment import run as segment
+    from stages.steps.segment import SegmentConfig
+    from stages.steps.segment import run as segment
 
     cap = _copy(plateless, tmp_path)
     data = json.loads((cap / "controls.json").read_text())
@@ -193,13 +193,13 @@ def test_grabcut_is_seeded_by_the_frame0_equilibrium_of_a_sagging_cantilever(tmp
     frame's mask matches the truth (measured IoU 0.96–0.99 for E_true 1e4–3e4 Pa with the guess 0.5–2× off);
     seeded by the straight rest shape (start = "rest" declared) GrabCut loses most of the hanging beam
     (measured 0.37 at 1e4 Pa)."""
-    from stages.calibrate import CalibrateConfig
-    from stages.calibrate import run as calibrate
+    from stages.steps.calibrate import CalibrateConfig
+    from stages.steps.calibrate import run as calibrate
     from stages.progress import SilentReporter
-    from stages.segment import SegmentConfig
-    from stages.segment import run as segment
-    from stages.synth import SynthConfig
-    from stages.synth import run as synth
+    from stages.steps.segment import SegmentConfig
+    from stages.steps.segment import run as segment
+    from stages.steps.synth import SynthConfig
+    from stages.steps.synth import run as synth
 
     beam = shared_data / "autodef_fulton" / "Coarse_beam.mesh"
     cap = synth(SynthConfig(mesh=beam, out=tmp_path / "cap", scenario="cable", amplitude=0.01, cameras=1, frames=3,

@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 
 from stages.artefacts import MasksArtefact, MeshArtefact
-from stages.calibrate import CalibrateConfig
-from stages.calibrate import run as calibrate
+from stages.steps.calibrate import CalibrateConfig
+from stages.steps.calibrate import run as calibrate
 from stages.capture import read_image
 from stages.errors import RslError
 from stages.progress import SilentReporter
-from stages.segment import SegmentConfig, run
+from stages.steps.segment import SegmentConfig, run
 from stages.sim.mesh import rest_quantities
 from stages.vision.segmentation import iou
 
@@ -28,8 +28,8 @@ def synth_ws(tmp_path_factory, shared_data):
     its cameras.json) and mesh.h5 (its rest tet mesh) in a workspace."""
     import meshio
 
-    from stages.synth import SynthConfig
-    from stages.synth import run as synth
+    from stages.steps.synth import SynthConfig
+    from stages.steps.synth import run as synth
 
     root = tmp_path_factory.mktemp("seg")
     cap = synth(SynthConfig(mesh=shared_data / "autodef_fulton" / "onekbar.mesh", out=root / "cap", frames=10,

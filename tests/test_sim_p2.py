@@ -354,7 +354,7 @@ def test_tetrahedralize_order_2_puts_boundary_nodes_on_a_curved_surface(tmp_path
     from stages.artefacts import MeshArtefact
     from stages.meshing import closest_points_on_surface
     from stages.sim.quadrature import jacobian_ratio
-    from stages.tetrahedralize import TetrahedralizeConfig, run
+    from stages.steps.tetrahedralize import TetrahedralizeConfig, run
 
     cap = tmp_path / "ball"
     cap.mkdir()

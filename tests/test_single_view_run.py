@@ -27,8 +27,8 @@ def make_single_view_capture(root: Path, beam: Path, frames: int = 10, resolutio
     --no-plates) and its markers as markers.c3d (mm, 30 Hz) instead of markers.csv."""
     from stages import mocap
     from stages.capture import read_markers
-    from stages.synth import SynthConfig
-    from stages.synth import run as synth
+    from stages.steps.synth import SynthConfig
+    from stages.steps.synth import run as synth
 
     cap = synth(SynthConfig(mesh=beam, out=root / "cap", scenario="cable", cameras=1, frames=frames,
                             resolution=resolution, young=1.0e5, markers=20, calib_views=0, seed=0,

@@ -20,7 +20,7 @@ from stages.subspace import ReducedModel
 from stages.subspace.networks import KINDS, LINEAR_KINDS, SubspaceMap, required_weights
 from stages.subspace.train import (farthest_point_samples, fit_subspace, harmonic_weights, lbs_basis, lbs_modes,
                                    mass_orthonormalise, pca_basis, reconstruction_error, stiffness_laplacian)
-from stages.train_subspace import TrainSubspaceConfig, run
+from stages.steps.train_subspace import TrainSubspaceConfig, run
 from test_subspace_networks import bend_twist
 from test_train_subspace_cli import _scene, _workspace
 

@@ -9,7 +9,7 @@ import pytest
 from stages.capture import load_capture
 from stages.sim.meshgen import box_tets, mesh_artefact
 from stages.sweep import parabolic_minimum, sweep
-from stages.synth import SynthConfig, prepare_mesh, run
+from stages.steps.synth import SynthConfig, prepare_mesh, run
 
 
 def test_parabolic_minimum_finds_the_vertex_on_an_uneven_grid():

@@ -12,7 +12,7 @@ import pytest
 from stages.capture import load_capture, read_cameras_json, read_image, read_truth
 from stages.progress import SilentReporter
 from stages.sim.meshgen import box_tets
-from stages.synth import (SynthConfig, parse_region, prepare_mesh, run, scenario_controls, young_schedule)
+from stages.steps.synth import (SynthConfig, parse_region, prepare_mesh, run, scenario_controls, young_schedule)
 from stages.errors import RslError
 from conftest import run_rsl
 
@@ -123,7 +123,7 @@ def _rest(cap) -> np.ndarray:
 
 
 def test_regions_file_selects_the_same_tets(capture):
-    from stages.tetrahedralize import assign_regions
+    from stages.steps.tetrahedralize import assign_regions
 
     cap = load_capture(capture)
     m = meshio.read(str(cap.truth_dir / "object.mesh"))
@@ -136,8 +136,8 @@ def test_regions_file_selects_the_same_tets(capture):
 
 def test_tetrahedralize_accepts_the_capture(capture, tmp_path):
     from stages.artefacts import MeshArtefact
-    from stages.tetrahedralize import TetrahedralizeConfig
-    from stages.tetrahedralize import run as tetrahedralize
+    from stages.steps.tetrahedralize import TetrahedralizeConfig
+    from stages.steps.tetrahedralize import run as tetrahedralize
 
     tetrahedralize(TetrahedralizeConfig(capture=capture, workspace=tmp_path / "ws", edge_length=0.2))
 
@@ -329,7 +329,7 @@ def test_visible_points_sees_the_near_side_of_a_sphere_and_agrees_with_ray_casti
 
 
 def test_occlude_markers_keeps_markers_seen_by_enough_cameras():
-    from stages.synth import occlude_markers
+    from stages.steps.synth import occlude_markers
 
     x, faces, cams, depths = _sphere_views()
     pts = np.array([[0.0499, 0, 0], [-0.0499, 0, 0]])[None]  # near side of camera 0, far side of camera 0

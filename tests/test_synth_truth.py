@@ -11,7 +11,7 @@ import pytest
 from conftest import run_rsl
 from stages.capture import FORCE_HEADER, load_capture, read_forces_csv, read_truth
 from stages.sim.meshgen import box_tets, mesh_artefact, refine_tets
-from stages.synth import SynthConfig, run
+from stages.steps.synth import SynthConfig, run
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +110,7 @@ def test_equilibrium_start_is_refused_for_a_falling_object(box_mesh, tmp_path):
 
 
 def test_truth_forces_have_the_export_header_and_balance_the_load(p2_capture):
-    from stages.export import FORCE_HEADER as EXPORT_HEADER
+    from stages.steps.export import FORCE_HEADER as EXPORT_HEADER
 
     assert FORCE_HEADER == EXPORT_HEADER
     cap = load_capture(p2_capture)

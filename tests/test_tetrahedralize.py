@@ -15,7 +15,7 @@ from stages.artefacts import MeshArtefact, read_provenance
 from stages.capture import CaptureError
 from stages.progress import SilentReporter
 from stages.sim.mesh import signed_volumes
-from stages.tetrahedralize import (TetrahedralizeConfig, boundary_faces, dihedral_angles, enclosed_volume,
+from stages.steps.tetrahedralize import (TetrahedralizeConfig, boundary_faces, dihedral_angles, enclosed_volume,
                                    orient_tets, run, winding_numbers)
 
 TOML = """[capture]

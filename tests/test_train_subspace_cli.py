@@ -11,7 +11,7 @@ from stages.progress import SilentReporter
 from stages.sim.meshgen import box_tets, mesh_artefact
 from stages.sim.scene import FrameInputs, HandleSpec, Scene
 from stages.subspace import ReducedModel
-from stages.train_subspace import TrainSubspaceConfig, run
+from stages.steps.train_subspace import TrainSubspaceConfig, run
 from test_subspace_networks import bend_twist, half_ref, random_net
 
 

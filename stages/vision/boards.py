@@ -5,7 +5,7 @@ Board specs (the ``--board`` option)::
     chessboard:COLSxROWS:SQUARE_M                 COLS×ROWS *inner* corners, square side in metres
     charuco:SXxSY:SQUARE_M:MARKER_M:DICT          SX×SY squares, ArUco dictionary name (DICT_6X6_250)
 
-The board frame (used by ``calib/board_poses.json``, see stages/calibrate.py):
+The board frame (used by ``calib/board_poses.json``, see stages/steps/calibrate.py):
 
 - chessboard: origin at the first inner corner OpenCV reports, x along a row of
   COLS corners, y along the ROWS direction, z = 0 on the board (z points into the

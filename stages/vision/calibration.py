@@ -11,7 +11,7 @@
    resolved against the consensus), then all T_c and free B_v are refined jointly by
    minimising Σ ‖π(K_c, d_c, T_c B_v X_k) − u_cvk‖² with intrinsics held fixed.
 
-Pure functions over arrays; the stage (stages/calibrate.py) reads images and writes files.
+Pure functions over arrays; the stage (stages/steps/calibrate.py) reads images and writes files.
 """
 from __future__ import annotations
 

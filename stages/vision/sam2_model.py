@@ -1,7 +1,7 @@
 """SAM 2 (Ravi et al. 2024) as an optional segmenter, prompted by a prior mask.
 
 The ``sam2`` package is optional (``pip install sam2``); nothing is ever downloaded: the
-user supplies the checkpoint (read by stages/segment.py) and the name of its model config.
+user supplies the checkpoint (read by stages/steps/segment.py) and the name of its model config.
 Each frame is prompted with the prior's bounding box and one positive point at the prior's
 most interior pixel (maximum of the distance transform); the prior is the projected rest
 mesh for the first frame, then the previous frame's mask.

@@ -53,7 +53,7 @@ from stages.capture import (IMAGE_SUFFIXES, Capture, CaptureError, check_obstacl
                             read_image)
 from stages.errors import Interrupted, RslError
 from stages.progress import Reporter, SilentReporter
-from stages.sim.meshgen import refine_tets  # noqa: F401  (re-exported: stages.adapt.refine_tets)
+from stages.sim.meshgen import refine_tets  # noqa: F401  (re-exported: stages.steps.adapt.refine_tets)
 from stages.workspace import prepare_workspace
 
 
