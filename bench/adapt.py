@@ -387,7 +387,7 @@ def loss_sweep(cap: Path, ws: Path, loss: str, factors: list[float], ends=(10, 2
     window taken from the truth simulation (E_true), the observation anchored as rsl adapt does (markers bound
     to, Gaussians re-bound to / offset by frame 0 simulated with the swept θ); per window
     end: losses, dL/dlog E, and the argmin of a parabola through the three grid points around the smallest."""
-    from stages.adapt_loss import params_from_theta
+    from stages.parameters import params_from_theta
     from stages.artefacts import MeshArtefact
     from stages.capture import load_capture
     from stages.sim.scene import frame_inputs, make_scene, simulate

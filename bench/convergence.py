@@ -28,7 +28,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from stages.capture import Controls, Handle, Selection, Track  # noqa: E402
-from stages.sim.meshgen import box_tets, mesh_artefact  # noqa: E402
+from stages.artefacts import mesh_artefact  # noqa: E402
+from stages.sim.meshgen import box_tets  # noqa: E402
 from stages.sim.scene import frame_inputs, make_scene  # noqa: E402
 from stages.sim.static import equilibrium  # noqa: E402
 

@@ -29,7 +29,8 @@ sys.path.insert(0, str(ROOT))
 from stages.capture import Controls, Handle, Selection, Track  # noqa: E402
 from stages.sim.elements import GRADIENT, HESSIAN, element_terms  # noqa: E402
 from stages.sim.linsolve import available_solvers  # noqa: E402
-from stages.sim.meshgen import box_tets, mesh_artefact  # noqa: E402
+from stages.artefacts import mesh_artefact  # noqa: E402
+from stages.sim.meshgen import box_tets  # noqa: E402
 from stages.sim.scene import (_cache, _region_lame, _vertex_terms, frame_inputs, make_scene, simulate,  # noqa: E402
                               step, window_adjoint)
 

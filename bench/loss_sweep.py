@@ -62,7 +62,7 @@ def shipped_mesh(density: float, order: int):
     """rsl's mesh of the shipped object: sample_data/bar's tets, placed as rsl synth placed them."""
     import meshio
 
-    from stages.sim.meshgen import mesh_artefact
+    from stages.artefacts import mesh_artefact
     from stages.steps.synth import prepare_mesh
 
     m = meshio.read(str(ROOT / "sample_data/bar/object.mesh"))

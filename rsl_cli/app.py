@@ -16,6 +16,7 @@ import typer
 from rsl_cli import commands
 from rsl_cli.console import console, error, state
 from rsl_cli.options import RslGroup
+from stages.errors import Interrupted, RslError
 
 app = typer.Typer(
     cls=RslGroup,
@@ -54,8 +55,6 @@ _register_commands()
 
 def main() -> None:
     """Run the CLI; an RslError or a bad path ends with one red sentence and exit 1."""
-    from stages.errors import Interrupted, RslError
-
     try:
         rc = app(standalone_mode=False)
         if rc == 130:  # typer turns a Ctrl-C (KeyboardInterrupt) into exit code 130

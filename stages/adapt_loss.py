@@ -128,54 +128,6 @@ def marker_loss(binding: MarkerBinding, X: np.ndarray, P: np.ndarray) -> tuple[f
     return float(np.sum(r * r)), binding.scatter(2.0 * r, X.shape[1])
 
 
-# =========================================================================== parameters
-def theta_from_params(log_young: np.ndarray, s_poisson: np.ndarray, poisson_range: tuple
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """E = exp(log E);  ν = ν_lo + (ν_hi − ν_lo)·sigmoid(s)  (per region; ν_lo, ν_hi scalars or (R,))."""
-    lo, hi = poisson_range
-    return np.exp(log_young), lo + (hi - lo) / (1.0 + np.exp(-s_poisson))
-
-
-def params_from_theta(young: np.ndarray, poisson: np.ndarray, poisson_range: tuple[float, float]
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse of :func:`theta_from_params` (ν is clipped strictly inside the range)."""
-    lo, hi = np.asarray(poisson_range[0], float), np.asarray(poisson_range[1], float)
-    width = hi - lo
-    safe = np.where(width > 1e-9, width, 1.0)
-    u = np.clip((np.asarray(poisson, float) - lo) / safe, 1e-4, 1 - 1e-4)
-    return np.log(young), np.where(width > 1e-9, np.log(u / (1 - u)), 0.0)
-
-
-def chain_params(dL_dE: np.ndarray, dL_dnu: np.ndarray, young: np.ndarray, s_poisson: np.ndarray,
-                 poisson_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
-    """dL/dlog E = E · dL/dE;  dL/ds = (ν_hi − ν_lo) σ(s)(1 − σ(s)) · dL/dν."""
-    lo, hi = poisson_range
-    sig = 1.0 / (1.0 + np.exp(-s_poisson))
-    return young * dL_dE, (hi - lo) * sig * (1 - sig) * dL_dnu
-
-
-class Adam:
-    """Adam (Kingma & Ba 2015) on a flat numpy vector: m ← β₁m + (1−β₁)g, v ← β₂v + (1−β₂)g²,
-    p ← p − lr · m̂ / (√v̂ + ε),  ε = eps · max √v̂ (relative, so that a component whose gradient
-    is only round-off next to the others does not take full-size steps)."""
-
-    def __init__(self, lr: np.ndarray | float, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-6):
-        self.lr, self.b1, self.b2, self.eps = lr, beta1, beta2, eps
-        self.m = self.v = None
-        self.k = 0
-
-    def step(self, p: np.ndarray, g: np.ndarray) -> np.ndarray:
-        if self.m is None:
-            self.m, self.v = np.zeros_like(g), np.zeros_like(g)
-        self.k += 1
-        self.m = self.b1 * self.m + (1 - self.b1) * g
-        self.v = self.b2 * self.v + (1 - self.b2) * g * g
-        mh = self.m / (1 - self.b1 ** self.k)
-        vh = self.v / (1 - self.b2 ** self.k)
-        eps = self.eps * float(np.sqrt(np.max(vh, initial=0.0))) + 1e-300
-        return p - self.lr * mh / (np.sqrt(vh) + eps)
-
-
 # =========================================================================== point location in tets
 def tet_barycentrics(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Barycentric coordinates (P, 4) of points (P, 3) in the tets (P, 4) given per point (rows sum to 1;
@@ -211,14 +163,20 @@ def locate_in_tets(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, c
 
     points = np.asarray(points, np.float64)
     c = vertices[tets]  # (M, 4, 3)
-    Dinv = np.linalg.inv(shape_matrices(vertices, tets))  # (M, 3, 3)
     x0 = c[:, 0]
     tree = cKDTree(c.mean(1))
+    every: list = []  # D⁻¹ of every tet (M, 3, 3), made once if few points do not need only their candidates'
 
     def best(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         _, cand = tree.query(p, k=k)
         cand = np.asarray(cand, np.int64).reshape(len(p), k)
-        lam = np.einsum("pkij,pkj->pki", Dinv[cand], p[:, None] - x0[cand])
+        if cand.size < len(tets) and not every:  # the candidates' inverses only (the same floats)
+            Dc = np.linalg.inv(shape_matrices(vertices, tets[cand.ravel()])).reshape(len(p), k, 3, 3)
+        else:
+            if not every:
+                every.append(np.linalg.inv(shape_matrices(vertices, tets)))
+            Dc = every[0][cand]
+        lam = np.einsum("pkij,pkj->pki", Dc, p[:, None] - x0[cand])
         b = np.concatenate([1.0 - lam.sum(-1, keepdims=True), lam], axis=-1)  # (P, k, 4)
         j = np.argmax(b.min(2), axis=1)
         r = np.arange(len(p))
@@ -255,16 +213,27 @@ def invert_element_map(points: np.ndarray, vertices: np.ndarray, tets: np.ndarra
     return np.concatenate([1.0 - xi.sum(1, keepdims=True), xi], axis=1)
 
 
-def locate_in_elements(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, candidates: int = 16
-                       ) -> tuple[np.ndarray, np.ndarray]:
+def locate_in_elements(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, candidates: int = 16,
+                       hint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(element (P,), barycentric corner coordinates (P, 4)) of points (P, 3) in a mesh of linear (m, 4) or
     quadratic (m, 10) tets at positions vertices (n, 3): :func:`locate_in_tets` in the corner tets, then for
     quadratic tets the exact inverse of the (curved) element map (:func:`invert_element_map`); a point that
     this puts outside its element (a curved element bulges past its corner tet) is inverted in each of the
-    ``candidates`` elements with the nearest corner centroids and kept in the one it is most inside."""
+    ``candidates`` elements with the nearest corner centroids and kept in the one it is most inside.
+    ``hint`` (P,): a guess of each point's element (e.g. its host before a small motion); a point strictly inside
+    the hinted corner tet (every barycentric > 1e-9: the one tet that holds it) keeps it without the search."""
     tets = np.asarray(tets, np.int64)
     points = np.asarray(points, np.float64)
-    host, bary = locate_in_tets(points, vertices, tets[:, :4])
+    if hint is None:
+        host, bary = locate_in_tets(points, vertices, tets[:, :4])
+    else:
+        host = np.asarray(hint, np.int64).copy()
+        c = tets[host, :4]  # the arithmetic of locate_in_tets, so a kept hint gives the very same floats
+        lam = np.einsum("pij,pj->pi", np.linalg.inv(shape_matrices(vertices, c)), points - vertices[c[:, 0]])
+        bary = np.concatenate([1.0 - lam.sum(-1, keepdims=True), lam], axis=-1)
+        out = np.flatnonzero(~(bary.min(1) > 1e-9))
+        if len(out):
+            host[out], bary[out] = locate_in_tets(points[out], vertices, tets[:, :4])
     if tets.shape[1] != 10:
         return host, bary
     bary = invert_element_map(points, vertices, tets, host, bary)
@@ -334,6 +303,7 @@ class ImageLoss:
         self._fit_means = np.einsum("gk,gkd->gd", N, xe)
         F_fit = np.einsum("gki,gkj->gij", xe, G)
         self._fit_cov = F_fit @ self._fit_cov0 @ F_fit.transpose(0, 2, 1)
+        self._anchor_x = None  # (n, 3) the configuration of the last rebind (None: bound as fitted)
         self._set_binding(self._fit_host, self._fit_bary, self._fit_cov0)
         self.cams = [self.g.camera(c) for c in cameras]
         self.background = self.g.background.detach().numpy().astype(np.float32)  # (3,)
@@ -352,6 +322,7 @@ class ImageLoss:
         (stages.sim.quadrature.point_map), μ = Σ N_a x_a, F = Σ x_a ⊗ G_a."""
         torch, dt = self.torch, self.g.dtype
         self.host_tet = np.asarray(host, np.int64)
+        self._bary_np = np.asarray(bary, np.float64)
         self._host = torch.as_tensor(self._tets[self.host_tet])  # (G, 4 | 10) vertex ids
         self._dm_inv = torch.as_tensor(self._dm_inv_all[self.host_tet], dtype=dt)
         self._bary = torch.as_tensor(np.asarray(bary, np.float64), dtype=dt)
@@ -364,10 +335,12 @@ class ImageLoss:
         """Bind the fitted Gaussians to the tets of configuration x_fit (n, 3) (None: back to the binding as
         fitted, in the rest frame); see the class docstring.  Always starts from the fitted Gaussians."""
         if x_fit is None:
+            self._anchor_x = None
             self._set_binding(self._fit_host, self._fit_bary, self._fit_cov0)
             return
         x = np.asarray(x_fit, np.float64)
-        host, bary = locate_in_elements(self._fit_means, x, self._tets)
+        self._anchor_x = x.copy()  # (n, 3): the configuration of the binding (see :meth:`anchored_geometry`)
+        host, bary = locate_in_elements(self._fit_means, x, self._tets, hint=self.host_tet)  # x moves little
         if self.quadratic:  # F = Σ x_a ⊗ G_a at each Gaussian's new location
             _, G, _ = point_map(self._rest, self._tets, host, bary)
             F = np.einsum("gki,gkj->gij", x[self._tets[host]], G)
@@ -381,14 +354,53 @@ class ImageLoss:
         self.backgrounds = [None if b is None else self.torch.as_tensor(np.asarray(b, np.float32))
                             for b in backgrounds]
 
-    def images(self, xt) -> list:
+    def anchored_geometry(self, xa) -> tuple:
+        """The binding of :meth:`rebind` as a differentiable function of the anchor configuration xa (n, 3)
+        (torch): (β (G, 4), Σ₀ (G, 3, 3), and for quadratic tets N (G, 10), G (G, 10, 3)), each Gaussian staying
+        in the element :meth:`rebind` found.  β(xa) solves Σ_a N_a(β) xa_a = μ_fit (linear tets: the barycentric
+        coordinates of μ_fit in the tet of xa; quadratic: one Newton step of the element map's inverse from the
+        β of :meth:`rebind` — at xa = the rebind configuration its value is that β and its derivative exact,
+        by the implicit-function theorem), Σ₀(xa) = F_a⁻¹ Σ_fit F_a⁻ᵀ with F_a the deformation gradient at the
+        Gaussian in xa.  So dμ_t/dxa = −F_t F_a⁻¹ Σ N_a(β) (the Gaussians stay where they were fitted at the
+        fit frame, whatever the anchor), which the gradient of :meth:`__call__` with ``anchor_grad`` carries."""
+        torch = self.torch
+        f64 = torch.float64
+        xa = torch.as_tensor(xa).to(f64)
+        mu = torch.as_tensor(self._fit_means, dtype=f64)
+        cov_fit = torch.as_tensor(self._fit_cov, dtype=f64)
+        hv = self._host.reshape(-1)
+        ca = xa.index_select(0, hv).reshape(-1, self._host.shape[1], 3)  # (G, k, 3)
+        if self.quadratic:
+            from stages.render.gaussians import p2_shape
+
+            b0 = torch.as_tensor(self._bary_np, dtype=f64)
+            N0, dN0 = p2_shape(b0)
+            Jxi = torch.einsum("gai,gaj->gij", ca, dN0)  # ∂x/∂ξ at β₀
+            dxi = torch.linalg.solve(Jxi, (mu - (N0[:, :, None] * ca).sum(1))[..., None])[..., 0]
+            beta = b0 + torch.cat([-dxi.sum(1, keepdim=True), dxi], 1)
+            N, dN = p2_shape(beta)
+            Xr = torch.as_tensor(self._rest[self._tets[self.host_tet]], dtype=f64)
+            Jr = torch.einsum("gai,gaj->gij", Xr, dN)  # ∂X/∂ξ (rest)
+            G = torch.einsum("gaj,gij->gai", dN, torch.linalg.inv(Jr).transpose(1, 2))  # J⁻ᵀ ∂N/∂ξ
+            Fa = torch.einsum("gai,gaj->gij", ca, G)
+        else:
+            D = (ca[:, 1:4] - ca[:, 0:1]).transpose(1, 2)  # (G, 3, 3) columns x_k − x_0
+            lam = torch.linalg.solve(D, (mu - ca[:, 0])[..., None])[..., 0]
+            beta = torch.cat([1.0 - lam.sum(1, keepdim=True), lam], 1)
+            N = G = None
+            Fa = D @ torch.as_tensor(self._dm_inv_all[self.host_tet], dtype=f64)
+        Fi = torch.linalg.inv(Fa)
+        return beta, Fi @ cov_fit @ Fi.transpose(1, 2), N, G
+
+    def images(self, xt, xa=None) -> list:
         """Renders (H, W, 3) of every camera at positions xt (n, 3), torch, differentiable.
 
         The same image formation as ``BoundGaussians.render`` (the reference the tests hold this to), with
         the position-dependent geometry computed once for all cameras: μ = Σ βₖ xₖ (quadratic tets: Σ N_a x_a,
         F = Σ x_a ⊗ G_a at the Gaussian), Σ = F Σ₀ Fᵀ, where the
         barycentric weights β and rest covariances Σ₀ = R S² Rᵀ are fixed (only colours and opacities are
-        ever refined here) — or those of :meth:`rebind`.
+        ever refined here) — or those of :meth:`rebind`; with ``xa`` (n, 3) torch after a :meth:`rebind`, those
+        of :meth:`anchored_geometry` at xa (differentiable in xa too).
         """
         torch = self.torch
         from stages.render.gaussians import RASTERIZERS, sh_to_color
@@ -396,16 +408,19 @@ class ImageLoss:
 
         g = self.g
         x = torch.as_tensor(xt).to(g.dtype)
+        bary, N, G, cov0 = self._bary, getattr(self, "_N", None), getattr(self, "_G", None), self._cov0
+        if xa is not None and self._anchor_x is not None:
+            bary, cov0, N, G = (None if a is None else a.to(g.dtype) for a in self.anchored_geometry(xa))
         # index_select: its backward is index_add_, much faster on the CPU than advanced indexing's
         corners = x.index_select(0, self._host.reshape(-1)).reshape(-1, self._host.shape[1], 3)  # (G, k, 3)
         if self.quadratic:
-            means = (self._N[:, :, None] * corners).sum(1)
-            F = torch.einsum("gai,gaj->gij", corners, self._G)
+            means = (N[:, :, None] * corners).sum(1)
+            F = torch.einsum("gai,gaj->gij", corners, G)
         else:
-            means = (self._bary[:, :, None] * corners).sum(1)
+            means = (bary[:, :, None] * corners).sum(1)
             ds = (corners[:, 1:4] - corners[:, 0:1]).transpose(1, 2)
             F = ds @ self._dm_inv
-        covs = F @ self._cov0 @ F.transpose(1, 2)
+        covs = F @ cov0 @ F.transpose(1, 2)
         opac = g.opacities()
         out = []
         for cam, bg in zip(self.cams, self.backgrounds):
@@ -420,21 +435,26 @@ class ImageLoss:
             out.append(premult + (1 - alpha)[..., None] * (g.background if bg is None else bg))
         return out
 
-    def __call__(self, x: np.ndarray, targets: list[np.ndarray], ignore: list[np.ndarray | None] | None = None
-                 ) -> tuple[float, np.ndarray]:
+    def __call__(self, x: np.ndarray, targets: list[np.ndarray], ignore: list[np.ndarray | None] | None = None,
+                 anchor_grad: bool = False) -> tuple:
         """(L, dL/dx (n, 3)) for positions x (n, 3) and one target image (H, W, 3) in [0, 1] per camera.
 
         ``ignore``: per camera None or an (H, W) bool mask of pixels left out of the loss (an occluder covers
         them, stages/occluders.py): L = Σ_c Σ_{p not ignored} |R_p − Ĩ_p|₁, so those pixels add nothing to L
         or to dL/dx whatever the render and the target hold there.
+        ``anchor_grad``: (L, dL/dx, dL/dxa (n, 3)), dL/dxa the derivative with respect to the configuration of the
+        last :meth:`rebind` (:meth:`anchored_geometry`; zeros without one) — the anchor is x_f(θ), so a
+        gradient in θ needs dL/dxa · dx_f/dθ as well as dL/dx · dx/dθ.
         """
         torch = self.torch
         xt = torch.tensor(np.asarray(x, np.float64), requires_grad=True)
+        anchored = anchor_grad and self._anchor_x is not None
+        xa = torch.tensor(self._anchor_x, requires_grad=True) if anchored else None
         if self.opt is not None:
             self.opt.zero_grad()
         ignore = list(ignore) if ignore is not None else [None] * len(targets)
         loss = 0.0
-        for img, target, ign in zip(self.images(xt), targets, ignore):
+        for img, target, ign in zip(self.images(xt, xa), targets, ignore):
             diff = (img - torch.as_tensor(target, dtype=torch.float32)).abs()
             if ign is not None:
                 keep = torch.as_tensor(~np.asarray(ign, bool))[..., None]
@@ -443,7 +463,10 @@ class ImageLoss:
         loss.backward()
         if self.opt is not None:
             self.opt.step()
-        return float(loss.detach()), xt.grad.numpy().copy()
+        out = (float(loss.detach()), xt.grad.numpy().copy())
+        if not anchor_grad:
+            return out
+        return out + (xa.grad.numpy().copy() if anchored else np.zeros_like(out[1]),)
 
     def render(self, x: np.ndarray) -> list[np.ndarray]:
         """Images (H, W, 3) float32 in [0, 1], one per camera, at positions x (n, 3)."""

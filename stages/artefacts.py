@@ -30,6 +30,8 @@ import numpy as np
 from stages.domain.cameras import Camera  # noqa: F401 (re-exported; the type lives in the domain layer)
 from stages.errors import RslError
 from stages.registry import STAGES as _REGISTRY
+from stages.sim.mesh import boundary_faces, rest_quantities
+from stages.sim.quadrature import element_order, quadratic_surface, quadratic_tets
 
 RSL_VERSION = "0.1.0"
 SCHEMA_VERSION = 1
@@ -747,6 +749,27 @@ class MeshArtefact:
                 v, tets, faces, region, list(names), vol, dm_inv, masses,
                 float(r.attr("density")), handles, json.loads(r.attr("quality", "{}")), sets["loads"],
             )
+
+
+
+def mesh_artefact(vertices: np.ndarray, tets: np.ndarray, density: float, tet_region: np.ndarray | None = None,
+                  region_names: tuple[str, ...] = ("body",), order: int | None = None) -> MeshArtefact:
+    """A MeshArtefact (in memory) with rest quantities computed from vertices (n, 3) m and tets (m, 4) or
+    (m, 10); density kg/m^3.  order=2 with linear tets adds straight mid-edge nodes
+    (stages.sim.quadrature.quadratic_tets); order None keeps the tets as they are."""
+    vertices, tets = np.asarray(vertices, np.float64), np.asarray(tets, np.int64)
+    if order not in (None, 1, 2):
+        raise ValueError(f"order is 1 or 2, not {order}")
+    if order == 2 and element_order(tets) == 1:
+        vertices, tets = quadratic_tets(vertices, tets)
+    elif order == 1 and element_order(tets) == 2:
+        raise ValueError("order=1 asked for quadratic tets")
+    vol, dm_inv, masses = rest_quantities(vertices, tets, density)
+    region = np.zeros(len(tets), np.int64) if tet_region is None else np.asarray(tet_region, np.int64)
+    faces = boundary_faces(tets) if element_order(tets) == 1 else quadratic_surface(tets)
+    return MeshArtefact(vertices=vertices, tets=tets, surface_faces=faces, tet_region=region,
+                        region_names=list(region_names), rest_volumes=vol, dm_inv=dm_inv, vertex_masses=masses,
+                        density=float(density))
 
 
 @dataclass

@@ -8,6 +8,7 @@ and the field.  Nothing here does physics.
 from __future__ import annotations
 
 import csv
+import difflib
 import json
 import math
 import re
@@ -17,6 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from stages import mocap
+from stages.domain.cameras import Camera
 from stages.domain.controls import (IDENTITY_POSE, Controls, Handle, Load, Obstacle,  # noqa: F401 (re-exported)
                                     Selection, Track, Visual, apply_pose, select_handles)
 from stages.domain.errors import CaptureError, RslError  # noqa: F401 (re-exported)
@@ -65,8 +68,6 @@ CONTROLS_KEYS: dict[str, tuple[str, ...]] = {
 
 def nearest_key(key: str, known: tuple[str, ...] | list[str]) -> str:
     """" (did you mean 'K'?)" for the known key K nearest ``key`` (difflib), else ''."""
-    import difflib
-
     close = difflib.get_close_matches(str(key), [k for k in known if k != "*"], n=1, cutoff=0.5)
     return f" (did you mean '{close[0]}'?)" if close else ""
 
@@ -452,8 +453,6 @@ class Capture:
     def markers(self) -> np.ndarray | None:
         """markers.csv or markers.c3d as (T, M, 3) metres (NaN where a marker was not observed: a gap), or None
         when neither exists.  Both present is an error; so is a C3D frame rate other than capture.fps."""
-        from stages import mocap
-
         csv_path, c3d_path = self.root / "markers.csv", self.root / "markers.c3d"
         if csv_path.exists() and c3d_path.exists():
             raise CaptureError(f"{self.root}: holds both markers.csv and markers.c3d; keep one of them.")
@@ -668,8 +667,6 @@ def read_markers(path: str | Path) -> np.ndarray:
     observed (a gap).  Besides the file format's rules (stages/mocap.py), rejected with one sentence naming the
     file: a marker that is never observed; a marker not observed at frame 0 (rsl adapt binds every marker to the
     surface point nearest its frame-0 position)."""
-    from stages import mocap
-
     data = mocap.read_markers_file(path)
     mocap.check_bindable(data, path)
     return data.positions
@@ -678,8 +675,6 @@ def read_markers(path: str | Path) -> np.ndarray:
 def write_markers(path: str | Path, markers: np.ndarray) -> None:
     """(T, M, 3) -> markers.csv (stages.mocap.write_csv): a NaN entry (a gap) is left out, a frame with no
     observed marker is one row with x, y and z empty, so that the file still holds frames 0..T−1."""
-    from stages import mocap
-
     mocap.write_csv(path, markers)
 
 
@@ -694,6 +689,29 @@ class Truth:
     vertices: np.ndarray  # (T, v, 3) m
 
 
+def read_material_csv(path: Path) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """truth/material.csv (header frame,region,young,poisson): (young (T, R) Pa, poisson (T, R), region names),
+    NaN where a frame does not list a region; (0, 0) arrays when it lists no row."""
+    rows = []
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        if reader.fieldnames != ["frame", "region", "young", "poisson"]:
+            raise CaptureError(f"{path}: header should be 'frame,region,young,poisson'.")
+        for r in reader:
+            try:
+                rows.append((int(r["frame"]), r["region"], float(r["young"]), float(r["poisson"])))
+            except (TypeError, ValueError):
+                raise CaptureError(f"{path}: malformed row {r}.") from None
+    regions = list(dict.fromkeys(r[1] for r in rows))
+    n_frames = max((r[0] for r in rows), default=-1) + 1
+    young = np.full((n_frames, len(regions)), np.nan)
+    poisson = np.full((n_frames, len(regions)), np.nan)
+    for fr, reg, e, nu in rows:
+        young[fr, regions.index(reg)] = e
+        poisson[fr, regions.index(reg)] = nu
+    return young, poisson, regions
+
+
 def read_truth(capture: Capture) -> Truth:
     """truth/material.csv and truth/surface.npz."""
     d = capture.truth_dir
@@ -701,23 +719,9 @@ def read_truth(capture: Capture) -> Truth:
     for p in (mat_path, surf_path):
         if not p.is_file():
             raise CaptureError(f"{p}: file not found; `rsl evaluate` needs a synthetic capture with truth/.")
-    rows = []
-    with open(mat_path, newline="") as f:
-        reader = csv.DictReader(f)
-        if reader.fieldnames != ["frame", "region", "young", "poisson"]:
-            raise CaptureError(f"{mat_path}: header should be 'frame,region,young,poisson'.")
-        for r in reader:
-            try:
-                rows.append((int(r["frame"]), r["region"], float(r["young"]), float(r["poisson"])))
-            except (TypeError, ValueError):
-                raise CaptureError(f"{mat_path}: malformed row {r}.") from None
-    regions = sorted({r[1] for r in rows}, key=[r[1] for r in rows].index)
-    n_frames = max(r[0] for r in rows) + 1
-    young = np.full((n_frames, len(regions)), np.nan)
-    poisson = np.full((n_frames, len(regions)), np.nan)
-    for fr, reg, e, nu in rows:
-        young[fr, regions.index(reg)] = e
-        poisson[fr, regions.index(reg)] = nu
+    young, poisson, regions = read_material_csv(mat_path)
+    if young.size == 0:
+        raise CaptureError(f"{mat_path}: lists no frame.")
     if np.isnan(young).any():
         raise CaptureError(f"{mat_path}: not every frame lists every region.")
     try:
@@ -783,8 +787,6 @@ def read_forces_csv(path: str | Path) -> list[dict]:
 # =========================================================================== cameras.json
 def read_cameras_json(path: str | Path) -> list:
     """cameras.json -> list of artefacts.Camera (OpenCV convention, R world->camera)."""
-    from stages.artefacts import Camera
-
     path = Path(path)
     if not path.is_file():
         raise CaptureError(f"{path}: file not found.")

@@ -55,6 +55,8 @@ class GNResult:
     jacobian: np.ndarray  # (m, k) at the last linearisation point
     p_lin: np.ndarray  # (k,) the last linearisation point
     weights: np.ndarray  # (m,) the IRLS weights used there
+    scale2: float = 1.0  # s² (:func:`residual_scale2`) of the residuals there: 1 when they fit the assumed σ
+    cov_scaled: np.ndarray | None = None  # (k, k) (Jᵀ W J / (σ² s²) + P⁻¹)⁻¹: the covariance with σ from the data
 
 
 def huber_weights(r: np.ndarray, sigma: float, delta: float | None) -> np.ndarray:
@@ -63,6 +65,31 @@ def huber_weights(r: np.ndarray, sigma: float, delta: float | None) -> np.ndarra
         return np.ones_like(r)
     a = np.abs(r)
     return np.where(a <= delta * sigma, 1.0, delta * sigma / np.maximum(a, 1e-300))
+
+
+def huber_psi(u: np.ndarray, delta: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """ψ(u) = ρ'(u) and ψ'(u) of the (Huber) loss for normalised residuals u = r/σ: (u, 1) without Huber,
+    (clip(u, ±δ), 1_{|u| ≤ δ}) with it."""
+    if delta is None:
+        return u, np.ones_like(u)
+    return np.clip(u, -delta, delta), (np.abs(u) <= delta).astype(np.float64)
+
+
+def residual_scale2(r: np.ndarray, sigma: float, delta: float | None, k: int) -> float:
+    """s² = [Σ ψ(u_i)² / (m − k)] / [(1/m) Σ ψ'(u_i)]²,  u = r/σ  (Huber 1981, the M-estimator's variance factor).
+
+    The covariance of a (robust) least-squares estimate with σ estimated from the data is s² (Jᵀ W J / σ²)⁻¹:
+    without Huber s² = RSS / ((m − k) σ²) — the residual variance per degree of freedom against the assumed
+    σ² —, with Huber the clipped residuals replace r and the fraction of inliers the unit Hessian.  A floor of
+    1/4 keeps a lucky window (few residuals, all small) from shrinking σ below half the assumed noise."""
+    m = len(r)
+    if m <= k or sigma <= 0:
+        return 1.0
+    psi, dpsi = huber_psi(np.asarray(r, np.float64) / sigma, delta)
+    mean_d = float(np.mean(dpsi))
+    if mean_d <= 0:
+        return float(np.inf)
+    return max(float(psi @ psi) / (m - k) / mean_d ** 2, 0.25)
 
 
 def robust_cost(r: np.ndarray, sigma: float, delta: float | None) -> float:
@@ -141,8 +168,10 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
     # the covariance at the last linearisation (the final step is small: the same to first order)
     JW = J_lin * W[:, None]
     cov = _sym_inv(JW.T @ J_lin / s2 + info)
+    k2 = residual_scale2(r_lin, sigma, huber, len(p))
+    cov_scaled = _sym_inv(JW.T @ J_lin / (s2 * k2) + info) if np.isfinite(k2) else cov
     return GNResult(p=p, cov=cov, cost=c, iterations=it, evaluations=n_eval, residuals=r_lin, jacobian=J_lin,
-                    p_lin=p_lin, weights=W)
+                    p_lin=p_lin, weights=W, scale2=k2, cov_scaled=cov_scaled)
 
 
 def _unpack(out: tuple) -> tuple:
@@ -172,6 +201,52 @@ def marginal(prior: Prior, idx: np.ndarray) -> Prior:
     """The Gaussian's marginal on the unknowns ``idx``."""
     idx = np.asarray(idx)
     return Prior(prior.mean[idx].copy(), prior.cov[np.ix_(idx, idx)].copy())
+
+
+def bounded_sigma(value: np.ndarray, sd: np.ndarray, lower, upper, pinned: float = 0.02) -> np.ndarray:
+    """σ of a parameter confined to [lower, upper] (elementwise): ``sd`` (its posterior σ), but where the value lies
+    within ``pinned`` × (upper − lower) of a bound — held there by the bound, not located by the data — at least
+    the σ of a uniform prior over the range, (upper − lower)/√12.  (A transform that maps the range onto ℝ, e.g.
+    a sigmoid, has a vanishing slope at its ends: its delta-method σ shrinks to 0 there whatever the data say.)"""
+    value, sd = np.asarray(value, np.float64), np.asarray(sd, np.float64)
+    lo, hi = np.broadcast_to(np.asarray(lower, np.float64), value.shape), np.broadcast_to(
+        np.asarray(upper, np.float64), value.shape)
+    width = hi - lo
+    at = (width > 0) & ((value - lo <= pinned * width) | (hi - value <= pinned * width))
+    return np.where(at, np.maximum(sd, width / np.sqrt(12.0)), sd)
+
+
+@dataclass
+class ChangeDetector:
+    """An innovation test for a change of the unknowns (a one-sided CUSUM of the normalised innovation).
+
+    Per new frame, its residuals r (m,) are predicted with the current estimate (before the frame is used) and
+    normalised by the noise level σ the window fits reach:  z = rᵀr / (m σ²)  (≈ 1 while the model with the
+    predicted unknowns explains the frame as well as the window does).  The statistic
+    g ← max(0, g + z − 1 − k)  accumulates the excess over 1 + ``drift``; a change is declared when g > h with
+    h = threshold² − 1 − drift, so one frame whose RMS innovation exceeds ``threshold`` σ is a change at once,
+    and a smaller excess is declared after it persisted over several frames.  After a change g restarts at 0.
+    """
+
+    threshold: float = 3.0
+    drift: float = 1.0
+    g: float = 0.0
+
+    @staticmethod
+    def ratio(r: np.ndarray, sigma: float) -> float:
+        """z = rᵀr / (m σ²)."""
+        r = np.asarray(r, np.float64)
+        return float(r @ r) / (len(r) * sigma * sigma) if len(r) and sigma > 0 else 0.0
+
+    def update(self, z: float) -> bool:
+        """Add one frame's normalised innovation z; True when a change is declared (g then restarts)."""
+        if self.threshold <= 0:
+            return False
+        self.g = max(0.0, self.g + z - 1.0 - self.drift)
+        if self.g > self.threshold ** 2 - 1.0 - self.drift:
+            self.g = 0.0
+            return True
+        return False
 
 
 def _sym_inv(a: np.ndarray) -> np.ndarray:

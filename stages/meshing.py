@@ -5,6 +5,7 @@ Pure functions over arrays and mesh files; no artefacts are written here."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import tempfile
 from pathlib import Path
@@ -16,6 +17,7 @@ from stages.errors import RslError
 from stages.progress import Reporter, SilentReporter
 from stages.sim.mesh import TET_FACES, signed_volumes
 from stages.sim.mesh import boundary_faces as _boundary_faces
+from stages.sim.quadrature import jacobian_ratio, quadratic_tets
 
 
 @contextlib.contextmanager
@@ -285,8 +287,6 @@ def assign_regions(vertices: np.ndarray, tets: np.ndarray, region_meshes: dict[s
 def map_id_selections(controls, src: Path, vertices: np.ndarray, controls_path: Path):
     """Controls whose ``ids`` selections (vertex ids of the object file as written) point at the nearest
     vertices of the tet mesh, which fTetWild or the removal of unused vertices renumbered."""
-    import dataclasses
-
     sels = [h for h in controls.handles + controls.loads if h.select.kind == "ids"]
     if not sels:
         return controls
@@ -365,8 +365,6 @@ def quadratic_mesh(vertices: np.ndarray, tets: np.ndarray, surface: tuple[np.nda
     their closest point on it (curved elements); an element whose det J falls below ``min_jacobian``
     × its straight value somewhere (stages.sim.quadrature.jacobian_ratio) gets its mid-edge nodes back
     on the straight edges."""
-    from stages.sim.quadrature import jacobian_ratio, quadratic_tets
-
     project = None if surface is None else (lambda p: closest_points_on_surface(p, *surface))
     v2, t2 = quadratic_tets(vertices, tets, project)
     if surface is None:

@@ -12,6 +12,7 @@ Pure functions over arrays (the cameras are stages.domain / artefacts Camera obj
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from stages.domain.controls import Controls, Track, Visual, apply_pose
@@ -51,8 +52,6 @@ def ignore_mask(controls: Controls, frame: int, camera, margin_px: int = 2) -> n
         v, f = visual_world(vis, poses.at(frame))
         m |= coverage(v, f, camera)
     if margin_px > 0 and m.any():
-        import cv2
-
         r = int(margin_px)
         disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
         m = cv2.dilate(m.astype(np.uint8), disc).astype(bool)

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from stages.capture import load_capture
 from stages.errors import Interrupted, RslError
 from stages.progress import Reporter, SilentReporter
 from stages.registry import PIPELINE, Stage
@@ -53,8 +54,6 @@ def _has_cameras(capture: Path | None) -> bool:
     """Whether capture.toml lists cameras (an unreadable capture counts as yes: the stage will say what is wrong)."""
     if capture is None:
         return False
-    from stages.capture import load_capture
-
     try:
         return bool(load_capture(capture).camera_names)
     except RslError:

@@ -85,7 +85,7 @@ class Stage:
 STAGES: tuple[Stage, ...] = (
     Stage("synth", "stages.steps.synth", "SynthConfig", None, writes="a capture folder", arguments=("mesh", "out"),
           flags=(("ramp", ("--ramp/--steps",)), ("region", ("--region", "--region-young"))),
-          summary="Simulate a scenario (stretch, twist, push, drop, cable) on a mesh and film it with a ring of "
+          summary="Simulate a scenario (stretch, twist, push, drop, cable, sag) on a mesh and film it with a ring of "
                   "cameras → a complete capture folder with ground truth (truth/material.csv, truth/surface.npz, "
                   "truth masks, markers.csv)."),
     Stage("calibrate", "stages.steps.calibrate", "CalibrateConfig", "cameras", writes="cameras.h5", needs_cameras=True,

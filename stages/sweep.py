@@ -7,8 +7,14 @@ equilibrium with this E, x_{−1} = x_{−2} = x_0, one implicit-Euler step per 
 anchored to the simulated frame-0 state as ``rsl adapt`` anchors them (markers bound to the nearest point of
 the frame-0 surface; Gaussians re-bound to the frame-0 tets), and the loss is summed over the frames:
 
-    markers  L(E) = Σ_t Σ_i ‖m_i(x_t(E)) − p_t^i‖²  (m²)
-    vision   L(E) = Σ_t Σ_c |R(G(x_t(E)), c) − Ĩ_t^c|₁  (stages.adapt_loss.ImageLoss)
+    markers     L(E) = Σ_t Σ_i ‖m_i(x_t(E)) − p_t^i‖²  (m²)
+    vision      L(E) = Σ_t Σ_c |R(G(x_t(E)), c) − Ĩ_t^c|₁  (stages.adapt_loss.ImageLoss)
+    silhouette  L(E) = Σ_t Σ_c Σ_px (A_c(x_t(E)) − m_t^c)²  over the pixels no occluder covers, A the
+                coverage of the mesh's surface (rasterized at 4× supersampling), m the masks of masks.h5
+
+The silhouette loss depends on the geometry alone: on a static capture (the object at rest in its frame-0
+equilibrium all along) it is the image term that still depends on E, whereas the Gaussians, fitted to that
+very frame and re-bound to x_0(E), reproduce it for every E (the vision loss is then flat).
 
 The minimum is refined by a parabola in log E through the grid minimum and its two neighbours.
 Not a stage: it writes nothing; ``bench/loss_sweep.py`` and ``rsl evaluate --sweep`` call it.
@@ -91,15 +97,43 @@ def vision_loss_curve(X_of: Callable[[float], np.ndarray], image_loss, targets: 
     return out
 
 
+def silhouette_coverage(x: np.ndarray, faces: np.ndarray, camera, supersample: int = 4) -> np.ndarray:
+    """Fraction (H, W) of each pixel covered by the triangles faces (F, 3) at positions x (n, 3), from a
+    z-buffer at ``supersample``× the camera's resolution (stages.render.mesh_raster)."""
+    from stages.render.mesh_raster import project_points, rasterize, supersampled_K
+
+    S = int(supersample)
+    uv, z = project_points(x, supersampled_K(camera.K, S), camera.R, camera.t, camera.dist)
+    hit = rasterize(uv, z, faces, int(camera.height) * S, int(camera.width) * S, near=1e-3).face >= 0
+    return hit.reshape(int(camera.height), S, int(camera.width), S).mean(axis=(1, 3))
+
+
+def silhouette_loss_curve(X_of: Callable[[float], np.ndarray], faces: np.ndarray, cameras: Sequence,
+                          masks: Callable[[int, int], np.ndarray], keep: Callable[[int, int], np.ndarray | None],
+                          grid: Sequence[float], frames: Sequence[int]) -> np.ndarray:
+    """Per grid value, the per-frame silhouette loss (K, T): Σ_c Σ_px (A_c(x_t) − m_t^c)² over the pixels
+    ``keep(t, c)`` (None: all) with masks(t, c) (H, W) in [0, 1]."""
+    out = np.zeros((len(grid), len(frames)))
+    for k, e in enumerate(grid):
+        X = X_of(e)
+        for j, t in enumerate(frames):
+            for c, cam in enumerate(cameras):
+                d = silhouette_coverage(X[t], faces, cam) - masks(t, c)
+                w = keep(t, c)
+                out[k, j] += float(np.sum(d * d) if w is None else np.sum(d[w] ** 2))
+    return out
+
+
 def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: tuple[int, int] | None = None,
           workspace: Path | None = None, cameras: Sequence[str] | None = None, poisson: float | None = None,
           start: str | None = None, refine: int = 0, substeps: int = 1,
-          reporter: Callable[[str], None] | None = None) -> SweepResult:
+          reporter: Callable[[str], None] | None = None, base_young: Sequence[float] | None = None) -> SweepResult:
     """The loss of ``capture`` (stages.capture.Capture) on ``mesh`` (a MeshArtefact: P1 or P2; ``refine``
     splits its tets 8-fold that many times) over the grid of E (Pa; every region's E scaled with region 0's
-    capture.toml value, one region: E itself) with ν fixed (``poisson`` or capture.toml's), frames
+    ``base_young`` value (R,) Pa, default capture.toml's; one region: E itself) with ν fixed (``poisson`` or
+    capture.toml's), frames
     [a, b) (default all), start (default capture.start).  loss "vision" needs ``workspace`` with cameras.h5
-    and gaussians.h5 (masks.h5 when there)."""
+    and gaussians.h5 (masks.h5 when there); "silhouette" cameras.h5 and masks.h5."""
     import dataclasses
 
     from stages.sim.mesh import rest_quantities
@@ -119,7 +153,8 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
                                    vertex_masses=masses, surface_faces=surface_faces(t), handles={})
     scene = make_scene(mesh, ctl, capture.material.model, capture.dt, capture.gravity)
     names = list(scene.region_names)
-    base = np.array([capture.material.region_young(r) for r in names], float)
+    base = (np.array([capture.material.region_young(r) for r in names], float) if base_young is None
+            else np.asarray(base_young, float).reshape(len(names)))
     nu = np.array([poisson if poisson is not None else capture.material.region_poisson(r) for r in names], float)
     obs_T = None
     if loss == "markers":
@@ -152,8 +187,10 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
         per = marker_loss_curve(X_of, faces, P, grid, fr)
     elif loss == "vision":
         per = _vision(capture, workspace, cameras, mesh, X_of, grid, fr)
+    elif loss == "silhouette":
+        per = _silhouette(capture, workspace, cameras, mesh, X_of, grid, fr)
     else:
-        raise ValueError(f"loss is markers or vision, not {loss!r}")
+        raise ValueError(f"loss is markers, vision or silhouette, not {loss!r}")
     total = per.sum(axis=1)
     lg = np.log(np.asarray(grid, float))
     lmin, i, interior = parabolic_minimum(lg, total)
@@ -194,3 +231,31 @@ def _vision(capture, workspace, cameras, mesh, X_of, grid, frames) -> np.ndarray
         return cache[t]
 
     return vision_loss_curve(X_of, il, targets, grid, frames, fit_frame)
+
+
+def _silhouette(capture, workspace, cameras, mesh, X_of, grid, frames) -> np.ndarray:
+    from stages.artefacts import KIND_FILES, CamerasArtefact, MasksArtefact
+    from stages.occluders import has_occluders, ignore_mask
+
+    ws = Path(workspace)
+    cams_art = CamerasArtefact.load(ws / KIND_FILES["cameras"])
+    masks_path = ws / KIND_FILES["masks"]
+    if not masks_path.exists():
+        raise ValueError(f"{masks_path}: not found; the silhouette loss compares with the masks of rsl segment")
+    masks = MasksArtefact.load(masks_path).masks
+    names = [c for c in (list(cameras) if cameras else [c.name for c in cams_art.cameras]) if c in masks]
+    if not names:
+        raise ValueError(f"{masks_path}: holds no mask of the cameras of cameras.h5")
+    cams = [cams_art.by_name(c) for c in names]
+    controls = capture.controls()
+    occluded = has_occluders(controls)
+    for t in frames:
+        if any(t >= len(masks[c]) for c in names):
+            raise ValueError(f"{masks_path}: holds no mask of frame {t}")
+
+    def keep(t: int, c: int):
+        return ~ignore_mask(controls, t, cams[c]) if occluded else None
+
+    faces = np.asarray(mesh.surface_faces)[:, :3]
+    return silhouette_loss_curve(X_of, faces, cams, lambda t, c: masks[names[c]][t].astype(np.float64), keep,
+                                 grid, frames)

@@ -13,7 +13,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import json
 import os
+import tempfile
 
 from stages.artefacts import (KIND_FILES, ArtefactError, HashCache, _jsonable, clean_stale_temps, read_provenance,
                               resolve_input, start_clock)
@@ -79,8 +81,6 @@ def adapt_status(attrs_or_extra: dict) -> str:
     """``complete`` | ``interrupted`` | ``failed`` of an adapt artefact ('complete' when it does not say)."""
     extra = attrs_or_extra.get("extra", attrs_or_extra)
     if isinstance(extra, str):
-        import json
-
         try:
             extra = json.loads(extra)
         except ValueError:
@@ -164,8 +164,6 @@ def config_differences(stored: dict | None, config: Any, ignore: tuple[str, ...]
 def write_text_atomic(path: Path, text: str) -> None:
     """Write a text file (JSON, HTML) under a temporary name in its folder, then rename it into place,
     readable by all (0644); a failure leaves the previous file as it was."""
-    import tempfile
-
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.adapt_loss import params_from_theta, theta_from_params
+from stages.parameters import params_from_theta, theta_from_params
 from stages.artefacts import AdaptArtefact, CamerasArtefact, GaussiansArtefact, MeshArtefact, read_provenance
 from stages.capture import load_capture, read_markers, write_markers
 

@@ -1,11 +1,11 @@
-"""Pieces of `rsl adapt` that need no simulator: marker binding, parameter maps, Adam, tet refinement."""
+"""Pieces of `rsl adapt` that need no simulator: marker binding, tet refinement (parameter maps and Adam:
+tests/test_parameters.py)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from stages.adapt_loss import (Adam, bind_markers, chain_params, closest_points_on_triangles, marker_loss,
-                               params_from_theta, theta_from_params)
+from stages.adapt_loss import bind_markers, closest_points_on_triangles, marker_loss
 
 
 def _brute_closest(p, tri, k=60):
@@ -100,33 +100,6 @@ def test_marker_loss_with_gaps_sums_observed_markers_and_its_gradient_matches_fi
     # all gaps: zero loss and gradient, no crash
     L0, g0 = marker_loss(b, X, np.full_like(P, np.nan))
     assert L0 == 0.0 and not np.any(g0)
-
-
-def test_parameter_maps_round_trip_and_chain_rule():
-    rng_ = (0.3, 0.49)
-    E, nu = np.array([1e4, 3e5]), np.array([0.31, 0.45])
-    le, s = params_from_theta(E, nu, rng_)
-    E2, nu2 = theta_from_params(le, s, rng_)
-    assert np.allclose(E2, E) and np.allclose(nu2, nu)
-    # L(E, ν) = a E + b ν² ; check dL/dp against finite differences in p
-    a, bcoef = np.array([2e-5, -1e-6]), np.array([3.0, 1.0])
-    L = lambda p: float(np.sum(a * theta_from_params(p[:2], p[2:], rng_)[0]
-                               + bcoef * theta_from_params(p[:2], p[2:], rng_)[1] ** 2))
-    p = np.concatenate([le, s])
-    g = np.concatenate(chain_params(a, 2 * bcoef * nu, E, s, rng_))
-    h = 1e-6
-    fd = [(L(p + h * e) - L(p - h * e)) / (2 * h) for e in np.eye(4)]
-    assert np.allclose(g, fd, rtol=1e-6)
-
-
-def test_adam_minimises_a_quadratic_and_ignores_round_off_components():
-    opt = Adam(np.array([0.1, 0.1]))
-    p = np.array([3.0, 1.0])
-    for _ in range(300):
-        g = np.array([2 * (p[0] - 1.0), 1e-14 * np.sign(np.sin(p[0] * 1e3))])
-        p = opt.step(p, g)
-    assert abs(p[0] - 1.0) < 0.05
-    assert abs(p[1] - 1.0) < 1e-3  # a round-off gradient does not move the second component
 
 
 def test_refine_tets_keeps_volume_orientation_and_coarse_vertices():

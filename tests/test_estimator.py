@@ -10,7 +10,8 @@ import pytest
 from scipy.optimize import least_squares
 
 from stages.artefacts import MeshArtefact
-from stages.estimator import Prior, WindowFilter, fold, gauss_newton, inflate, marginal
+from stages.estimator import (ChangeDetector, Prior, WindowFilter, bounded_sigma, fold, gauss_newton, inflate, marginal,
+                              residual_scale2)
 
 K, M = 2, 4  # unknowns, observations per frame
 
@@ -89,6 +90,148 @@ def test_calibration_on_a_linear_gaussian_problem():
         inside += int(np.sum(np.abs(means - theta) <= 2 * sd))
         n += theta.size
     assert 0.85 <= inside / n <= 0.995, inside / n
+
+
+def test_covariance_with_the_noise_level_from_the_data_is_calibrated():
+    """Noise twice the assumed σ: the known-σ covariance is overconfident (truth within ±2σ on ~68 %), the covariance
+    scaled by RSS/dof (cov_scaled) is calibrated (~95 %); with the right σ both agree (s² ≈ 1)."""
+    rng = np.random.default_rng(7)
+    inside_known = inside_scaled = n = 0
+    for _ in range(300):
+        A = rng.normal(size=(40, K))
+        theta = rng.normal(size=K)
+        y = A @ theta + rng.normal(0, 0.2, 40)
+        res = gauss_newton(lambda p, nj: (A @ p - y, A if nj else None), np.zeros(K),
+                           Prior(np.zeros(K), np.eye(K) * 1e6), 0.1, max_iterations=2)
+        rss = float(np.sum((A @ res.p - y) ** 2))
+        assert res.scale2 == pytest.approx(rss / (40 - K) / 0.1 ** 2, rel=1e-6)
+        inside_known += int(np.sum(np.abs(res.p - theta) <= 2 * np.sqrt(np.diag(res.cov))))
+        inside_scaled += int(np.sum(np.abs(res.p - theta) <= 2 * np.sqrt(np.diag(res.cov_scaled))))
+        n += K
+    assert inside_known / n < 0.8 and 0.92 <= inside_scaled / n <= 0.98, (inside_known / n, inside_scaled / n)
+
+
+def test_residual_scale_of_huber_is_consistent_on_gaussian_noise():
+    """Huber (δ = 1.345) on Gaussian residuals of the assumed σ: s² ≈ 1/0.95 (its asymptotic efficiency), and
+    gross outliers raise it only a little (their ψ is clipped), while they raise the least-squares s² a lot."""
+    rng = np.random.default_rng(8)
+    r = rng.normal(0, 0.1, 20000)
+    assert residual_scale2(r, 0.1, 1.345, 2) == pytest.approx(1 / 0.95, rel=0.03)
+    assert residual_scale2(r, 0.1, None, 2) == pytest.approx(1.0, rel=0.03)
+    r[:400] += 5.0
+    assert residual_scale2(r, 0.1, 1.345, 2) < 1.15 < 10 < residual_scale2(r, 0.1, None, 2)
+
+
+def test_sigma_of_a_parameter_held_at_its_bound_is_not_tiny():
+    """A bounded parameter at (or within 2 % of the range of) a bound reports at least the uniform prior's σ over
+    the range; inside the range its σ is the posterior's.  adapt's σ_ν goes through it (sigmoid slope → 0 at the
+    bounds), and σ_E carries the model-error floor in quadrature."""
+    lo, hi = 0.3, 0.49
+    floor = (hi - lo) / np.sqrt(12)
+    out = bounded_sigma(np.array([0.49, 0.3001, 0.40, 0.487]), np.array([1e-6, 1e-6, 0.01, 1e-4]), lo, hi)
+    assert np.allclose(out, [floor, floor, 0.01, floor])
+    from types import SimpleNamespace
+
+    from stages.parameters import theta_from_params
+    from stages.steps.adapt import _sigma_from_cov
+
+    prange = (0.3, 0.49)
+    gn = SimpleNamespace(R=1, fit_poisson=True, young_range=(2e4, 2e6), obj=SimpleNamespace(prange=prange))
+    gn.theta = lambda p: (*theta_from_params(p[:1], p[1:2], prange), p[1:2])
+    cov = np.diag([0.01 ** 2, 0.5 ** 2])
+    sE, sN = _sigma_from_cov(gn, np.array([np.log(1e5), 9.0]), cov, model_error=0.02)  # ν pinned at 0.49
+    assert sE[0] == pytest.approx(1e5 * np.hypot(0.01, 0.02), rel=1e-9)
+    assert sN[0] >= floor * (1 - 1e-12)
+    sE, sN = _sigma_from_cov(gn, np.array([np.log(1e5), 0.0]), cov)  # ν mid-range: the delta method
+    assert sE[0] == pytest.approx(1e3, rel=1e-9) and sN[0] == pytest.approx(0.19 * 0.25 * 0.5, rel=1e-9)
+    sE, _ = _sigma_from_cov(gn, np.array([np.log(2e6), 0.0]), np.diag([1e-8, 0.25]))  # E at the top of its range
+    assert sE[0] >= 2e6 * np.log(100) / np.sqrt(12) * (1 - 1e-12)
+
+
+def test_gauss_newton_takes_a_failed_trial_as_a_rejected_step():
+    """A trial point whose evaluation fails (adapt: a collapsed simulation → r = inf) is rejected like a worse one:
+    the damping grows and a shorter step is taken; the minimum is still reached."""
+    y = 0.8
+
+    def ev(p, nj):
+        if p[0] > 1.0 and not nj:
+            return np.full(1, np.inf), None
+        return np.array([p[0] - y]), (np.ones((1, 1)) if nj else None)
+
+    res = gauss_newton(ev, np.array([3.0 - 2.0]), Prior(np.array([5.0]), np.eye(1) * 1e4), 0.01, max_iterations=20)
+    assert res.p[0] == pytest.approx(y, abs=1e-3)
+    res = gauss_newton(ev, np.array([0.0]), Prior(np.array([0.0]), np.eye(1) * 1e4), 0.01, max_iterations=20,
+                       max_step=2.0)  # the first trial lands at 2 (fails), later ones inside
+    assert res.p[0] == pytest.approx(y, abs=1e-3)
+
+
+def _track_jump(T: int, jump_at: int | None, seed: int, w: int = 3, q: float = 0.02, m: int = 60):
+    """A sliding-window filter on log E with the change test, as adapt's _online_gn runs it (window restarted at a
+    change, the prior widened by 0.5 on log E, the noise level the median of √(RSS/dof) over the last 5 windows).
+    Observations of a quasi-static deflection: y_t,i = a_t,i / E_t + noise (σ = 2 % of the mean deflection)."""
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(0.5, 1.5, (T, m)) * (1 + 0.5 * np.sin(np.arange(T))[:, None])
+    E = np.full(T, 1.0)
+    if jump_at is not None:
+        E[jump_at:] = 2.0
+    noise = 0.02 * float(np.mean(a / E[:, None]))
+    y = a / E[:, None] + rng.normal(0, noise, (T, m))
+
+    def ev(frames):
+        def f(p, nj):
+            e = np.exp(-p[0])
+            r = np.concatenate([a[t] * e - y[t] for t in frames])
+            return r, (np.concatenate([-a[t] * e for t in frames])[:, None] if nj else None)
+        return f
+
+    filt = WindowFilter(Prior(np.array([np.log(0.5)]), np.eye(1)), np.full(1, q))
+    det = ChangeDetector(3.0)
+    p, sigma, hist, start, changes, est = filt.prior.mean.copy(), None, [], 0, [], []
+    for T_ in range(T):
+        frames = list(range(max(start, T_ - w + 1), T_ + 1))
+        if sigma is not None and T_ >= 2 and (not changes or T_ - changes[-1] > w):
+            if det.update(ChangeDetector.ratio(ev([T_])(p, False)[0], sigma)):
+                changes.append(T_)
+                filt.prior = Prior(filt.prior.mean, filt.prior.cov + np.eye(1) * 0.5 ** 2)
+                start, frames = T_, [T_]
+        if sigma is None:
+            sigma = max(float(np.sqrt(np.mean(ev(frames)(p, False)[0] ** 2))), 1e-12)
+        res = gauss_newton(ev(frames), p, filt.prior, sigma, max_iterations=4)
+        p = res.p
+        if len(frames) == w:
+            t0 = frames[0]
+            filt.leave(res.p_lin, ev([t0])(res.p_lin, False)[0], ev([t0])(res.p_lin, True)[1], sigma)
+        r = ev(frames)(p, False)[0]
+        hist.append(float(np.sqrt(r @ r / max(len(r) - 1, 1))))
+        sigma = float(np.median(hist[-5:]))
+        est.append(float(np.exp(p[0])))
+    return np.array(est), E, changes
+
+
+def test_change_test_detects_a_jump_and_the_filter_follows_it_within_w_plus_5_frames():
+    w = 3
+    est, E, changes = _track_jump(40, 20, seed=0, w=w)
+    assert changes and 20 <= changes[0] <= 21, changes
+    assert np.all(np.abs(est[20 + w + 5:] / E[20 + w + 5:] - 1) <= 0.05), est[20:] / E[20:]
+    assert np.all(np.abs(est[10:20] - 1) <= 0.03), est[:20]  # settled before it
+
+
+def test_change_test_stays_quiet_on_a_constant_sequence_with_noise():
+    for seed in range(3):
+        est, E, changes = _track_jump(40, None, seed=seed)
+        assert changes == [], (seed, changes)
+        assert np.all(np.abs(est[8:] - 1) <= 0.03), est  # settled, and no oscillation
+
+
+def test_cusum_declares_a_persistent_moderate_excess_but_not_noise():
+    """One frame above threshold² is a change at once; a smaller excess (z = 4) is declared after it persisted
+    (g grows by z − 1 − drift = 2 per frame, h = τ² − 1 − drift = 7: the fourth frame); z around 1 never
+    accumulates."""
+    d = ChangeDetector(3.0)
+    assert d.update(10.0) and d.g == 0.0
+    assert [d.update(4.0) for _ in range(4)] == [False, False, False, True]
+    rng = np.random.default_rng(0)
+    assert not any(d.update(float(z)) for z in rng.chisquare(90, 1000) / 90)
 
 
 def test_nonlinear_gauss_newton_matches_scipy_least_squares():
@@ -293,6 +436,30 @@ def test_image_residual_jacobian_and_exact_gradient(beam, tmp_path):
     assert np.allclose(approx, g, rtol=0.15, atol=0.02 * np.abs(g).max()), (approx, g)
 
 
+def test_adapt_gn_with_images_runs_and_reports_finite_sigma(beam, tmp_path, rsl):
+    """The Huber (image) path of the online Gauss–Newton loop: its residual scale (estimator.residual_scale2 with
+    Huber) and σ with the model-error floors stay finite, σ_E ≥ E × --model-error, and ν's σ is not tiny."""
+    from stages.artefacts import AdaptArtefact
+    from test_adapt_e2e import _random_gaussians
+
+    cap, ws = beam
+    ws2 = tmp_path / "ws"
+    ws2.mkdir()
+    for f in ("mesh.h5", "cameras.h5"):
+        shutil.copy(ws / f, ws2 / f)
+    mesh = MeshArtefact.load(ws2 / "mesh.h5")
+    gauss = _random_gaussians(mesh, 30)
+    gauss.log_scales[:] = np.log(0.015 * np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    gauss.save(ws2 / "gaussians.h5")
+    proc = rsl("adapt", cap, "-w", ws2, "--space", "full", "--loss", "vision", "--window", "2", "--frames", "0:3",
+               "--estimator", "gn", "--iters-per-frame", "1", "--model-error", "0.03")
+    assert proc.returncode == 0, proc.stderr
+    art = AdaptArtefact.load(ws2 / "adapt.h5")
+    assert np.all(np.isfinite(art.young_sigma)) and np.all(np.isfinite(art.poisson_sigma))
+    assert np.all(art.young_sigma >= 0.03 * art.young * (1 - 1e-9))
+    assert np.all(art.poisson_sigma >= 0.02 * (1 - 1e-9))  # the default --model-error-poisson
+
+
 @pytest.mark.slow
 def test_adapt_gn_markers_recovers_young_with_sigma(beam, rsl):
     """rsl adapt --estimator gn from 4× too soft: E within 1 % (and within 3σ) from frame 20 on (same-model
@@ -317,7 +484,7 @@ def test_adapt_gn_markers_recovers_young_with_sigma(beam, rsl):
     art = AdaptArtefact.load(ws / "adapt.h5")
     assert abs(art.young[0, 0] / E_TRUE - 1) < 0.01 and np.all(np.isfinite(art.young_sigma))
     # Adam reports no σ: NaN
-    proc = rsl("adapt", cap, "-w", ws, "--space", "full", "--loss", "markers", "--frames", "0:4")
+    proc = rsl("adapt", cap, "-w", ws, "--space", "full", "--loss", "markers", "--frames", "0:4", "--estimator", "adam")
     assert proc.returncode == 0, proc.stderr
     assert np.all(np.isnan(AdaptArtefact.load(ws / "adapt.h5").young_sigma))
 

@@ -255,7 +255,7 @@ def test_rebind_at_the_fit_positions_is_exact_for_linear_and_quadratic_tets(orde
     from stages.adapt_loss import ImageLoss
     from stages.steps.fit_gaussians import seed_gaussians
     from stages.render.gaussians import color_to_sh0
-    from stages.sim.meshgen import mesh_artefact
+    from stages.artefacts import mesh_artefact
 
     base = beam_mesh(4, 1, 1)
     mesh = mesh_artefact(base.vertices, base.tets, DENSITY, order=order)

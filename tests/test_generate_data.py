@@ -13,7 +13,8 @@ from stages.artefacts import Provenance, SnapshotsArtefact
 from stages.capture import load_capture, quat_to_matrix, select_handles
 from stages.steps.generate_data import (GenerateDataConfig, plan_sequences, random_controls, run,
                                   sample_material)
-from stages.sim.meshgen import box_tets, mesh_artefact
+from stages.artefacts import mesh_artefact
+from stages.sim.meshgen import box_tets
 
 TOML = """[capture]
 name = "tiny"

@@ -103,7 +103,7 @@ def test_auto_newton_converges_on_a_turning_dinosaur_2738_vertices():
 def test_abs_mode_newton_converges_on_a_bar():
     """hessian_mode="abs" (pure |λ|-projected Newton) reaches the same equilibrium as "auto"."""
     from stages.capture import Controls, Handle, Selection, Track
-    from stages.sim.meshgen import mesh_artefact
+    from stages.artefacts import mesh_artefact
     v, t = box_tets((6, 2, 2), (0.3, 0.05, 0.05))
     mesh = mesh_artefact(v, t, 1000.0)
     h = Handle("clamp", Selection("box", box=np.array([[-1.0, -1, -1], [1e-9, 1, 1]])), 1e5,

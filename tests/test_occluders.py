@@ -13,7 +13,8 @@ from stages.artefacts import Camera, GaussiansArtefact
 from stages.capture import CaptureError, load_controls, parse_controls
 from stages.occluders import ignore_mask, visual_world
 from stages.render.mesh_raster import look_at, project_points
-from stages.sim.meshgen import box_tets, mesh_artefact
+from stages.artefacts import mesh_artefact
+from stages.sim.meshgen import box_tets
 
 
 def _camera(res: int = 64, centre=(0.35, -0.25, 0.3), target=(0.05, 0.02, 0.02)) -> Camera:

@@ -656,7 +656,7 @@ def test_generate_data_and_train_subspace_on_a_p2_mesh_through_the_cli(tmp_path,
 
     from stages.artefacts import MeshArtefact, Provenance, SnapshotsArtefact, SubspaceArtefact
     from stages.capture import load_capture, select_handles
-    from stages.sim.meshgen import mesh_artefact
+    from stages.artefacts import mesh_artefact
     from stages.sim.scene import frame_inputs, make_scene
     from test_generate_data import TOML, _controls
 

@@ -19,7 +19,8 @@ ray = pytest.importorskip("ray", reason="Ray is a test dependency (pip install -
 from stages.artefacts import Provenance, SnapshotsArtefact  # noqa: E402
 from stages.capture import load_capture, select_handles  # noqa: E402
 from stages.steps.generate_data import GenerateDataConfig, run  # noqa: E402
-from stages.sim.meshgen import box_tets, mesh_artefact  # noqa: E402
+from stages.artefacts import mesh_artefact  # noqa: E402
+from stages.sim.meshgen import box_tets  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

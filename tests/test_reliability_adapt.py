@@ -226,6 +226,7 @@ def interrupted(base, tmp_path_factory) -> dict:
     rest = proc.stderr.read()
     code = proc.wait()
     after = tree_bytes(ws)
+    assert (ws / "adapt.partial.h5").exists(), f"exit {code}; no adapt.partial.h5 after Ctrl-C:\n{''.join(lines)}{rest}"
     # downstream of a workspace whose adapt.h5 is that unfinished run (as an older rsl would have left it)
     ws2 = root / "ws_partial"
     shutil.copytree(ws, ws2)

@@ -10,7 +10,8 @@ import pytest
 from stages.capture import Controls, Handle, Load, Obstacle, Selection, Track
 from stages.sim import potential as pot
 from stages.sim.linsolve import available_solvers
-from stages.sim.meshgen import box_tets, mesh_artefact
+from stages.artefacts import mesh_artefact
+from stages.sim.meshgen import box_tets
 from stages.sim.scene import (SimulationError, frame_inputs, hessian, internal_forces, make_scene, simulate, step,
                               total_energy, window_adjoint)
 

@@ -14,7 +14,8 @@ from stages.sim import stress as st
 from stages.sim.elements import HESSIAN, element_terms_jax, point_terms, point_terms_jax
 from stages.sim.materials import MODELS, lame
 from stages.sim.mesh import rest_quantities
-from stages.sim.meshgen import box_tets, mesh_artefact
+from stages.artefacts import mesh_artefact
+from stages.sim.meshgen import box_tets
 from stages.sim.quadrature import (build_quadrature, element_volumes, lumped_masses, quadratic_surface,
                                    quadratic_tets)
 from stages.sim.scene import (apply_hard_targets, fixed_dofs, frame_inputs, handle_reactions, hessian,

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from stages.capture import load_capture
-from stages.sim.meshgen import box_tets, mesh_artefact
+from stages.artefacts import mesh_artefact
+from stages.sim.meshgen import box_tets
 from stages.sweep import parabolic_minimum, sweep
 from stages.steps.synth import SynthConfig, prepare_mesh, run
 

@@ -41,7 +41,7 @@ def capture(box_mesh, tmp_path_factory) -> Path:
 def _resimulate(cap, max_iterations: int = 300) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Positions (T, n, 3) from truth/object.mesh + controls.json + truth material under the capture's
     declared start state ([capture] start), and (faces, tets)."""
-    from stages.sim.meshgen import mesh_artefact
+    from stages.artefacts import mesh_artefact
     from stages.sim.scene import frame_inputs, make_scene
     from stages.sim.static import simulate_from_start
 

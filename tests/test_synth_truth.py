@@ -10,7 +10,8 @@ import pytest
 
 from conftest import run_rsl
 from stages.capture import FORCE_HEADER, load_capture, read_forces_csv, read_truth
-from stages.sim.meshgen import box_tets, mesh_artefact, refine_tets
+from stages.artefacts import mesh_artefact
+from stages.sim.meshgen import box_tets, refine_tets
 from stages.steps.synth import SynthConfig, run
 
 

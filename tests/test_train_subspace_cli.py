@@ -8,7 +8,8 @@ import pytest
 
 from stages.artefacts import Provenance, SnapshotsArtefact, SubspaceArtefact
 from stages.progress import SilentReporter
-from stages.sim.meshgen import box_tets, mesh_artefact
+from stages.artefacts import mesh_artefact
+from stages.sim.meshgen import box_tets
 from stages.sim.scene import FrameInputs, HandleSpec, Scene
 from stages.subspace import ReducedModel
 from stages.steps.train_subspace import TrainSubspaceConfig, run

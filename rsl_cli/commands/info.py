@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import typer
@@ -9,6 +10,7 @@ import typer
 from rich.markup import escape
 
 from rsl_cli.console import out
+from stages.errors import RslError
 
 ORDER = 90
 
@@ -34,7 +36,6 @@ def register(app: typer.Typer) -> None:
 
 def _artefact_info(path: Path, as_json: bool, check: bool) -> None:
     from stages.artefacts import ARTEFACT_TYPES, KIND_FILES, describe, load_any
-    from stages.errors import RslError
 
     d = describe(path)
     attrs = d["attrs"]
@@ -153,6 +154,4 @@ def register_docs(app: typer.Typer) -> None:
                 lines += ["| argument / option | meaning | default |", "| --- | --- | --- |"]
                 lines += [f"| {a} | {' '.join(h.split()).replace('|', chr(92) + '|')} | {d} |" for a, h, d in rows]
                 lines.append("")
-        import sys
-
         sys.stdout.write("\n".join(lines) + "\n")  # plain text: no rich markup in a Markdown file

@@ -6,15 +6,14 @@ from typing import List, Optional
 
 import typer
 
-from rsl_cli.console import RichReporter
+from rsl_cli.console import RichReporter, out
 from rsl_cli.options import workspace_option
+from stages.registry import PIPELINE
 
 ORDER = 1
 
 
 def register(app: typer.Typer) -> None:
-    from stages.registry import PIPELINE
-
     @app.command("run", help=f"Every stage in order ({', '.join(s.name for s in PIPELINE)}), skipping a stage "
                              "whose artefact is up to date with its inputs and config.")
     def _cmd(
@@ -31,8 +30,6 @@ def register(app: typer.Typer) -> None:
 
         overrides = parse_sets(set_ or [])
         if dry_run:
-            from rsl_cli.console import out
-
             for step in plan(capture, workspace, until=until, only=only, force=force, overrides=overrides):
                 out(f"{step.stage.name:<16} {step.action:<5} {step.reason}", markup=False)
             return

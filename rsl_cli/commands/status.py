@@ -4,9 +4,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
+from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from rsl_cli.console import out
 from rsl_cli.options import workspace_option
 from stages.errors import RslError
 
@@ -43,15 +45,11 @@ def register(app: typer.Typer) -> None:
         _print(table)
         partial = workspace / "adapt.partial.h5"
         if partial.is_file():
-            from rsl_cli.console import out
-
             out(f"{partial}: the frames of an unfinished `rsl adapt` (kept apart; adapt.h5 is never replaced "
                 f"by an unfinished run).", markup=False)
 
 
 def _print(table: Table) -> None:
     """To stdout: the terminal's width, or 160 columns in a pipe or a log."""
-    from rich.console import Console
-
     c = Console(highlight=False)
     (c if c.is_terminal else Console(highlight=False, width=160)).print(table)

@@ -32,10 +32,12 @@ gradients flow back to ``positions`` in its own dtype.  ``g.double()`` renders i
 
 Threads: the rasterizer's numba kernels use every core; the many small torch ops around it
 are fastest with ``torch.set_num_threads(1)`` (on a shared 2-core machine a 30-iteration fit took
-56 s wall with 2 torch threads, 12 s with 1; ``rsl fit-gaussians`` sets it for its run).
+56 s wall with 2 torch threads, 12 s with 1; ``rsl fit-gaussians`` sets it for its run, ``rsl adapt`` with
+images through :func:`one_torch_thread`).
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,6 +51,18 @@ from stages.render.rasterize import rasterize
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
+
+@contextmanager
+def one_torch_thread():
+    """Run the body with ``torch.set_num_threads(1)`` (restored after): the small per-Gaussian torch ops around
+    the numba kernels only spin against those kernels' threads with more (module docstring, Threads)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
 
 RASTERIZERS = {"fast": rasterize, "tiled": _torch_ref.rasterize_tiled, "dense": _torch_ref.rasterize_dense,
                "tiled_lean": _torch_ref.rasterize_tiled_lean}  # tiled_lean: torch maths on the numba tile lists

@@ -6,7 +6,7 @@ import itertools
 
 import numpy as np
 
-from .mesh import boundary_faces, rest_quantities, signed_volumes
+from .mesh import boundary_faces, signed_volumes
 
 
 def box_tets(cells: tuple[int, int, int], size: tuple[float, float, float],
@@ -35,29 +35,6 @@ def box_tets(cells: tuple[int, int, int], size: tuple[float, float, float],
 def surface_faces(tets: np.ndarray) -> np.ndarray:
     """Boundary triangles (faces that belong to one tet), oriented outward (:func:`.mesh.boundary_faces`)."""
     return boundary_faces(tets)
-
-
-def mesh_artefact(vertices: np.ndarray, tets: np.ndarray, density: float, tet_region: np.ndarray | None = None,
-                  region_names: tuple[str, ...] = ("body",), order: int | None = None):
-    """A MeshArtefact (in memory) with rest quantities computed from vertices and tets (m, 4) or (m, 10).
-    order=2 with linear tets adds straight mid-edge nodes (stages.sim.quadrature.quadratic_tets);
-    order None keeps the tets as they are."""
-    from ..artefacts import MeshArtefact
-    from .quadrature import element_order, quadratic_surface, quadratic_tets
-
-    vertices, tets = np.asarray(vertices, np.float64), np.asarray(tets, np.int64)
-    if order not in (None, 1, 2):
-        raise ValueError(f"order is 1 or 2, not {order}")
-    if order == 2 and element_order(tets) == 1:
-        vertices, tets = quadratic_tets(vertices, tets)
-    elif order == 1 and element_order(tets) == 2:
-        raise ValueError("order=1 asked for quadratic tets")
-    vol, dm_inv, masses = rest_quantities(vertices, tets, density)
-    region = np.zeros(len(tets), np.int64) if tet_region is None else np.asarray(tet_region, np.int64)
-    faces = surface_faces(tets) if element_order(tets) == 1 else quadratic_surface(tets)
-    return MeshArtefact(vertices=vertices, tets=tets, surface_faces=faces, tet_region=region,
-                        region_names=list(region_names), rest_volumes=vol, dm_inv=dm_inv, vertex_masses=masses,
-                        density=float(density))
 
 
 def refine_tets(vertices: np.ndarray, tets: np.ndarray, tet_region: np.ndarray

@@ -609,6 +609,24 @@ def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_i
                           f"{max_iterations} iterations).")
 
 
+_SUBSTEP: "weakref.WeakKeyDictionary[Scene, dict]" = weakref.WeakKeyDictionary()
+
+
+def substep_scene(scene: Scene, substeps: int) -> Scene:
+    """The scene of one substep: the same object with time step Δt / substeps (Δt = scene.dt, the frame
+    interval); the scene itself for substeps = 1.  Cached per scene, so its solver caches persist."""
+    if substeps < 1:
+        raise ValueError(f"substeps must be at least 1, not {substeps}")
+    if substeps == 1:
+        return scene
+    by_s = _SUBSTEP.setdefault(scene, {})
+    if substeps not in by_s:
+        import dataclasses
+
+        by_s[substeps] = dataclasses.replace(scene, dt=scene.dt / substeps)
+    return by_s[substeps]
+
+
 def _per_frame(theta, T: int, R: int) -> np.ndarray:
     a = np.asarray(theta, np.float64)
     if a.ndim <= 1:

@@ -7,7 +7,8 @@ of the two states before the window) the states move by S_t = dx_t/dp, the solut
     H_t S_t = −(∂r_t/∂θ) θ̇ − (∂r_t/∂x_{t−1}) S_{t−1} − (∂r_t/∂x_{t−2}) S_{t−2},
 
 H_t = ∂r_t/∂x_t the exact (unprojected) Hessian, factorised once per frame and reused for every
-direction; the right-hand sides are JAX Jacobian–vector products of scene._residual.  This is the
+direction; the right-hand sides are JAX Jacobian–vector products of scene._residual.  On the DOFs of hard
+handles x_t is an input (the target): S_t = 0 there, and H_t, the rhs keep the free DOFs only.  This is the
 forward twin of scene.window_adjoint: for any v, Σ_t ⟨v_t, S_t⟩ equals the adjoint's ⟨dL/dθ, θ̇⟩ with
 dL/dX = v (tests hold both to finite differences).
 """
@@ -85,8 +86,16 @@ def window_sensitivity(scene, inputs: Sequence, young, poisson, X, x_before, d_y
 
 
 def _solve_many(cache, solver: str, H, B: np.ndarray) -> np.ndarray:
-    """H⁻¹ b for each row b of B (k, 3n), one factorisation (Cholesky when positive definite, else LU)."""
-    data = np.asarray(H.data)
+    """H⁻¹ b for each row b of B (k, 3n), one factorisation (Cholesky when positive definite, else LU); on the
+    DOFs of hard handles (inputs: x_t there is the target) the solution is 0 (scene.solve_free)."""
+    from .scene import _constrain
+
+    data = np.array(H.data, np.float64)
+    mask = cache.fixed()[0]
+    if mask is not None:
+        B = np.array(B, np.float64)
+        B[:, mask] = 0.0
+        _constrain(cache, data)
     lin = cache.solver(solver)
     try:
         lin.factor(data)

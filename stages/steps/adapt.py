@@ -9,13 +9,18 @@ states are then stored; a state is final once its frame leaves the window.
 
 Start convention ([capture] start, docs/capture.md): frame 0 is x_0(θ) — the rest shape, or the static
 equilibrium under the frame-0 controls solved with the current θ (stages.sim.static) — with x_{−1} = x_{−2} = x_0;
-frame t ≥ 1 is an implicit-Euler step (:class:`StartWindow`).  A window that holds frame 0 differentiates through
+frame t ≥ 1 is an implicit-Euler step (:class:`StartWindow`), or with ``--substeps S`` S steps of Δt/S, the controls
+interpolated at the fractional frames (:class:`_Substepped`: what rsl synth --substeps films).  A window that holds frame 0 differentiates through
 the static solve.  Observations are anchored at frame 0: markers are bound to the frame-0 surface x_0(θ), and
 Gaussians fitted with the mesh at rest to frame f are re-bound to the tets of frame f simulated with the current
 θ (``gaussian_anchor = "rebind"``: rendered at x_f they are exactly the fitted Gaussians; the older first-order
 ``"offset"`` renders at x_t − (x_f − rest)); both anchors are refreshed as θ changes.  adapt.h5 stores, per frame,
 θ after that frame's update (and its σ with ``--estimator gn``), the frame's final state (z and positions), the
-window loss and the time spent in forward simulation, adjoint / sensitivities, rendering and in total.
+window loss and the time spent in forward simulation, adjoint / sensitivities, rendering and in total (wall
+seconds of the frame's whole update; forward includes re-anchoring the observations, render the image loss and
+its gradient through the renderer).  Frames 0..w carry the first calls' compilation (numba at frame 0, JAX for
+each new window length and, at frame w, for the first window that starts from stored states): steady per-frame
+times are those of frames > w (bench/table1.py, bench/adapt_speed.py).
 
 ``--estimator gn`` (stages.estimator) replaces the Adam steps by Gauss–Newton / Levenberg–Marquardt on the
 window's residuals (markers, or pixels with Huber IRLS weights) with the forward sensitivities dX/dp
@@ -45,15 +50,16 @@ from typing import Callable, Literal, Sequence
 
 import numpy as np
 
-from stages.adapt_loss import (Adam, MarkerBinding, bind_markers, chain_params, marker_residuals,
-                               params_from_theta, theta_from_params)
+from stages.adapt_loss import MarkerBinding, bind_markers, marker_residuals
 from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, MeshArtefact, Provenance, check_mesh_source,
                               check_same_mesh)
 from stages.capture import (IMAGE_SUFFIXES, Capture, CaptureError, check_obstacles_clear, load_capture,
                             read_image)
 from stages.errors import Interrupted, RslError
+from stages.parameters import Adam, chain_params, params_from_theta, theta_from_params
 from stages.progress import Reporter, SilentReporter
 from stages.sim.meshgen import refine_tets  # noqa: F401  (re-exported: stages.steps.adapt.refine_tets)
+from stages.window_model import Observation, Window, WindowBackend
 from stages.workspace import prepare_workspace
 
 
@@ -123,13 +129,25 @@ class AdaptConfig:
     images, where each unknown costs renders, as past); past: along their sensitivities to θ only (the past
     re-simulated with another θ, 2R unknowns); off: kept as stored."""
     change_threshold: float = 3.0
-    """gn: a new frame whose residual RMS at the predicted θ exceeds this many σ (the noise level) is taken as a
-    change of material: the θ prior is widened by --change-sigma before the window is solved (0: never)."""
+    """gn: the change-of-material test (a CUSUM of the new frame's innovation z = rᵀr/(mσ²) at the predicted θ, σ the
+    noise level the windows reach): a frame whose residual RMS exceeds this many σ, or a smaller excess that
+    persists over a few frames, is taken as a change: the window restarts there and the θ prior is widened by
+    --change-sigma (0: never)."""
     change_sigma: float = 0.5
     """gn: σ added to log E (and the ν parameter) when a change of material is detected (0.5: a factor 1.65)."""
     state_prior: float = 0.5
     """gn, --state-correction past: prior σ of the correction coefficients (in log E units: the past may look
     as if simulated with E off by this factor's exponent)."""
+    substeps: int = 1
+    """Implicit-Euler substeps per frame: each frame is S steps of Δt = 1/(fps·S) s, substep k taking the controls
+    at the fractional frame t − 1 + k/S and θ of frame t (for a capture whose truth is finer in time)."""
+    model_error: float = 0.02
+    """gn: relative σ of E that the discretisation itself adds to the reported E ± σ (σ_E = E √(σ²_logE + e²)): the
+    error of rsl's mesh and time step against the material, which more frames do not average out (quadratic tets:
+    1–3 %, docs/results/convergence.md, loss_sweep.md; calibrated in docs/results/estimator.md)."""
+    model_error_poisson: float = 0.02
+    """gn: σ of ν that the discretisation itself adds to the reported ν ± σ (in quadrature; ν is weakly identified
+    and absorbs model error, calibrated in docs/results/estimator.md)."""
 
 
 def resolve_estimator(config: AdaptConfig) -> str:
@@ -148,6 +166,7 @@ class _FullSpace:
     def __init__(self, scene, inputs: Callable[[int], object], solver: str):
         self.scene, self.inputs, self.solver = scene, inputs, solver
         self.dim = 0
+        self.step_kw: dict = {}  # extra keywords of each Newton step (stages.sim.scene.step), e.g. rtol
 
     @property
     def rest_state(self) -> np.ndarray:
@@ -165,7 +184,7 @@ class _FullSpace:
         from stages.sim.scene import simulate
 
         return np.asarray(simulate(self.scene, [self.inputs(t) for t in frames], young, poisson,
-                                   x_prev=before[1], x_prev2=before[0], solver=self.solver))
+                                   x_prev=before[1], x_prev2=before[0], solver=self.solver, **self.step_kw))
 
     def backward(self, frames: Sequence[int], young: np.ndarray, poisson: np.ndarray, states: np.ndarray,
                  before: np.ndarray, dL_dX: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -256,6 +275,7 @@ class _ReducedSpace:
         self.model, self._inputs = model, inputs
         self.dim = int(model.dim)
         self._rin: dict[int, object] = {}
+        self.rtol = 1e-8  # relative residual of each reduced Newton step
 
     def inputs(self, t: int):
         """ReducedInputs of frame t (cached: the projection of loads is done once)."""
@@ -275,7 +295,7 @@ class _ReducedSpace:
 
     def forward(self, frames, young, poisson, before):
         return np.asarray(self.model.simulate([self.inputs(t) for t in frames], young, poisson,
-                                              z_prev=before[1], z_prev2=before[0]))
+                                              z_prev=before[1], z_prev2=before[0], rtol=self.rtol))
 
     def backward(self, frames, young, poisson, states, before, dL_dX):
         """dL/dX → dL/dZ = Jᵀ dL/dX → reduced adjoint over the window → (dL/dE, dL/dν) (w, R)."""
@@ -336,6 +356,193 @@ class _ReducedSpace:
             return np.zeros(len(young)), np.zeros(len(young))
         g = reduced_equilibrium_adjoint(self.model, self._inputs(frame), young, poisson, z0, dL_dz=dL_dz0)
         return np.asarray(g["young"]), np.asarray(g["poisson"])
+
+
+class _Substepped:
+    """A backend whose window frames are ``S`` implicit-Euler substeps of Δt/S each (``--substeps S``), run by
+    ``fine``, a backend of the same space on the scene with time step Δt/S (Δt = 1/fps).  Substep k = 1..S of
+    frame t takes the inputs of the fractional frame t − 1 + k/S (frame t's own at k = S) and θ of frame t, as
+    stages.sim.static.simulate_from_start; a window's states are its frames' (the last substep of each).
+
+    Restart.  A frame's next step needs the last two *substep* states (x_{t−1/S}, x_t), but the windows pass the
+    two stored *frame* states before = [x_{t0−2}, x_{t0−1}].  The substep state before x_{t0−1} is taken as
+        x_{t0−1−1/S} = x_{t0−1} + (x_{t0−2} − x_{t0−1}) / S + δ_{t0−1},
+    δ_t the offset of the true last substep from that interpolation, recorded by the forward that produced x_t
+    (exact: the restarted window repeats the uninterrupted simulation bit for bit) and held fixed in derivatives
+    (so a correction of both stored states moves the substep state by the interpolation of the two).  δ = 0 at
+    frame 0 (x_{−1} = x_{−2} = x_0: the start is at rest).  A state stored under ``commit`` keeps its δ when the
+    stored value is later replaced by a corrected one.
+    Gradients: dL/dθ_t sums over frame t's substeps; dL/d before follows from the map above."""
+
+    KEEP = 6  # recorded (x_{t−1}, x_t, x_{t−1/S}, δ_t) per frame (the latest forwards)
+
+    def __init__(self, coarse, fine, substeps: int):
+        self._coarse, self.fine, self.S = coarse, fine, int(substeps)
+        self._recent: dict[int, list] = {}  # frame -> [(x_prev, x, pre, delta), ...] newest last
+        self._committed: dict[int, tuple] = {}  # frame -> the record of the state stored for it
+        self._traj: list = []  # (frames, young, poisson, before_fine, frame states, substep states), newest last
+        self._horizon = 0  # the highest frame forwarded so far (records far behind it are dropped)
+
+    def __getattr__(self, name: str):  # decode, start, modes, ...: the coarse backend's
+        return getattr(self._coarse, name)
+
+    # ---------------------------------------------------------------- the substep grid
+    def steps(self, frames: Sequence[int]) -> list[int]:
+        """Substep indices j = (t − 1)·S + k, k = 1..S, of ``frames`` (j/S is the time in frames)."""
+        S = self.S
+        return [(t - 1) * S + k for t in frames for k in range(1, S + 1)]
+
+    def _expand(self, a: np.ndarray) -> np.ndarray:
+        return np.repeat(np.asarray(a, float), self.S, axis=0)
+
+    def _find(self, t: int, x_prev: np.ndarray | None, x: np.ndarray):
+        """(record, exact): the latest record of frame t whose state is x (and whose previous frame is x_prev:
+        exact), else the committed record of frame t (not exact), else None."""
+        best = None
+        for rec in reversed(self._recent.get(t, [])):
+            if np.array_equal(rec[1], x):
+                if x_prev is not None and np.array_equal(rec[0], x_prev):
+                    return rec, True
+                best = best or rec
+        return (best or self._committed.get(t)), False
+
+    def fine_before(self, t0: int, before: np.ndarray) -> np.ndarray:
+        """The two substep states the first step of frame t0 starts from, (2, …), from before = [x_{t0−2}, x_{t0−1}]."""
+        before = np.asarray(before, float)
+        b0, b1 = before[0], before[1]
+        if t0 - 1 <= 0:
+            return np.stack([b1 + (b0 - b1) / self.S, b1])  # = [x_0, x_0] at the start
+        rec, exact = self._find(t0 - 1, b0, b1)
+        if rec is None:
+            return np.stack([b1 + (b0 - b1) / self.S, b1])
+        if exact:
+            return np.stack([rec[2], b1])
+        return np.stack([b1 + (b0 - b1) / self.S + rec[3], b1])
+
+    def _coarse_before_grad(self, gb: np.ndarray) -> np.ndarray:
+        """dL/d[x_{t0−2}, x_{t0−1}] from dL/d[x_{t0−1−1/S}, x_{t0−1}] (the restart map, δ fixed)."""
+        S = self.S
+        return np.stack([gb[0] / S, gb[1] + gb[0] * (1.0 - 1.0 / S)])
+
+    def _fine_before_tangent(self, d_before) -> np.ndarray | None:
+        if d_before is None:
+            return None
+        db = np.asarray(d_before, float)
+        return np.stack([db[:, 1] + (db[:, 0] - db[:, 1]) / self.S, db[:, 1]], axis=1)
+
+    # ---------------------------------------------------------------- forward and its records
+    def forward(self, frames, young, poisson, before):
+        """Frame states (w, …) of ``frames`` from before = [state t0−2, state t0−1]; young/poisson (w, R)."""
+        S = self.S
+        fb = self.fine_before(frames[0], before)
+        Xf = np.asarray(self.fine.forward(self.steps(frames), self._expand(young), self._expand(poisson), fb))
+        X = Xf[S - 1::S]
+        prev = np.concatenate([fb[1:], X[:-1]])
+        traj = np.concatenate([fb, Xf])  # traj[2 + j] = substep j of the window
+        for i, t in enumerate(frames):
+            pre = traj[i * S + S]  # the substep before frame i's last
+            rec = (prev[i], X[i], pre, pre - (X[i] + (prev[i] - X[i]) / S))
+            lst = self._recent.setdefault(t, [])
+            lst.append(rec)
+            del lst[:-self.KEEP]
+        self._horizon = max(self._horizon, frames[-1])
+        for t in [t for t in self._recent if t < self._horizon - 64]:
+            del self._recent[t]
+        for t in [t for t in self._committed if t < self._horizon - 64]:
+            del self._committed[t]
+        self._traj.append((list(frames), np.asarray(young, float), np.asarray(poisson, float), fb, X, Xf))
+        del self._traj[:-4]
+        return X
+
+    def commit(self, t: int, state: np.ndarray) -> None:
+        """Frame t's state is now ``state`` (run()'s store): keep the record of the forward that made it; a
+        state no forward made (a corrected one) keeps the record of the state it replaces."""
+        if t < 1:
+            return
+        rec, _ = self._find(t, None, np.asarray(state))
+        if rec is not None:
+            self._committed[t] = rec
+
+    def _trajectory(self, frames, young, poisson, states, before) -> tuple[np.ndarray, np.ndarray]:
+        """(fine before (2, …), substep states (w·S, …)) of a window whose frame states are ``states``."""
+        fb = self.fine_before(frames[0], before)
+        young, poisson, states = np.asarray(young, float), np.asarray(poisson, float), np.asarray(states)
+        for fr, y, p, b, X, Xf in reversed(self._traj):
+            if (fr == list(frames) and np.array_equal(y, young) and np.array_equal(p, poisson)
+                    and np.array_equal(b, fb) and np.array_equal(X, states)):
+                return fb, Xf
+        Xf = np.asarray(self.fine.forward(self.steps(frames), self._expand(young), self._expand(poisson), fb))
+        return fb, Xf
+
+    # ---------------------------------------------------------------- derivatives
+    def _per_frame_sum(self, g: np.ndarray) -> np.ndarray:
+        g = np.asarray(g)
+        return g.reshape((-1, self.S) + g.shape[1:]).sum(1)
+
+    def backward_before(self, frames, young, poisson, states, before, dL_dX):
+        """(dL/dE (w, R), dL/dν (w, R), dL/d before (2, …)): the substeps' adjoint summed per frame."""
+        S = self.S
+        fb, Xf = self._trajectory(frames, young, poisson, states, before)
+        dL_dX = np.asarray(dL_dX, float)
+        dLf = np.zeros((len(Xf),) + dL_dX.shape[1:])
+        dLf[S - 1::S] = dL_dX
+        gE, gN, gb = self.fine.backward_before(self.steps(frames), self._expand(young), self._expand(poisson), Xf, fb,
+                                               dLf)
+        return self._per_frame_sum(gE), self._per_frame_sum(gN), self._coarse_before_grad(np.asarray(gb))
+
+    def backward(self, frames, young, poisson, states, before, dL_dX):
+        """(dL/dE, dL/dν), each (w, R)."""
+        gE, gN, _ = self.backward_before(frames, young, poisson, states, before, dL_dX)
+        return gE, gN
+
+    def state_sensitivity(self, frames, young, poisson, states, before, d_young, d_poisson, d_before=None):
+        """d states/dp (k, w, …) at the frames (the substeps' tangent model)."""
+        fb, Xf = self._trajectory(frames, young, poisson, states, before)
+        Sf = self.fine.state_sensitivity(self.steps(frames), self._expand(young), self._expand(poisson), Xf, fb,
+                                         d_young, d_poisson, self._fine_before_tangent(d_before))
+        return np.asarray(Sf)[:, self.S - 1::self.S]
+
+    def sensitivity(self, frames, young, poisson, states, before, d_young, d_poisson, d_before=None):
+        """dX/dp (k, w, n, 3)."""
+        S = self.state_sensitivity(frames, young, poisson, states, before, d_young, d_poisson, d_before)
+        return self._coarse.decode_sensitivity(states, S)
+
+
+def substepped(backend, substeps: int, inputs_at: Callable[[float], object]):
+    """``backend`` itself for substeps = 1, else a :class:`_Substepped` over a fine twin (scene with Δt/S, its
+    inputs of substep j at the fractional frame j/S, ``inputs_at(frame: float)``)."""
+    from stages.sim.scene import substep_scene
+
+    S = int(substeps)
+    if S == 1:
+        return backend
+
+    frame_inputs = backend.inputs if backend.space == "full" else backend._inputs  # FrameInputs of a frame
+
+    def fine_inputs(j: int):  # substep j = (t − 1)·S + k of frame t: inputs at t − 1 + k/S (frame t's at k = S)
+        t1, k = divmod(j, S)
+        return frame_inputs(t1) if k == 0 else inputs_at(t1 + k / S)
+
+    if backend.space == "full":
+        fine = _FullSpace(substep_scene(backend.scene, S), fine_inputs, backend.solver)
+    else:
+        m = backend.model
+        fm = type(m)(m.sub, substep_scene(m.scene, S), (np.asarray(m.cubature_points), np.asarray(m.cubature_weights)),
+                     m.reference)
+        fine = _ReducedSpace(fm, fine_inputs)
+    return _Substepped(backend, fine, S)
+
+
+class _StoredStates(dict):
+    """run()'s frame → state store; tells a substepped backend which state each frame now holds."""
+
+    def __init__(self, backend):
+        super().__init__()
+        self._commit = backend.commit
+
+    def __setitem__(self, t, state):
+        super().__setitem__(t, state)
+        self._commit(t, state)
 
 
 class SolveCollapsed(RslError):
@@ -649,10 +856,16 @@ class _Vision:
         return self._ignore[t]
 
     def loss(self, frames: Sequence[int], X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(per-frame L1 losses (w,), dL/dX (w, n, 3)); also sets ``anchor_grad`` (n, 3) = dL/dx_f, the derivative
+        with respect to the anchor configuration x_f(θ) of the last :meth:`rebind` (rebind: through
+        ImageLoss.anchored_geometry; offset: −Σ_t dL/dx_t), which a gradient in θ must carry too."""
         losses, grad = np.zeros(len(frames)), np.zeros_like(X)
+        ga = np.zeros((self.n, 3))
         for i, t in enumerate(frames):
-            li, gi = self.loss_fn(X[i, :self.n] - self.anchor, self.targets(t), self.ignore(t))
+            li, gi, gai = self.loss_fn(X[i, :self.n] - self.anchor, self.targets(t), self.ignore(t), anchor_grad=True)
             losses[i], grad[i, :self.n] = li, gi
+            ga += gai if self.anchor_kind == "rebind" else -gi
+        self.anchor_grad = ga
         return losses, grad
 
     # Gauss–Newton residuals: the pixel differences themselves (every camera, RGB), weighted by Huber IRLS
@@ -685,6 +898,7 @@ class _Vision:
         rasterization is only piecewise smooth (the α < 1/255 cut-off) and renders in float32, so these
         columns carry errors of several % (tests); Gauss–Newton therefore takes its gradient from
         :meth:`exact_jtwr` and uses J only for the normal matrix (step shape and σ)."""
+        self._dXa = None  # the anchor's sensitivity, set by binding_jacobian for exact_jtwr of this evaluation
         size = float(np.linalg.norm(np.ptp(self.rest, axis=0)))
         out = []
         for i, x in enumerate(X):
@@ -699,21 +913,69 @@ class _Vision:
                 cols.append((self._renders(x + eps * v) - self._renders(x - eps * v)) / (2 * eps) * self._keep(frames[i]))
             m = max((len(c) for c in cols), default=0)
             out.append(np.stack([c if len(c) else np.zeros(m) for c in cols], axis=1))
+        self._last_jac = (dX, out)  # binding_jacobian replaces these columns by joint differences
+        return out
+
+    def binding_jacobian(self, frames: Sequence[int], X: np.ndarray, x_anchor: np.ndarray, dXa: np.ndarray
+                         ) -> list[np.ndarray]:
+        """Per frame, the part of ∂r_f/∂p (pixels, k) that comes from the anchor x_f(θ) moving by dXa (k, n, 3).
+        On a sagging capture the two parts nearly cancel (the anchor moves the Gaussians back where they were
+        fitted), so each column is differenced jointly — positions along dX[j] (of the :meth:`jacobian` call of
+        this evaluation) and the anchor along dXa[j] together: rebind, (R(x + εv; x_a + εv_a) − R(x − εv;
+        x_a − εv_a)) / 2ε with the Gaussians kept in their elements (ImageLoss.anchored_geometry, smooth in x_a);
+        offset, the renders at x − (x_a − x_fit) along v − v_a — and this returns the joint columns minus those
+        :meth:`jacobian` returned (GN adds the two).  :meth:`exact_jtwr` then adds the anchor's exact part."""
+        torch = self.loss_fn.torch
+        self._dXa = dXa
+        dX, J_pos = self._last_jac
+        size = float(np.linalg.norm(np.ptp(self.rest, axis=0)))
+        xa = np.asarray(x_anchor, np.float64)[:self.n]
+
+        def renders(x, a):
+            with torch.no_grad():
+                ims = self.loss_fn.images(torch.tensor(np.asarray(x[:self.n], np.float64)), torch.tensor(a))
+            return np.concatenate([im.numpy().reshape(-1) for im in ims]).astype(np.float64)
+
+        out = []
+        for i, x in enumerate(X):
+            cols = []
+            for j in range(len(dXa)):
+                v, va = dX[j, i, :self.n], dXa[j, :self.n]
+                vmax = max(float(np.abs(v).max()), float(np.abs(va).max()))
+                if vmax == 0.0:
+                    cols.append(np.zeros(J_pos[i].shape[0]))
+                    continue
+                eps = 1e-2 * size / vmax
+                if self.anchor_kind == "rebind":
+                    col = (renders(x[:self.n] + eps * v, xa + eps * va) - renders(x[:self.n] - eps * v, xa - eps * va))
+                else:
+                    col = self._renders(x[:self.n] + eps * (v - va)) - self._renders(x[:self.n] - eps * (v - va))
+                cols.append(col / (2 * eps) * self._keep(frames[i]))
+            out.append(np.stack(cols, axis=1) - J_pos[i])
         return out
 
     def exact_jtwr(self, frames: Sequence[int], X: np.ndarray, dX: np.ndarray, rs: list, Ws: list) -> np.ndarray:
         """Jᵀ W r (k,) exactly: per frame, dℓ/dx of ℓ = ½ Σ W (R(x) − Ĩ)² by torch autograd through the
-        rasterizer, projected on the sensitivities dX (k, w, n, 3)."""
+        rasterizer, projected on the sensitivities dX (k, w, n, 3) — plus, after :meth:`binding_jacobian` in the
+        same evaluation, dℓ/dx_a (ImageLoss.anchored_geometry; offset: −dℓ/dx) projected on the anchor's
+        sensitivities."""
         torch = self.loss_fn.torch
         g = np.zeros(len(dX))
+        dXa = getattr(self, "_dXa", None)
         for i, t in enumerate(frames):
             xt = torch.tensor(np.asarray(X[i, :self.n] - self.anchor, np.float64), requires_grad=True)
-            imgs = self.loss_fn.images(xt)
+            xa = None
+            if dXa is not None and self.anchor_kind == "rebind" and self.loss_fn._anchor_x is not None:
+                xa = torch.tensor(self.loss_fn._anchor_x, requires_grad=True)
+            imgs = self.loss_fn.images(xt, xa)
             tg = torch.cat([torch.as_tensor(a, dtype=torch.float64).reshape(-1) for a in self.targets(t)])
             rend = torch.cat([im.reshape(-1) for im in imgs]).double()
             w = torch.as_tensor(np.asarray(Ws[i], np.float64) * self._keep(t))  # occluded pixels weigh 0
             (0.5 * (w * (rend - tg) ** 2).sum()).backward()
             g += np.einsum("ni,kni->k", xt.grad.numpy(), dX[:, i, :self.n])
+            if dXa is not None and (xa is not None or self.anchor_kind == "offset"):
+                ga = xa.grad.numpy() if xa is not None else -xt.grad.numpy()
+                g += np.einsum("ni,kni->k", ga, dXa[:, :self.n])
         return g
 
     def noise_scale(self, r: np.ndarray) -> float:
@@ -781,7 +1043,7 @@ class StartWindow:
     through the static solve (stages.sim.static); other windows start from their two stored states.
     θ = (E (R,), ν (R,)) is shared by the window frames."""
 
-    def __init__(self, backend, kind: str = "rest"):
+    def __init__(self, backend: WindowBackend, kind: str = "rest"):
         if kind not in ("rest", "equilibrium"):
             raise RslError(f"the start state should be 'rest' or 'equilibrium', found '{kind}'.")
         self.backend, self.kind = backend, kind
@@ -844,7 +1106,7 @@ class StaticWindow:
 
     kind = "equilibrium"
 
-    def __init__(self, backend):
+    def __init__(self, backend: WindowBackend):
         self.backend = backend
         self._last: dict[int, np.ndarray] = {}  # frame -> last equilibrium (warm start)
 
@@ -891,12 +1153,15 @@ class WindowObjective:
         dL/dθ = Σ_t (adjoint over the window of dL/dX)_t,  dL/dp by the chain rule of the transforms.
 
     The observation is first re-anchored with θ: markers are bound to the frame-0 surface simulated with
-    θ, Gaussians anchored at their fit frame simulated with θ (held fixed within the gradient).
+    θ, Gaussians anchored at their fit frame simulated with θ.  Markers: the binding is held fixed within the
+    gradient; images: dL/dθ also carries the anchor's part, (dL/dx_f)(dx_f/dθ) through the fit frame's simulation
+    (without it frame f's loss, constant in θ, would still pull θ: docs/results/vision_bias.md).
     """
 
-    def __init__(self, backend, obs, n_regions: int, poisson_range: tuple[float, float], start: str = "rest"):
+    def __init__(self, backend: WindowBackend, obs: Observation, n_regions: int, poisson_range: tuple[float, float],
+                 start: str = "rest"):
         self.backend, self.obs, self.R, self.prange = backend, obs, n_regions, poisson_range
-        self.win = StartWindow(backend, start)
+        self.win: Window = StartWindow(backend, start)  # StaticWindow for --mode static
         self.rebind = True
         self.anchor_frame = int(getattr(obs, "fit_frame", 0))
 
@@ -905,6 +1170,7 @@ class WindowObjective:
         convention (frame 0 = x_0(θ)), positions (n, 3)."""
         k = self.anchor_frame + 1
         X = self.win.forward(list(range(k)), E, nu, None)
+        self._anchor_states = (np.array(E, float), np.array(nu, float), X)  # reused by the anchor's adjoint
         return self.backend.decode(X[-1:])[0]
 
     def __call__(self, frames: Sequence[int], p: np.ndarray, before: np.ndarray, need_grad: bool = True):
@@ -924,6 +1190,16 @@ class WindowObjective:
         g = None
         if need_grad:
             dE, dnu = self.win.backward(list(frames), E, nu, states, before, dX)
+            ga = getattr(self.obs, "anchor_grad", None)  # images: the anchor x_f(θ) moves the Gaussians too
+            if self.rebind and ga is not None and np.any(ga):
+                k = self.anchor_frame + 1
+                aE0, anu0, sa = getattr(self, "_anchor_states", (None, None, None))
+                if sa is None or not (np.array_equal(aE0, E) and np.array_equal(anu0, nu)):
+                    sa = self.win.forward(list(range(k)), E, nu, None)
+                dXa = np.zeros((k,) + backend.decode(sa[-1:]).shape[1:])
+                dXa[-1, :len(ga)] = ga
+                aE, anu = self.win.backward(list(range(k)), E, nu, sa, None, dXa)
+                dE, dnu = dE + aE, dnu + anu
             g = np.concatenate(chain_params(dE, dnu, E, p[R:], self.prange))
         t3 = time.perf_counter()
         return states, losses, g, (t1 - t0, t3 - t2, t2 - t1)
@@ -1028,19 +1304,39 @@ class GNWindow:
         return np.concatenate(rs), np.concatenate(Js, axis=0), jtw
 
 
-def _sigma_from_cov(gn: GNWindow, p: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """σ of E (= E σ_logE) and of ν (= ν'(s) σ_s; 0 when ν is held) per region, from the covariance of p."""
+def _sigma_from_cov(gn: GNWindow, p: np.ndarray, cov: np.ndarray, model_error: float = 0.0,
+                    model_error_poisson: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """σ of E and of ν per region from the covariance of p (k, k):
+
+        σ_E = E √(σ²_logE + e²),   σ_ν = √((ν'(s) σ_s)² + e_ν²)  (0 when ν is held),
+
+    e = ``model_error``, e_ν = ``model_error_poisson`` (the error of E, relative, and of ν that the discretisation
+    itself makes, added in quadrature: it does not average out over frames).  A parameter held at a bound of its range ([material] young_range, poisson_range)
+    reports at least the σ of a uniform prior over the range (stages.estimator.bounded_sigma): there the data
+    do not locate it (and the sigmoid's slope ν'(s) → 0 would shrink σ_ν to nothing)."""
+    from stages.estimator import bounded_sigma
+
     R = gn.R
-    E, _, s = gn.theta(p)
+    E, nu, s = gn.theta(p)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    sE = E * sd[:R]
+    s_log = np.sqrt(sd[:R] ** 2 + float(model_error) ** 2)
+    if gn.young_range is not None:
+        s_log = bounded_sigma(np.log(E), s_log, np.log(gn.young_range[0]), np.log(gn.young_range[1]))
+    sE = E * s_log
     if gn.fit_poisson:
         lo, hi = gn.obj.prange
         sig = 1.0 / (1.0 + np.exp(-s))
-        sN = (np.asarray(hi) - np.asarray(lo)) * sig * (1 - sig) * sd[R:2 * R]
+        sN = np.hypot((np.asarray(hi) - np.asarray(lo)) * sig * (1 - sig) * sd[R:2 * R], float(model_error_poisson))
+        sN = bounded_sigma(nu, sN, lo, hi)
     else:
         sN = np.zeros(R)
     return sE, np.broadcast_to(sN, (R,)).astype(float)
+
+
+STATE_PRIOR_SCALE = 0.5
+"""--state-correction states: prior σ of each correction coordinate, as a fraction of that coordinate's RMS
+excursion over the stored frames (0.5 kept a constant-E cable segment within ±1 %, 0.05 let it drift by 2 % and
+lagged after a step of E: measured on a P2-truth capture, docs/results/estimator.md)."""
 
 
 def _state_directions(backend, stored: dict, t0: int, first: int, scale: float, theta=None
@@ -1126,11 +1422,23 @@ def _parse_frames(spec: str, n_avail: int | None, where: Path) -> tuple[int, int
 
 def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
     """Adapt θ = (E, ν) per region to the capture; writes WS/adapt.h5."""
+    if config.loss != "vision":
+        return _run(config, reporter)
+    from stages.render.gaussians import one_torch_thread
+
+    with one_torch_thread():  # torch's pool only spins against the rasterizer's threads (20× per render under load)
+        return _run(config, reporter)
+
+
+def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     from stages.sim.scene import frame_inputs, make_scene
 
     ws = Path(config.workspace)
     capture = load_capture(config.capture)
     prepare_workspace(ws)  # writable? (checked before any compute) and no stale temp files
+    if not (isinstance(config.substeps, int) and config.substeps >= 1):
+        raise RslError(f"{capture.toml_path}: --substeps must be a whole number of at least 1, found "
+                       f"{config.substeps}.")
     if config.window < 1:
         raise RslError(f"{capture.toml_path}: --window must be at least 1, found {config.window}.")
     if config.estimator not in ("auto", "adam", "gn"):
@@ -1177,6 +1485,7 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
     if config.young_init is not None and not mat.young_range[0] <= config.young_init <= mat.young_range[1]:
         raise RslError(f"{capture.toml_path}: --young-init {config.young_init:g} Pa lies outside [material] "
                        f"young_range {list(mat.young_range)}; give a value inside it or widen the range.")
+    backend = substepped(backend, config.substeps, lambda f: frame_inputs(scene, controls, f))  # --substeps
     backend = _Guarded(backend, _SolveGuard(sim_mesh.vertices, sim_mesh.tets, names, capture.toml_path, mat.young))
     poisson0 = np.array([config.poisson_init if config.poisson_init is not None else mat.region_poisson(r)
                          for r in names], float)
@@ -1211,7 +1520,8 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
         raise CaptureError(f"{capture.root}: holds no frame to adapt to.")
     first, last = _parse_frames(config.frames, n_avail, capture.toml_path)
     rec = _Record()
-    stored: dict[int, np.ndarray] = {}  # frame -> latest state (positions or z)
+    # frame -> latest state (positions or z); with --substeps it tells the backend which state a frame holds
+    stored: dict[int, np.ndarray] = _StoredStates(backend) if config.substeps > 1 else {}
     t_start = time.perf_counter()
     interrupted = False
     status = "failed"
@@ -1236,7 +1546,7 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
 
     objective = WindowObjective(backend, obs, R, prange, capture.start)
     if (config.mode == "online" and not config.follow and capture.start == "equilibrium" and last is not None
-            and last - first > 1 and controls_static(inputs, list(range(first, last)))):
+            and last - first >= 1 and controls_static(inputs, list(range(first, last)))):
         reporter.info(f"{capture.controls_path}: no control moves over frames {first}..{last - 1}: identifying the "
                       f"material from the static equilibria (--mode static).")
         config = dataclasses.replace(config, mode="static")
@@ -1245,6 +1555,12 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
             raise RslError(f"{capture.toml_path}: --mode static needs a finite frame range (not --follow without "
                            f"--frames).")
         objective.win = StaticWindow(backend)
+        if config.loss == "vision" and controls_static(inputs, list(range(first, last))):
+            # every frame is the fit frame's equilibrium, and the Gaussians re-bound to x_0(θ) render it alike
+            # for every θ (docs/tutorial.md, "Static captures")
+            reporter.warn(f"{capture.controls_path}: no control moves, so every frame shows the equilibrium the "
+                          f"Gaussians were fitted to: the image loss hardly depends on E here; use --loss markers, "
+                          f"or check with `rsl evaluate --sweep --sweep-loss silhouette`.")
         if config.loss == "markers":  # the markers bind to the frame-0 equilibrium
             obs.rebind(backend.decode(objective.win.forward([0], young0, poisson0)[0][None])[0])
 
@@ -1355,7 +1671,22 @@ def _gn_solve(gn: GNWindow, frames, p0, prior, before, D, sigma, obs, iterations
         lower[:gn.R], upper[:gn.R] = np.log(gn.young_range[0]), np.log(gn.young_range[1])
     cap[:kt] = 0.5
     gn.rebind_next = True
-    res = gauss_newton(lambda pp, nj: gn.evaluate(frames, pp, before, D, nj), p0, prior, sigma,
+    first = [True]
+
+    def evaluate(pp, nj):
+        # a trial step whose simulation collapses (inverted elements, a failed solve) is a rejected step: the
+        # damping grows and a shorter step is tried; the first evaluation (the starting point) still raises
+        try:
+            return gn.evaluate(frames, pp, before, D, nj)
+        except SolveCollapsed:
+            if nj or first[0]:
+                raise
+            gn.last_p = np.full(len(pp), np.nan)  # the observations may be bound to the failed trial: re-evaluate
+            return np.full(1, np.inf), None
+        finally:
+            first[0] = False
+
+    res = gauss_newton(evaluate, p0, prior, sigma,
                        max_iterations=iterations, huber=obs.huber, max_step=cap, lower=lower, upper=upper)
     lin = (list(gn.last_frames), list(gn.last_jac))  # per-frame residuals and Jacobians at res.p_lin
     if not np.array_equal(gn.last_p, res.p):
@@ -1370,7 +1701,7 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
     takes one frame of process noise."""
     from scipy.linalg import block_diag
 
-    from stages.estimator import Prior, WindowFilter, huber_weights
+    from stages.estimator import ChangeDetector, Prior, WindowFilter, huber_weights
 
     R, w = objective.R, config.window
     gn = GNWindow(objective, config.fit_poisson, s_nu)
@@ -1382,6 +1713,8 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
     sens: dict[int, np.ndarray] = {}  # frame -> d state/dp (k_θ, …)
     sig_hist: list[float] = []
     changes: list[int] = []  # frames where a change of material was detected
+    detector = ChangeDetector(config.change_threshold)
+    rec.innovation = []  # per frame: the normalised innovation z of the change test (NaN: not tested)
     start_w = first  # the window never reaches before the last change point
     modes_failed = False
     total = None if last is None else last - first
@@ -1395,13 +1728,16 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
             before = np.stack([state_at(t0 - 2), state_at(t0 - 1)])
             tt = time.perf_counter()
             gn.times = [0.0, 0.0, 0.0]
+            z_innov = float("nan")
             if (sigma is not None and config.change_threshold > 0 and T >= 2 and len(frames) > 1
                     and (not changes or T - changes[-1] > w)):  # at most once per window length
-                # innovation test: the new frame simulated from the stored states with the predicted θ
+                # innovation test (stages.estimator.ChangeDetector): the new frame simulated from the stored
+                # states with the predicted θ, its residuals against the noise level the windows reach
                 Ep, nup, _ = gn.theta(p_th)
                 xs = objective.win.forward([T], Ep, nup, np.stack([state_at(T - 2), state_at(T - 1)]))
                 rn = obs.residuals([T], backend.decode(xs))[0]
-                if len(rn) and np.sqrt(np.mean(rn * rn)) > config.change_threshold * sigma:
+                z_innov = ChangeDetector.ratio(rn, sigma)
+                if len(rn) and detector.update(z_innov):
                     # a change point: the window restarts at T (the frames before it saw the old material and
                     # are not folded into the arrival cost) and the θ prior is widened
                     filt.prior = Prior(filt.prior.mean, filt.prior.cov + np.eye(k_th) * config.change_sigma ** 2)
@@ -1414,10 +1750,11 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
                     t0 = T
                     before = np.stack([state_at(t0 - 2), state_at(t0 - 1)])
                     rec.changes = changes
+            rec.innovation.append(z_innov)
             sc, past_dirs = None, False
             if config.state_correction == "states" and obs.kind == "markers" and not modes_failed:
                 try:
-                    sc = _state_directions(backend, stored, t0, first, 0.05, gn.theta(p_th)[:2])
+                    sc = _state_directions(backend, stored, t0, first, STATE_PRIOR_SCALE, gn.theta(p_th)[:2])
                 except (ArithmeticError, RuntimeError, ValueError) as e:  # eigsh / a singular K: fall back
                     reporter.warn(f"the vibration modes for --state-correction states failed ({e}); correcting "
                                   f"along the θ sensitivities instead (--state-correction past).")
@@ -1447,14 +1784,19 @@ def _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, store
                 sens[t] = S[:k_th, i] + (S[k_th:2 * k_th, i] if past_dirs and D is not None else 0.0)
             if D is not None and t0 >= 1:  # the corrected starting states replace the stored ones
                 stored[max(t0 - 2, 0)], stored[t0 - 1] = gn.last_before[0], gn.last_before[1]
-            sE, sN = _sigma_from_cov(gn, res.p, res.cov[:k_th, :k_th])
+            # σ from the covariance with the noise level this window's own residuals show (RSS/dof, Huber-
+            # consistent: estimator.residual_scale2), the ν bounds and the model-error floor (_sigma_from_cov)
+            sE, sN = _sigma_from_cov(gn, res.p, res.cov_scaled[:k_th, :k_th], config.model_error,
+                                     config.model_error_poisson)
             if len(frames) == w:  # frame t0 leaves the window: fold it into the arrival cost
                 r0 = r_lin[0] + J_lin[0][:, k_th:] @ (res.p[k_th:] - res.p_lin[k_th:])
-                filt.leave(res.p_lin[:k_th], r0, J_lin[0][:, :k_th], sigma, huber_weights(r0, sigma, obs.huber))
+                s_fold = sigma * float(np.sqrt(max(res.scale2, 1.0)))  # never more certain than σ says
+                filt.leave(res.p_lin[:k_th], r0, J_lin[0][:, :k_th], s_fold, huber_weights(r0, sigma, obs.huber))
             r_all = np.concatenate(gn.last_rs)
-            # the noise level: the median of the windows' residual scales over the last 5 frames (robust: one
-            # window's transient misfit does not inflate it at once)
-            sig_hist.append(max(obs.noise_scale(r_all), obs.noise_floor))
+            # the noise level: the median over the last 5 frames of the windows' residual scale per degree of
+            # freedom, √(RSS/(m − k)) (robust: one window's transient misfit does not inflate it at once)
+            dof = max(len(r_all) - len(res.p), 1)
+            sig_hist.append(max(obs.noise_scale(r_all) * float(np.sqrt(len(r_all) / dof)), obs.noise_floor))
             sigma = float(np.median(sig_hist[-5:]))
             E, nu, _ = gn.theta(res.p)
             losses = [_frame_loss(obs, r) for r in gn.last_rs]
@@ -1498,7 +1840,7 @@ def _offline_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stor
         sigma2 = max(obs.noise_scale(np.concatenate(gn.last_rs)), obs.noise_floor)
         res, _ = _gn_solve(gn, frames, q, _gn_prior(p), before, None, sigma2, obs, 1)
     E, nu, _ = gn.theta(res.p)
-    sE, sN = _sigma_from_cov(gn, res.p, res.cov)
+    sE, sN = _sigma_from_cov(gn, res.p, res.cov_scaled, config.model_error, config.model_error_poisson)
     k = len(frames)
     tf, tb, tr = gn.times
     for i, t in enumerate(frames):
@@ -1576,9 +1918,12 @@ def _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs, statu
         "cameras": getattr(obs, "cameras", []),
         "gaussian_anchor": getattr(obs, "anchor_kind", None),
         "refine": config.refine,
+        "substeps": config.substeps,
         "status": status,  # complete | interrupted | failed
         "estimator": resolve_estimator(config),
         "material_changes_detected": list(getattr(rec, "changes", [])),  # gn: frames whose innovation widened θ
+        # gn: per frame, the change test's normalised innovation rᵀr/(mσ²) (None: not tested)
+        "innovation_ratio": [None if not np.isfinite(z) else float(z) for z in getattr(rec, "innovation", [])],
         "ended": "ctrl-c" if ended_by_ctrl_c else ("last frame" if status == "complete" else "error"),
         "wall_s": wall_s,
         "young_meaning": _young_meaning(config, mesh),

@@ -30,6 +30,7 @@ Diagnostics: WS/calibrate/CAM.png shows detected corners (green) and reprojected
 from __future__ import annotations
 
 import json
+import tempfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
@@ -42,6 +43,12 @@ from stages.domain.rotations import quat_wxyz_to_matrix as quat_to_matrix
 from stages.errors import RslError
 from stages.workspace import prepare_workspace
 from stages.progress import Reporter, SilentReporter
+from stages.vision.boards import center_offset, detect, parse_board
+from stages.vision.calibration import (align_to_reference, calibrate_extrinsics, calibrate_intrinsics,
+                                       calibration_flags)
+from stages.vision.colmap_io import cameras_from_transforms, read_colmap
+from stages.vision.geometry import compose, invert, project
+from stages.vision.sfm import reconstruct, scale_by_board, scale_by_distance
 
 
 @dataclass(frozen=True)
@@ -100,12 +107,8 @@ def run(config: CalibrateConfig, reporter: Reporter = SilentReporter()) -> Path:
         cams = _order(read_cameras_json(config.from_json), names, Path(config.from_json))
         method, inputs = "json", [Path(config.from_json)]
     elif config.from_colmap:
-        from stages.vision.colmap_io import read_colmap
-
         cams, method = read_colmap(config.from_colmap, names), "colmap"
     elif config.from_transforms:
-        from stages.vision.colmap_io import cameras_from_transforms
-
         cams, method = cameras_from_transforms(config.from_transforms, names), "transforms"
         inputs = [Path(config.from_transforms)]
     elif config.sfm:
@@ -184,15 +187,11 @@ def read_board_poses(path: Path, board_spec: str) -> dict[str, tuple]:
         raise RslError(f"{path}: should hold {{\"board\": SPEC, \"poses\": {{VIEW: [tx,ty,tz,qw,qx,qy,qz]}}}}.")
     spec = data.get("board")
     if spec and board_spec and spec.replace(" ", "") != board_spec.replace(" ", ""):
-        from stages.vision.boards import parse_board
-
         if parse_board(str(spec)) != parse_board(board_spec):
             raise RslError(f"{path}: poses are for board '{spec}' but --board is '{board_spec}'.")
     origin = data.get("origin", "first_corner")
     if origin not in ("first_corner", "center"):
         raise RslError(f"{path}: 'origin' should be 'first_corner' or 'center', found {json.dumps(origin)}.")
-    from stages.vision.boards import center_offset, parse_board
-
     c0 = center_offset(parse_board(board_spec or spec)) if origin == "center" else np.zeros(3)
     out = {}
     for view, pose in poses.items():
@@ -204,11 +203,6 @@ def read_board_poses(path: Path, board_spec: str) -> dict[str, tuple]:
 
 def _board(cap: Capture, config: CalibrateConfig, reporter: Reporter, ws: Path
            ) -> tuple[list[Camera], str, list[Path]]:
-    from stages.vision.boards import detect, parse_board
-    from stages.vision.calibration import (align_to_reference, calibrate_extrinsics, calibrate_intrinsics,
-                                           calibration_flags)
-    from stages.vision.geometry import compose, invert
-
     board = parse_board(config.board)
     views = cap.calib_views()
     calib_dir = cap.root / "calib"
@@ -286,8 +280,6 @@ def _diagnostics(folder: Path, board, images, dets, intr, ext) -> None:
     """WS/calibrate/CAM.png: up to four views, detected corners (green) and reprojections (red)."""
     import cv2
 
-    from stages.vision.geometry import compose, project
-
     folder.mkdir(parents=True, exist_ok=True)
     for c, vs in images.items():
         obs = {o.view: o for o in ext.observations if o.camera == c}
@@ -327,10 +319,6 @@ def _diagnostics(folder: Path, board, images, dets, intr, ext) -> None:
 # =========================================================================== sfm
 def _sfm(cap: Capture, config: CalibrateConfig, reporter: Reporter) -> list[Camera]:
     """pycolmap SfM on frame 0 of every camera (and its calib views), scaled to metres."""
-    import tempfile
-
-    from stages.vision.sfm import reconstruct, scale_by_board, scale_by_distance
-
     images: dict[str, np.ndarray] = {}
     for c in cap.camera_names:
         images[f"{c}/frame0"] = cap.frame_source(c).read(0)
@@ -356,8 +344,6 @@ def _sfm(cap: Capture, config: CalibrateConfig, reporter: Reporter) -> list[Came
                 raise RslError(f"--known-distance: '{n}' is not a camera of {cap.toml_path}.")
         s = scale_by_distance(rec, f"{a}/frame0", f"{b}/frame0", dist)
     elif config.board:
-        from stages.vision.boards import parse_board
-
         s = scale_by_board(rec, parse_board(config.board), images)
     else:
         reporter.warn("SfM without --board or --known-distance: the scale is arbitrary, not metres.")

@@ -8,8 +8,16 @@
   It is also given over the truth's bounding-box diagonal.
 * PSNR of the Gaussians rendered on the adapted mesh against the (masked) images, when
   gaussians.h5 exists: PSNR = 10 log10(1 / MSE) on [0, 1] RGB.
+* Forces, when the capture has truth/forces.csv: the force each handle and obstacle exerts, computed from
+  adapt.h5 as ``rsl export --forces`` computes it (stages.forces), against the truth's: per handle/obstacle
+  the median over frames of ‖F − F_true‖ / ‖F_true‖ (frames where ‖F_true‖ ≥ 5 % of its largest value), and
+  the median over every compared (frame, handle/obstacle) pair.
+* ``--sweep``: the loss (markers or images) of the capture over a grid of fixed E, ν fixed at the truth's,
+  simulated in full space on mesh.h5 from the declared start (stages.sweep) — its minimum beside E_true, the
+  check that a loss is unbiased before an optimiser runs on it; it needs no adapt.h5.
 
-Writes WS/evaluation.json (atomic) and WS/evaluation_young.png (E(t) estimated vs truth).
+Writes WS/evaluation.json (atomic), WS/evaluation_young.png (E(t) estimated vs truth) and, with ``--sweep``,
+WS/evaluation_sweep.png (the loss over E, its minimum and E_true).
 """
 from __future__ import annotations
 
@@ -17,6 +25,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -25,6 +34,7 @@ from stages.capture import load_capture, read_truth
 from stages.errors import RslError
 from stages.artefacts import check_same_mesh
 from stages.progress import Reporter, SilentReporter
+from stages.results import gaussian_anchor
 from stages.workspace import write_text_atomic
 
 _QUAD = np.array([[2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])  # (3, 3) barycentrics
@@ -42,6 +52,22 @@ class EvaluateConfig:
     """Write evaluation_young.png (E(t) estimated vs truth)."""
     partial: bool = False
     """Evaluate adapt.partial.h5, the frames an interrupted or failed `rsl adapt` kept (refused otherwise)."""
+    forces: bool = True
+    """Compare the handle and obstacle forces of adapt.h5 (as `rsl export --forces` computes them) with truth/forces.csv when the capture has it."""
+    sweep: bool = False
+    """Also sweep the loss over a grid of fixed E (ν at the truth's) from the declared start on mesh.h5, and write evaluation_sweep.png; works without adapt.h5."""
+    sweep_loss: Literal["markers", "vision", "silhouette"] = "markers"
+    """Loss of the sweep: markers (markers.csv), vision (the Gaussians of gaussians.h5 against the images) or silhouette (the mesh's coverage against masks.h5: geometry alone, what still depends on E on a static capture)."""
+    sweep_points: int = 9
+    """Number of E values in the sweep, evenly spaced in log E."""
+    sweep_min: float = 0.5
+    """Smallest E of the sweep as a fraction of the reference E (the truth's at the first swept frame)."""
+    sweep_max: float = 2.0
+    """Largest E of the sweep as a fraction of the reference E."""
+    sweep_frames: str = ""
+    """Frames of the sweep, 'A:B' (B excluded); empty = the whole sequence."""
+    sweep_substeps: int = 1
+    """Implicit-Euler steps per frame in the sweep's simulation."""
 
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -73,12 +99,45 @@ def symmetric_surface_distance(va: np.ndarray, fa: np.ndarray, vb: np.ndarray, f
 
 
 def run(config: EvaluateConfig, reporter: Reporter = SilentReporter()) -> Path:
-    """Errors of adapt.h5 against CAPTURE/truth; writes WS/evaluation.json."""
+    """Errors of adapt.h5 against CAPTURE/truth (and the loss sweep); writes WS/evaluation.json."""
     ws = Path(config.workspace)
     capture = load_capture(config.capture)
     truth = read_truth(capture)
     adapt_path = ws / (PARTIAL_ADAPT if config.partial else KIND_FILES["adapt"])
     mesh_path = ws / KIND_FILES["mesh"]
+    if config.sweep:
+        _check_sweep(config)
+    out: dict = {"capture": str(Path(config.capture).resolve())}
+    inputs = [mesh_path]
+    summary = []
+    if adapt_path.exists() or not config.sweep:  # a sweep alone needs no adapt.h5
+        out.update(_adapt_errors(config, ws, capture, truth, adapt_path, mesh_path, reporter))
+        inputs.insert(0, adapt_path)
+        ps = f", PSNR {out['psnr_mean']:.2f} dB" if out["psnr_mean"] is not None else ""
+        summary.append(f"E error median {out['young_rel_error_median']:.1%} (final {out['young_rel_error_final']:.1%})"
+                       f", ν error median {out['poisson_abs_error_median']:.3f}, vertex error "
+                       f"{out['vertex_error_mean_m'] * 1e3:.2f} mm ({out['vertex_error_rel_mean']:.2%} of the "
+                       f"diagonal){ps}")
+        f = out.get("forces")
+        if f and f.get("median_relative_error") is not None:
+            summary.append(f"force error median {f['median_relative_error']:.1%}")
+    if config.sweep:
+        out["sweep"] = _sweep(config, ws, capture, truth, MeshArtefact.load(mesh_path), reporter)
+        sw = out["sweep"]
+        where = "" if sw["interior"] else " (at an end of the grid: widen it)"
+        summary.append(f"{sw['loss']} loss lowest at E = {sw['young_min']:.4g} Pa = {sw['min_over_true']:.3f} "
+                       f"E_true{where}")
+    out["provenance"] = Provenance.make(config, inputs).inputs
+    path = ws / "evaluation.json"
+    write_text_atomic(path, json.dumps(_jsonable(out), indent=1))
+    if config.plot and config.sweep:
+        _plot_sweep(ws / "evaluation_sweep.png", out["sweep"])
+    reporter.summary(f"{'; '.join(summary)} → {path}")
+    return path
+
+
+def _adapt_errors(config, ws, capture, truth, adapt_path, mesh_path, reporter) -> dict:
+    """E, ν, surface, PSNR and force errors of adapt.h5 (the keys of evaluation.json); draws evaluation_young.png."""
     adapt = AdaptArtefact.load(adapt_path, allow_partial=config.partial)
     mesh = MeshArtefact.load(mesh_path)
     check_same_mesh(mesh_path, adapt_path)  # made from this very mesh.h5, whatever the counts
@@ -110,7 +169,6 @@ def run(config: EvaluateConfig, reporter: Reporter = SilentReporter()) -> Path:
 
     psnr, psnr_frames = _psnr(config, ws, capture, adapt, mesh, reporter)
     out = {
-        "capture": str(Path(config.capture).resolve()),
         "mode": adapt.mode, "space": adapt.space, "loss_kind": adapt.loss_kind, "window": adapt.window,
         "frames": frames.tolist(),
         "region_names": adapt.region_names,
@@ -128,18 +186,120 @@ def run(config: EvaluateConfig, reporter: Reporter = SilentReporter()) -> Path:
         "bbox_diagonal_m": diag,
         "psnr_mean": float(np.mean(psnr)) if psnr else None,
         "psnr_per_frame": dict(zip(map(str, psnr_frames), psnr)),
-        "provenance": Provenance.make(config, [adapt_path, mesh_path]).inputs,
+        "forces": _forces(config, capture, adapt, mesh, reporter),
     }
-    path = ws / "evaluation.json"
-    write_text_atomic(path, json.dumps(_jsonable(out), indent=1))
     if config.plot:
         _plot(ws / "evaluation_young.png", frames, adapt, truth, idx, vert_err)
-    ps = f", PSNR {out['psnr_mean']:.2f} dB" if psnr else ""
-    reporter.summary(f"E error median {out['young_rel_error_median']:.1%} (final {out['young_rel_error_final']:.1%}), "
-                     f"ν error median {out['poisson_abs_error_median']:.3f}, vertex error "
-                     f"{out['vertex_error_mean_m'] * 1e3:.2f} mm ({out['vertex_error_rel_mean']:.2%} of the "
-                     f"diagonal){ps} → {path}")
-    return path
+    return out
+
+
+def _forces(config, capture, adapt, mesh, reporter) -> dict | None:
+    """Force errors against truth/forces.csv (stages.forces.force_errors), None without the file or --forces."""
+    from stages.capture import read_forces_csv
+    from stages.forces import force_errors, force_table, trajectory_forces
+    from stages.results import compute_stress, material_setting
+    from stages.sim.scene import make_scene
+
+    path = capture.truth_dir / "forces.csv"
+    if not config.forces or not path.is_file():
+        return None
+    truth_rows = read_forces_csv(path)
+    controls = capture.controls()
+    model, dt, gravity = material_setting(capture, adapt)
+    field = compute_stress(adapt, mesh, model, reporter, sigma=False)
+    scene = make_scene(mesh, controls, model, dt, gravity)
+    rows, _ = trajectory_forces(scene, controls, adapt.frames, adapt.positions, field.forces, reporter=reporter)
+    per = force_errors(force_table(rows, dt), truth_rows)
+    pooled = [e for v in per.values() for e in v["rel_error_per_frame"]]
+    return {"truth": str(path), "median_relative_error": float(np.median(pooled)) if pooled else None,
+            "per_set": per}
+
+
+def _check_sweep(config: EvaluateConfig) -> None:
+    if config.sweep_points < 3:
+        raise RslError(f"--sweep-points should be at least 3 (a minimum needs neighbours), found "
+                       f"{config.sweep_points}.")
+    if not 0 < config.sweep_min < config.sweep_max:
+        raise RslError(f"--sweep-min and --sweep-max should satisfy 0 < min < max, found {config.sweep_min} and "
+                       f"{config.sweep_max}.")
+    if config.sweep_substeps < 1:
+        raise RslError(f"--sweep-substeps should be at least 1, found {config.sweep_substeps}.")
+
+
+def _sweep_frames(spec: str, capture) -> tuple[int, int] | None:
+    spec = spec.strip()
+    if not spec:
+        return None
+    try:
+        a, b = (int(p) for p in spec.split(":"))
+    except ValueError:
+        raise RslError(f"--sweep-frames '{spec}' is not a range like 0:20.") from None
+    if not 0 <= a < b:
+        raise RslError(f"--sweep-frames '{spec}' should be A:B with 0 ≤ A < B.")
+    return a, b
+
+
+def _sweep(config, ws, capture, truth, mesh, reporter) -> dict:
+    """The loss over a grid of E (stages.sweep.sweep): every region's E scaled with region 0's, ν at the truth's
+    (per region, at the first swept frame); the grid around E_ref = the truth's E of region 0 there."""
+    from stages.sweep import sweep
+
+    frames = _sweep_frames(config.sweep_frames, capture)
+    f0 = frames[0] if frames else 0
+    if f0 >= len(truth.young):
+        raise RslError(f"{capture.truth_dir / 'material.csv'}: lists no frame {f0} (--sweep-frames).")
+    names = list(mesh.region_names)
+    missing = [r for r in names if r not in truth.region_names]
+    if missing:
+        raise RslError(f"{capture.truth_dir / 'material.csv'}: lists no region '{missing[0]}' of mesh.h5.")
+    idx = [truth.region_names.index(r) for r in names]
+    e_true = truth.young[f0, idx]  # (R,)
+    nu_true = truth.poisson[f0, idx]
+    if len(np.unique(nu_true)) > 1:
+        reporter.warn(f"{capture.truth_dir / 'material.csv'}: regions differ in ν; the sweep holds every region at "
+                      f"ν = {nu_true[0]:g} (region {names[0]}).")
+    grid = e_true[0] * np.geomspace(config.sweep_min, config.sweep_max, config.sweep_points)
+    scale = e_true / e_true[0]  # the truth's ratios between regions are kept along the grid
+    if config.sweep_loss == "markers" and capture.markers() is None:
+        raise RslError(f"{capture.root}: holds no markers.csv (or markers.c3d); use --sweep-loss vision.")
+    with reporter.task(f"{config.sweep_loss} loss sweep over {len(grid)} values of E", len(grid)) as task:
+        try:
+            res = sweep(capture, mesh, grid, config.sweep_loss, frames=frames, workspace=ws,
+                        poisson=float(nu_true[0]), substeps=config.sweep_substeps, base_young=e_true[0] * scale,
+                        reporter=lambda _m: task.advance(1))
+        except ValueError as e:  # a missing or mismatched input of the loss, said in one sentence
+            raise RslError(f"{str(e).rstrip('.')}.") from None
+    e_ref = float(e_true[0])
+    return {"loss": config.sweep_loss, "frames": res.info["frames"], "start": res.info["start"],
+            "substeps": config.sweep_substeps, "poisson": float(nu_true[0]), "young_pa": res.young.tolist(),
+            "loss_values": res.loss.tolist(), "young_min": res.young_min, "interior": res.interior,
+            "young_true": e_ref, "min_over_true": res.young_min / e_ref,
+            "constant_truth": bool(np.all(truth.young[res.info["frames"][0]:res.info["frames"][1], idx[0]] == e_ref)),
+            "order": res.info["order"], "n_vertices": res.info["n_vertices"]}
+
+
+def _plot_sweep(path: Path, sw: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    e, l = np.asarray(sw["young_pa"]), np.asarray(sw["loss_values"])
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    ax.plot(e, l, "o-", color="k", label=f"{sw['loss']} loss")
+    ax.axvline(sw["young_min"], color="tab:blue", label=f"minimum {sw['young_min']:.4g} Pa "
+                                                       f"({sw['min_over_true']:.3f} E_true)")
+    ax.axvline(sw["young_true"], color="tab:red", ls="--", label=f"E_true {sw['young_true']:.4g} Pa")
+    ax.set_xscale("log")
+    ax.set_xlabel("Young's modulus E (Pa)")
+    ax.set_ylabel(f"{sw['loss']} loss, frames {sw['frames'][0]}..{sw['frames'][1] - 1}")
+    ax.set_title(f"loss sweep (start {sw['start']}, ν = {sw['poisson']:g}, P{sw['order']} mesh)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    tmp = path.with_name("." + path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, path)
 
 
 def _psnr(config, ws, capture, adapt, mesh, reporter) -> tuple[list[float], list[int]]:
@@ -158,18 +318,7 @@ def _psnr(config, ws, capture, adapt, mesh, reporter) -> tuple[list[float], list
     renderer = ImageLoss(GaussiansArtefact.load(gpath), mesh, [cams.by_name(c) for c in names])
     plates = [None if masks is not None and c in masks else capture.background(c) for c in names]
     renderer.set_backgrounds([None if p is None else p.astype(np.float32) / 255.0 for p in plates])
-    # The Gaussians follow the mesh as rsl adapt made them follow it (adapt.h5 extra "gaussian_anchor"):
-    # "rebind" — re-bound to the tets of the adapted fit-frame shape; "offset" (older files) — rendered at
-    # x_t − (x_fit − fit_positions).
-    from stages.artefacts import read_provenance
-
-    fit_frame = int(read_provenance(gpath).get("config", {}).get("frame", 0) or 0)
-    at = np.flatnonzero(adapt.frames == fit_frame)
-    anchor = 0.0
-    if len(at) and (adapt.extra or {}).get("gaussian_anchor", "offset") == "rebind":
-        renderer.rebind(adapt.positions[at[0]])
-    elif len(at):
-        anchor = adapt.positions[at[0]] - renderer.fit_positions
+    anchor = gaussian_anchor(renderer, adapt, gpath)  # the Gaussians follow the mesh as rsl adapt made them
     pick = np.unique(np.linspace(0, len(adapt.frames) - 1, min(config.psnr_frames, len(adapt.frames))).round()
                      .astype(int))
     out = []

@@ -39,6 +39,8 @@ from stages.capture import FORCE_HEADER, Capture, CaptureError, Controls, load_c
 from stages.errors import RslError
 from stages.artefacts import check_same_mesh
 from stages.progress import Reporter, SilentReporter
+from stages.results import StressField, material_setting, previous_states, recorded_capture
+from stages.results import compute_stress as results_stress
 from stages.sim import stress as st
 
 ROLLOUT_FILE = "rollout.h5"
@@ -154,14 +156,7 @@ class Sequence:
 
     def previous(self, row: int) -> tuple[np.ndarray, np.ndarray]:
         """(x_{t−1}, x_{t−2}) of a row: earlier rows when consecutive, else the rest state."""
-        out = []
-        for back in (1, 2):
-            r = row - back
-            if r >= 0 and self.adapt.frames[r] == self.adapt.frames[row] - back:
-                out.append(self.adapt.positions[r])
-            else:
-                out.append(out[-1] if out else self.mesh.vertices)
-        return out[0], out[1]
+        return previous_states(self.adapt.frames, self.adapt.positions, self.mesh.vertices, row)
 
 
 def load_sequence(config: ExportConfig) -> Sequence:
@@ -199,8 +194,7 @@ def load_sequence(config: ExportConfig) -> Sequence:
                 raise
             raise ExportError(f"{src}: the capture folder it records cannot be read ({e}); "
                               f"pass --capture.") from None
-    model = capture.material.model if capture else str(adapt.extra.get("material_model", "stable_neohookean"))
-    dt = capture.dt if capture else float(adapt.extra.get("dt", 1.0 / 30.0))
+    model, dt, gravity = material_setting(capture, adapt)
     times = adapt.frames.astype(np.float64) * dt
     inputs = [src, mesh_path]
     controls, controls_path = None, None
@@ -212,21 +206,14 @@ def load_sequence(config: ExportConfig) -> Sequence:
     elif capture is not None:
         controls_path = capture.controls_path
         controls = capture.controls()
-    gravity = capture.gravity if capture else np.asarray(adapt.extra.get("gravity", [0.0, 0.0, -9.81]), float)
     return Sequence(src, adapt, mesh, capture, model, dt, times, inputs, controls, controls_path, gravity)
 
 
 def _recorded_capture(prov: dict) -> Path | None:
-    """The capture folder an artefact was made from: its config's ``capture`` when that folder exists
-    from here, else the folder of the capture.toml among its hashed (absolute) inputs."""
+    """The capture folder an artefact was made from (stages.results.recorded_capture), else its config's
+    ``capture`` as recorded (load_capture then says why it cannot be read)."""
     rec = prov.get("config", {}).get("capture")
-    if rec and Path(rec).is_dir():
-        return Path(rec)
-    for item in prov.get("inputs", []):
-        p = Path(item.get("path", ""))
-        if p.name == "capture.toml" and p.is_file():
-            return p.parent
-    return Path(rec) if rec else None
+    return recorded_capture(prov) or (Path(rec) if rec else None)
 
 
 def select_rows(seq: Sequence, spec: str, path_hint: str = "--frames") -> np.ndarray:
@@ -263,54 +250,9 @@ def select_rows(seq: Sequence, spec: str, path_hint: str = "--frames") -> np.nda
 
 
 # =========================================================================== stress
-@dataclass
-class StressField:
-    """Per-frame stress of the whole sequence (T rows)."""
-
-    von_mises_tet: np.ndarray  # (T, m) Pa (quadratic tets: the weighted mean over the element's points)
-    von_mises_vertex: np.ndarray  # (T, n) Pa
-    sigma: np.ndarray  # (T, m, 3, 3) Pa
-    forces: np.ndarray  # (T, n, 3) internal nodal forces, N
-    von_mises_point: np.ndarray | None = None  # (T, q) Pa per quadrature point (quadratic tets only)
-    point_element: np.ndarray | None = None  # (q,) element of each quadrature point
-
-
 def compute_stress(seq: Sequence, reporter: Reporter) -> StressField:
-    """σ, σ_vM (tet and vertex) and internal nodal forces for every row.  Quadratic tets: σ at each
-    quadrature point (stages.sim.stress.point_stress), per element the weight-averaged σ and σ_vM over its
-    points, nodal forces −Σ_q w_q P_q ∇N_a."""
-    from stages.sim.quadrature import build_quadrature, element_order
-
-    mesh, ad = seq.mesh, seq.adapt
-    T, n, m = seq.n_frames, mesh.n_vertices, mesh.n_tets
-    quad = build_quadrature(mesh.vertices, mesh.tets) if element_order(mesh.tets) == 2 else None
-    vm_t = np.zeros((T, m))
-    vm_v = np.zeros((T, n))
-    sig = np.zeros((T, m, 3, 3))
-    forces = np.zeros((T, n, 3))
-    vm_q = None if quad is None else np.zeros((T, quad.n_points))
-    what = "tets" if quad is None else "quadrature points"
-    with reporter.task("stress", T) as task:
-        for i in range(T):
-            mu, lam = st.tet_lame_from_regions(ad.young[i], ad.poisson[i], mesh.tet_region)
-            if quad is None:
-                s = st.tet_stress(ad.positions[i], mesh.tets, mesh.dm_inv, mu, lam, seq.model)
-            else:
-                s = st.point_stress(ad.positions[i], quad, mu[quad.element], lam[quad.element], seq.model)
-            if np.any(s["J"] <= 0):
-                reporter.warn(f"frame {int(ad.frames[i])}: {int(np.sum(s['J'] <= 0))} inverted {what}; "
-                              f"their stress is not physical.")
-            if quad is None:
-                vm_t[i], sig[i] = s["von_mises"], s["sigma"]
-                forces[i] = st.nodal_forces(s["P"], mesh.tets, mesh.dm_inv, mesh.rest_volumes, n)
-            else:
-                vm_q[i] = s["von_mises"]
-                vm_t[i] = st.element_average(s["von_mises"], quad, m)
-                sig[i] = st.element_average(s["sigma"], quad, m)
-                forces[i] = st.point_nodal_forces(s["P"], quad, n)
-            vm_v[i] = st.vertex_average(vm_t[i], mesh.tets, mesh.rest_volumes, n)
-            task.advance(1, max_kpa=float(vm_t[i].max()) / 1e3)
-    return StressField(vm_t, vm_v, sig, forces, vm_q, None if quad is None else quad.element)
+    """σ, σ_vM (tet and vertex) and internal nodal forces for every row (stages.results.compute_stress)."""
+    return results_stress(seq.adapt, seq.mesh, seq.model, reporter)
 
 
 def write_stress(seq: Sequence, field: StressField, out: Path, config: ExportConfig) -> list[Path]:
@@ -346,28 +288,20 @@ class ForceRow:
 
 def compute_forces(seq: Sequence, field: StressField, config: ExportConfig, reporter: Reporter
                    ) -> tuple[list[ForceRow], np.ndarray]:
-    """Per frame, per handle and per obstacle: the internal-force sums over its vertices
-    (stages.sim.stress.set_forces), with the controls the trajectory was made with; and the
-    per-vertex force (T, n, 3) N that handles and obstacles apply."""
-    from stages.sim.scene import frame_inputs, make_scene
+    """Per frame, per handle and per obstacle: the internal-force sums over its vertices and the force it
+    exerts (stages.forces.trajectory_forces, shared with rsl evaluate), with the controls the trajectory was
+    made with; and the per-vertex force (T, n, 3) N that handles and obstacles apply."""
+    from stages.forces import trajectory_forces
+    from stages.sim.scene import make_scene
 
     controls = seq.controls
     if not controls.handles and not controls.obstacles:
         reporter.warn(f"{seq.controls_path}: no handle and no obstacle; forces.csv holds no row.")
     scene = make_scene(seq.mesh, controls, seq.model, seq.dt, seq.gravity)
-    rows: list[ForceRow] = []
-    applied = np.zeros_like(seq.adapt.positions)
-    with reporter.task("forces", seq.n_frames) as task:
-        for i in range(seq.n_frames):
-            frame = int(seq.adapt.frames[i])
-            inputs = frame_inputs(scene, controls, frame)
-            x, (x_prev, x_prev2) = seq.adapt.positions[i], seq.previous(i)
-            for f in st.set_forces(scene, inputs, x, x_prev, field.forces[i], config.contact_distance,
-                                   x_prev2=x_prev2):
-                rows.append(ForceRow(frame, float(seq.times[i]), f))
-            applied[i] = st.applied_forces(scene, inputs, x, x_prev, x_prev2=x_prev2, f_int=field.forces[i])
-            task.advance(1)
-    return rows, applied
+    rows, applied = trajectory_forces(scene, controls, seq.adapt.frames, seq.adapt.positions, field.forces,
+                                      config.contact_distance, reporter)
+    times = dict(zip(seq.adapt.frames.tolist(), seq.times.tolist()))
+    return [ForceRow(frame, float(times[frame]), f) for frame, f in rows], applied
 
 
 def write_forces(rows: list[ForceRow], out: Path) -> Path:

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import socket
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -179,9 +181,6 @@ def simulate_sequence(mesh: MeshArtefact, plan: SequencePlan, model: str, dt: fl
 def _worker_init(parent_pid: int | None = None) -> None:
     """Worker set-up: float64 JAX on the CPU, and a watchdog thread that ends the worker as soon as its parent
     is gone (a kill -9 of `rsl generate-data` must not leave ~300 MB workers behind)."""
-    import os
-    import threading
-
     os.environ.setdefault("JAX_ENABLE_X64", "1")
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
     if parent_pid is not None:
@@ -232,8 +231,6 @@ def connect_ray(address: str, timeout_s: float = 10.0):
         return ray, False
     end = _ray_endpoint(address)
     if end is not None:
-        import socket
-
         try:
             socket.create_connection(end, timeout=timeout_s).close()
         except OSError as e:

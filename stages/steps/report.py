@@ -21,23 +21,23 @@ inline script writes, once the page has loaded, whether every image decoded into
 from __future__ import annotations
 
 import base64
-import csv
 import datetime as _dt
 import html
 import io
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from stages.artefacts import (KIND_FILES, AdaptArtefact, ArtefactError, MeshArtefact, describe,
-                              read_provenance)
-from stages.capture import Capture, CaptureError, load_capture
+from stages.adapt_loss import ImageLoss
+from stages.artefacts import (KIND_FILES, AdaptArtefact, ArtefactError, CamerasArtefact, GaussiansArtefact,
+                              MeshArtefact, describe, read_provenance)
+from stages.capture import Capture, CaptureError, load_capture, read_forces_csv, read_material_csv
 from stages.errors import RslError
 from stages.progress import Reporter, SilentReporter
-from stages.workspace import write_text_atomic
+from stages.results import compute_stress, gaussian_anchor, material_setting, previous_states, recorded_capture
+from stages.workspace import artefact_state, write_text_atomic
 from stages.sim import stress as st
 
 REPORT_FILE = "report.html"
@@ -108,29 +108,11 @@ class Context:
         return self._f_int
 
     def _compute_stress(self) -> None:
-        """As ``rsl export`` computes them (stages.sim.stress): linear tets per tet; quadratic tets at each
-        quadrature point, averaged per element with the point weights; vertex values volume-averaged."""
+        """As ``rsl export`` computes them (stages.results.compute_stress), without σ."""
         self.need("adapt", "mesh")
-        if self._stress is not None:
-            return
-        from stages.sim.quadrature import build_quadrature, element_order
-
-        ad, mesh = self.adapt, self.mesh
-        T, n, m = len(ad.frames), mesh.n_vertices, mesh.n_tets
-        quad = build_quadrature(mesh.vertices, mesh.tets) if element_order(mesh.tets) == 2 else None
-        vm_t, vm_v, f_int = np.zeros((T, m)), np.zeros((T, n)), np.zeros((T, n, 3))
-        for i in range(T):
-            mu, lam = st.tet_lame_from_regions(ad.young[i], ad.poisson[i], mesh.tet_region)
-            if quad is None:
-                s = st.tet_stress(ad.positions[i], mesh.tets, mesh.dm_inv, mu, lam, self.model)
-                vm_t[i] = s["von_mises"]
-                f_int[i] = st.nodal_forces(s["P"], mesh.tets, mesh.dm_inv, mesh.rest_volumes, n)
-            else:
-                s = st.point_stress(ad.positions[i], quad, mu[quad.element], lam[quad.element], self.model)
-                vm_t[i] = st.element_average(s["von_mises"], quad, m)
-                f_int[i] = st.point_nodal_forces(s["P"], quad, n)
-            vm_v[i] = st.vertex_average(vm_t[i], mesh.tets, mesh.rest_volumes, n)
-        self._stress_tet, self._stress, self._f_int = vm_t, vm_v, f_int
+        if self._stress is None:
+            field = compute_stress(self.adapt, self.mesh, self.model, sigma=False)
+            self._stress_tet, self._stress, self._f_int = field.von_mises_tet, field.von_mises_vertex, field.forces
 
 
 # =========================================================================== HTML helpers
@@ -192,13 +174,11 @@ def _recorded_capture(ws: Path) -> Path | None:
         if not p.exists():
             continue
         try:
-            rec = read_provenance(p).get("config", {}).get("capture")
+            found = recorded_capture(read_provenance(p), ws)
         except ArtefactError:
             continue
-        if rec:
-            for cand in (Path(rec), ws / rec):
-                if cand.is_dir():
-                    return cand
+        if found is not None:
+            return found
     return None
 
 
@@ -229,39 +209,23 @@ def load_context(config: ReportConfig) -> Context:
             if config.capture is not None:
                 raise
             ctx.why["capture"] = f"the capture folder cannot be read: {e}"
-    if ctx.capture is not None:
-        ctx.model, ctx.dt, ctx.gravity = ctx.capture.material.model, ctx.capture.dt, ctx.capture.gravity
-    elif ctx.adapt is not None:
-        ctx.model = str(ctx.adapt.extra.get("material_model", ctx.model))
-        ctx.dt = float(ctx.adapt.extra.get("dt", ctx.dt))
+    if ctx.capture is not None or ctx.adapt is not None:
+        ctx.model, ctx.dt, ctx.gravity = material_setting(ctx.capture, ctx.adapt)
     return ctx
 
 
 def _truth_material(ctx: Context):
-    """(young (T, R), poisson (T, R), region names) of truth/material.csv, or None when absent."""
+    """(young (T, R), poisson (T, R), region names) of truth/material.csv, or None when absent or empty."""
     if ctx.capture is None:
         return None
     path = ctx.capture.truth_dir / "material.csv"
     if not path.is_file():
         return None
-    rows = []
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        if reader.fieldnames != ["frame", "region", "young", "poisson"]:
-            raise SectionMissing(f"{path}: header should be 'frame,region,young,poisson'.")
-        for r in reader:
-            try:
-                rows.append((int(r["frame"]), r["region"], float(r["young"]), float(r["poisson"])))
-            except (TypeError, ValueError):
-                raise SectionMissing(f"{path}: malformed row {r}.") from None
-    if not rows:
-        return None
-    names = list(dict.fromkeys(r[1] for r in rows))
-    T = max(r[0] for r in rows) + 1
-    young, poisson = np.full((T, len(names)), np.nan), np.full((T, len(names)), np.nan)
-    for fr, reg, e, nu in rows:
-        young[fr, names.index(reg)], poisson[fr, names.index(reg)] = e, nu
-    return young, poisson, names
+    try:
+        young, poisson, names = read_material_csv(path)
+    except CaptureError as e:
+        raise SectionMissing(str(e)) from None
+    return (young, poisson, names) if young.size else None
 
 
 # =========================================================================== sections
@@ -331,8 +295,6 @@ def _render_rows(ctx: Context) -> np.ndarray:
 
 def section_renders(ctx: Context, reporter: Reporter) -> str:
     ctx.need("adapt", "mesh", "capture")
-    from stages.artefacts import CamerasArtefact, GaussiansArtefact
-
     ws = ctx.ws
     gpath, cpath = ws / KIND_FILES["gaussians"], ws / KIND_FILES["cameras"]
     for p, stage in ((gpath, "fit-gaussians"), (cpath, "calibrate")):
@@ -347,19 +309,11 @@ def section_renders(ctx: Context, reporter: Reporter) -> str:
         raise SectionMissing("gaussians.h5 is bound to another mesh than mesh.h5.")
     import torch
 
-    from stages.adapt_loss import ImageLoss
     from stages.render.gaussians import color_to_sh0
 
     renderer = ImageLoss(gauss, ctx.mesh, [cams.by_name(c) for c in names])
     ad = ctx.adapt
-    # The Gaussians follow the mesh as rsl adapt made them (adapt.h5 extra "gaussian_anchor"), as rsl evaluate.
-    fit_frame = int(read_provenance(gpath).get("config", {}).get("frame", 0) or 0)
-    at = np.flatnonzero(ad.frames == fit_frame)
-    anchor = 0.0
-    if len(at) and (ad.extra or {}).get("gaussian_anchor", "offset") == "rebind":
-        renderer.rebind(ad.positions[at[0]])
-    elif len(at):
-        anchor = ad.positions[at[0]] - renderer.fit_positions
+    anchor = gaussian_anchor(renderer, ad, gpath)  # the Gaussians follow the mesh as rsl adapt made them
     rows = _render_rows(ctx)
     _, vm_v = ctx.stress()
     vmax = float(np.percentile(vm_v[rows], 99)) or 1.0
@@ -436,8 +390,6 @@ def section_stress(ctx: Context) -> str:
 
 def _read_force_csv(path: Path) -> dict:
     """name -> {"t": (k,), "internal": (k, 3), "applied": (k, 3)} from a forces.csv (export's header)."""
-    from stages.capture import read_forces_csv
-
     out: dict = {}
     for r in read_forces_csv(path):
         d = out.setdefault(r["name"], {"t": [], "internal": [], "applied": []})
@@ -460,11 +412,7 @@ def _compute_forces(ctx: Context) -> dict:
     for i in range(len(ad.frames)):
         frame = int(ad.frames[i])
         f_int = ctx.internal_forces()[i]
-        before = []  # (x_{t−1}, x_{t−2}) as rsl export takes them: earlier rows when consecutive, else the rest state
-        for back in (1, 2):
-            r = i - back
-            ok = r >= 0 and ad.frames[r] == frame - back
-            before.append(ad.positions[r] if ok else (before[-1] if before else mesh.vertices))
+        before = previous_states(ad.frames, ad.positions, mesh.vertices, i)  # as rsl export takes them
         for sf in st.set_forces(scene, frame_inputs(scene, controls, frame), ad.positions[i], before[0], f_int,
                                 ctx.config.contact_distance, x_prev2=before[1]):
             d = out.setdefault(sf.name, {"t": [], "internal": [], "applied": []})
@@ -598,8 +546,6 @@ def section_evaluation(ctx: Context) -> str:
 
 
 def section_provenance(ctx: Context) -> str:
-    from stages.workspace import artefact_state
-
     files = _artefact_files(ctx.ws)
     if not files:
         raise SectionMissing("the workspace holds no artefact.")

@@ -25,7 +25,7 @@ from typing import Literal
 
 import numpy as np
 
-from stages.artefacts import KIND_FILES, AdaptArtefact, MeshArtefact, Provenance
+from stages.artefacts import KIND_FILES, AdaptArtefact, MeshArtefact, Provenance, SubspaceArtefact
 from stages.capture import Controls, load_capture, load_controls, select_handles
 from stages.errors import RslError
 from stages.artefacts import check_same_mesh
@@ -127,7 +127,6 @@ def run(config: RolloutConfig, reporter: Reporter = SilentReporter()) -> Path:
                          callback=lambda t: task.advance(1))
             Z = np.zeros((T, 0))
         else:
-            from stages.artefacts import SubspaceArtefact
             from stages.subspace import ReducedModel
 
             if not sub_path.exists():

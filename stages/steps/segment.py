@@ -34,11 +34,17 @@ from typing import Literal
 
 import numpy as np
 
-from stages.artefacts import KIND_FILES, CamerasArtefact, MasksArtefact, MeshArtefact, Provenance
-from stages.capture import Capture, load_capture, read_image, write_image
+from stages.artefacts import (KIND_FILES, CamerasArtefact, MasksArtefact, MeshArtefact, Provenance,
+                              mesh_artefact)
+from stages.capture import IMAGE_SUFFIXES, Capture, load_capture, read_image, write_image
 from stages.workspace import prepare_workspace
 from stages.errors import RslError
+from stages.meshing import boundary_faces, read_tet_mesh
+from stages.occluders import has_occluders, ignore_mask
 from stages.progress import Reporter, SilentReporter
+from stages.vision import segmentation as seg
+from stages.vision.sam2_model import build_predictor, check_state_dict, sam2_mask
+from stages.vision.segmentation import backdrop_uniformity, chroma_key, clean_mask, iou, mesh_silhouette
 
 METHODS = ("auto", "background", "chroma", "grabcut", "sam2", "lab")
 UNIFORM_SPREAD = 6.0
@@ -92,8 +98,6 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
     """Segment every frame of every camera and write WS/masks.h5."""
     import cv2
 
-    from stages.vision import segmentation as seg
-
     cap = load_capture(config.capture)
     ws = Path(config.workspace)
     out = ws / KIND_FILES["masks"]
@@ -137,8 +141,6 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
                 frame = next(frames)
                 ign = None
                 if occluding:
-                    from stages.occluders import ignore_mask
-
                     ign = ignore_mask(controls, i, cam_objs[cam], config.occluder_margin_px)
                     if ign.shape != frame.shape[:2]:
                         raise RslError(f"{ws / 'cameras.h5'}: camera '{cam}' is calibrated for {ign.shape[1]}x"
@@ -174,8 +176,6 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
                     m = seg.grabcut(frame, prev if ign is None else prev & ~ign, config.band_px, config.iterations,
                                     reach_px=reach, reach_factor=2 if i == 0 else 4)
                 else:
-                    from stages.vision.sam2_model import sam2_mask
-
                     m = sam2_mask(predictor, frame, prev)
                 m = seg.clean_mask(m, config.open_px, config.close_px, ignore=ign)
                 if prev is not None and np.any(m):
@@ -266,8 +266,6 @@ def _resolve(method: str, cap: Capture, ws: Path) -> tuple[str, str]:
         return "lab", "the capture holds masks/CAM/ for every camera"
     if all(cap.background(c) is not None for c in cap.camera_names):
         return "background", "every camera has a background plate"
-    from stages.vision.segmentation import backdrop_uniformity, chroma_key, clean_mask, iou
-
     has_cams = (ws / KIND_FILES["cameras"]).is_file()
     spreads = {}
     for c in cap.camera_names:
@@ -295,8 +293,6 @@ def _resolve(method: str, cap: Capture, ws: Path) -> tuple[str, str]:
 
 def _rest_surface(cap: Capture) -> tuple[np.ndarray, np.ndarray]:
     """The capture's rest mesh as (vertices (n, 3), triangles (k, 3)): a surface file, or a tet mesh's boundary."""
-    from stages.meshing import boundary_faces, read_tet_mesh
-
     path = cap.mesh_path
     if path.suffix.lower() in (".mesh", ".msh"):
         v, tets, _ = read_tet_mesh(path)
@@ -318,9 +314,6 @@ def _frame0_mesh(cap: Capture, ws: Path) -> tuple[object | None, np.ndarray, np.
         mesh = MeshArtefact.load(mesh_path)
         return mesh, mesh.vertices, mesh.surface_faces, [mesh_path], "mesh.h5's surface"
     if cap.mesh_path.suffix.lower() in (".mesh", ".msh"):
-        from stages.meshing import read_tet_mesh
-        from stages.sim.meshgen import mesh_artefact
-
         v, tets, _ = read_tet_mesh(cap.mesh_path)
         mesh = mesh_artefact(v, tets, cap.density)
         return mesh, mesh.vertices, mesh.surface_faces, [cap.mesh_path], f"the rest mesh {cap.mesh_path.name}"
@@ -356,8 +349,6 @@ def _mesh_priors(cap: Capture, ws: Path, reporter: Reporter = SilentReporter()
     """(silhouette per camera, inputs, what was projected): the frame-0 state of the object — the rest shape, or its
     static equilibrium when capture.toml says the capture starts there — of mesh.h5, or of the capture's rest mesh
     when mesh.h5 does not exist yet, projected with cameras.h5 (the first frame's GrabCut seed)."""
-    from stages.vision.segmentation import mesh_silhouette
-
     cams_path = ws / KIND_FILES["cameras"]
     if not cams_path.is_file():
         raise RslError(f"{cams_path}: file not found; mesh-seeded segmentation needs WS/cameras.h5 "
@@ -385,8 +376,6 @@ def _mesh_priors(cap: Capture, ws: Path, reporter: Reporter = SilentReporter()
 
 def _occluder_cameras(cap: Capture, ws: Path, method: str, reporter: Reporter) -> tuple[bool, dict]:
     """(whether occluder pixels are left out, camera name -> Camera): needs controls.json visuals and cameras.h5."""
-    from stages.occluders import has_occluders
-
     if method == "lab" or not has_occluders(cap.controls()):
         return False, {}
     path = ws / KIND_FILES["cameras"]
@@ -406,8 +395,6 @@ def _occluder_cameras(cap: Capture, ws: Path, method: str, reporter: Reporter) -
 
 def _lab_path(cap: Capture, cam: str, frame: int) -> Path:
     """CAPTURE/masks/CAM/NNNNNN.png (the first existing suffix of png, jpg, jpeg; png when none exists)."""
-    from stages.capture import IMAGE_SUFFIXES
-
     for suf in IMAGE_SUFFIXES:
         p = cap.root / "masks" / cam / f"{frame:06d}{suf}"
         if p.is_file():
@@ -443,8 +430,6 @@ def _parse_color(text: str) -> np.ndarray:
 
 def _sam2_predictor(config: SegmentConfig):
     """Load the user's SAM 2 checkpoint (validated) and build the predictor."""
-    from stages.vision.sam2_model import build_predictor, check_state_dict
-
     if not config.checkpoint:
         raise RslError("--method sam2 needs --checkpoint FILE (a SAM 2 checkpoint you supply; nothing is "
                        "downloaded).")

@@ -19,6 +19,7 @@ handles): object.obj is always the rest surface of the given mesh, the truth mes
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -32,15 +33,20 @@ from typing import Literal
 import numpy as np
 
 from stages.artefacts import Camera, MeshArtefact
+from stages.artefacts import mesh_artefact as make_artefact
 from stages.capture import (IDENTITY_POSE, SURFACE_SUFFIXES, TET_SUFFIXES, Controls, Handle, Load, Obstacle,
                             Selection, Track, matrix_to_quat, parse_controls, select_handles,
                             write_cameras_json, write_markers, write_truth, write_truth_forces)
+from stages.domain.rotations import axis_angle_matrix as _axis_angle
 from stages.errors import RslError
+from stages.meshing import boundary_faces, orient_tets, read_surface, read_tet_mesh, tetwild
+from stages.occluders import clamp_visual, draw_occluders, ignore_mask
 from stages.progress import Reporter, SilentReporter
 from stages.sim.mesh import rest_quantities
+from stages.sim.meshgen import refine_tets
 
-Scenario = Literal["stretch", "twist", "push", "drop", "cable"]
-SCENARIOS = ("stretch", "twist", "push", "drop", "cable")
+Scenario = Literal["stretch", "twist", "push", "drop", "cable", "sag"]
+SCENARIOS = ("stretch", "twist", "push", "drop", "cable", "sag")
 
 
 @dataclass(frozen=True)
@@ -51,7 +57,8 @@ class SynthConfig:
     """Capture folder to create."""
     scenario: Scenario = "stretch"
     """What drives the object: stretch or twist (two end handles), push (a moving sphere, both ends held), drop
-    (onto a floor), cable (one end held, a load pulls the tip)."""
+    (onto a floor), cable (one end held, a load pulls the tip), sag (one end held, nothing moves: a cantilever
+    hanging at rest under gravity, a static capture for rsl adapt --mode static)."""
     amplitude: float = 1.0
     """Scale of the scenario's motion: stretch distance, twist angle, push depth, drop height, cable force."""
     cameras: int = 4
@@ -151,8 +158,6 @@ class SynthMesh:
 
 def load_tets(path: Path, edge_length: float, max_tets: int, reporter: Reporter) -> tuple[np.ndarray, np.ndarray]:
     """(vertices (n, 3), tets (m, 4)) from a tet mesh or a closed surface (fTetWild)."""
-    from stages.meshing import read_surface, read_tet_mesh, tetwild
-
     path = Path(path)
     if not path.is_file():
         raise RslError(f"{path}: mesh file not found.")
@@ -174,8 +179,6 @@ def prepare_mesh(vertices: np.ndarray, tets: np.ndarray, size: float, region: st
                  tilt_deg: float = 0.0, source: str = "mesh") -> SynthMesh:
     """Scale (longest side = size), optionally tilt about x, centre at the origin, orient the tets
     positively, extract the surface and assign the optional second region."""
-    from stages.meshing import boundary_faces, orient_tets
-
     v = np.asarray(vertices, np.float64).copy()
     ext = v.max(0) - v.min(0)
     if size > 0:
@@ -278,8 +281,6 @@ def _smooth(frames: int) -> np.ndarray:
 
 def _rot_about(axis: np.ndarray, angle: float, center: np.ndarray) -> np.ndarray:
     """Pose [t, q] of a rotation by ``angle`` about the line through ``center`` along ``axis``: t = c − R c."""
-    from stages.domain.rotations import axis_angle_matrix as _axis_angle
-
     R = _axis_angle(axis, angle)
     return np.concatenate([center - R @ center, matrix_to_quat(R)])
 
@@ -293,7 +294,9 @@ def scenario_controls(scenario: str, vertices: np.ndarray, faces: np.ndarray, fr
     vertices within 8 % of the length from each end, with a total stiffness 200 E A / L. Motions
     follow s(t) = sin²(π t/(T−1)) (out and back), scaled by ``amp``: stretch 0.25·L; twist 120° about
     a with a 0.1·L push-in; push: a sphere of radius L/4 comes down to 0.15·L below the centre;
-    drop: from 0.1·L above a floor (friction 0.3); cable: a load of 0.8 × the weight on 6 tip vertices.
+    drop: from 0.1·L above a floor (friction 0.3); cable: a load of 0.8 × the weight on 6 tip vertices;
+    sag: the end face (the vertices within 1 % of L of it) held still, nothing else (gravity alone; ``amp``
+    unused): a wall-mounted cantilever that every mesh of the surface clamps alike.
     """
     lo, hi = vertices.min(0), vertices.max(0)
     ext = hi - lo
@@ -312,18 +315,18 @@ def scenario_controls(scenario: str, vertices: np.ndarray, faces: np.ndarray, fr
     s = _smooth(frames)
     pad = 0.05 * L
 
-    def end_box(which: int) -> Selection:
+    def end_box(which: int, depth: float = 0.08) -> Selection:
         b0, b1 = lo - pad, hi + pad
         if which == 0:
             b1 = b1.copy()
-            b1[ai] = lo[ai] + 0.08 * L
+            b1[ai] = lo[ai] + depth * L
         else:
             b0 = b0.copy()
-            b0[ai] = hi[ai] - 0.08 * L
+            b0[ai] = hi[ai] - depth * L
         return Selection("box", box=np.stack([b0, b1]))
 
-    def handle(name: str, which: int, poses: np.ndarray) -> Handle:
-        sel = end_box(which)
+    def handle(name: str, which: int, poses: np.ndarray, depth: float = 0.08) -> Handle:
+        sel = end_box(which, depth)
         n_sel = max(1, len(sel.select(vertices)))
         k = 200.0 * young_max * area / L / n_sel
         h = Handle(name, sel, float(f"{k:.4g}"), Track(np.arange(len(poses)), poses, True))
@@ -371,6 +374,8 @@ def scenario_controls(scenario: str, vertices: np.ndarray, faces: np.ndarray, fr
         ctl.handles = [handle("base", 0, still)]
         ctl.loads = [Load("cable", Selection("ids", ids=ids), Track(np.arange(frames), force, False))]
         notes["max_cable_force_n"] = float(np.linalg.norm(force, axis=1).max())
+    elif scenario == "sag":  # the end face alone (1 % of L deep): any mesh of the surface holds the same nodes
+        ctl.handles = [handle("base", 0, still, depth=0.01)]
     else:
         raise RslError(f"unknown scenario {scenario!r}; use one of {', '.join(SCENARIOS)}.")
     return ctl, notes
@@ -474,9 +479,6 @@ def resolve_start(start: str, controls: Controls) -> str:
 def truth_mesh(mesh: SynthMesh, density: float, refine: int, order: int) -> tuple[SynthMesh, MeshArtefact]:
     """The truth discretisation of the shipped rest shape: ``refine`` × 8-fold splits (Bey), then P2 nodes
     when order = 2 (straight mid-edge nodes: the same geometry).  (SynthMesh, MeshArtefact)."""
-    from stages.sim.meshgen import mesh_artefact as make_artefact
-    from stages.sim.meshgen import refine_tets
-
     v, t, reg = mesh.vertices, mesh.tets, mesh.tet_region
     for _ in range(refine):
         v, t, reg = refine_tets(v, t, reg)
@@ -493,8 +495,6 @@ def truth_forces(scene, ctl: Controls, X: np.ndarray, states: list, young: np.nd
     (spring pull, hard-handle reaction = −residual of Φ without the handle at its vertices, or −∂E_c/∂x)
     and its vertex count — what ``rsl export --forces`` computes, on the truth simulation.
     ``states``: per frame (x_{t−1}, x_{t−2}) of the last substep (stages.sim.static.simulate_from_start)."""
-    import dataclasses
-
     from stages.sim.scene import frame_inputs, handle_reactions, internal_forces
     from stages.sim.stress import set_forces
 
@@ -608,8 +608,6 @@ def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
     ctl, notes = scenario_controls(c.scenario, mesh.vertices, mesh.faces, c.frames, float(masses.sum()),
                                    gravity, float(young.max()), c.amplitude, hard=c.handles == "hard")
     if c.clamp:  # a visible clamp over the first handle's vertices (stages/occluders.py)
-        from stages.occluders import clamp_visual
-
         if not ctl.handles:
             raise RslError(f"--clamp needs a handle to draw; the {c.scenario} scenario has none.")
         ctl.handles[0].visual = clamp_visual(mesh.vertices[ctl.handles[0].select.select(mesh.vertices)])
@@ -789,8 +787,6 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, tmesh: SynthMesh
                     seen_by[f] += visible_points(true_pts[f], cam, depth)
                 mask = cov >= 0.5
                 if c.clamp:  # drawn in front; the truth mask is the object it leaves visible
-                    from stages.occluders import draw_occluders, ignore_mask
-
                     rgb = draw_occluders(rgb, ctl, f, cam, supersample=c.supersample)
                     mask &= ~ignore_mask(ctl, f, cam, margin_px=0)
                 if c.noise > 0:

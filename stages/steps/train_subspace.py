@@ -22,10 +22,12 @@ import numpy as np
 
 from stages.artefacts import KIND_FILES, MeshArtefact, Provenance, SnapshotsArtefact, SubspaceArtefact, \
     read_provenance
+from stages.capture import load_capture
 from stages.errors import RslError
 from stages.artefacts import check_same_mesh
 from stages.workspace import prepare_workspace
 from stages.progress import Reporter, SilentReporter
+from stages.sim.quadrature import element_order
 
 
 @dataclass(frozen=True)
@@ -88,8 +90,6 @@ def _material_model(config: TrainSubspaceConfig, snap_path: Path) -> str:
             capture = None
     if capture:
         try:
-            from stages.capture import load_capture
-
             return load_capture(Path(capture)).material.model
         except (RslError, OSError):
             pass
@@ -101,7 +101,6 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
     import jax.numpy as jnp
 
     from stages.sim.materials import MODELS, lame
-    from stages.sim.quadrature import element_order
     from stages.subspace.cubature import ReducedForceSampler, cubature_error, fit_cubature, mesh_quadrature
     from stages.subspace.train import fit_subspace, reconstruction_error
 

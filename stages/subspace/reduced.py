@@ -100,6 +100,7 @@ class ReducedModel:
         basis = np.asarray(sub.basis)
         m = np.asarray(scene.masses)
         self._basis_full = jnp.asarray(basis)
+        self._rest_full = jnp.asarray(np.asarray(sub.rest, np.float64))
         g_mat = np.einsum("nip,ni,niq->pq", basis, np.repeat(m[:, None], 3, 1), basis)  # Uᵀ M U
         grav_q = np.einsum("nip,ni->p", basis, m[:, None] * np.asarray(scene.gravity)[None, :])  # Uᵀ M g
         if any(getattr(h, "hard", False) for h in scene.handles):
@@ -235,8 +236,10 @@ class ReducedModel:
 
     # ------------------------------------------------------------------ maps
     def decode(self, z) -> np.ndarray:
-        """x = φ(z), z (..., r) → (..., n, 3)."""
-        return np.asarray(self.sub.decode(jnp.asarray(z)))
+        """x = φ(z), z (..., r) → (..., n, 3) (SubspaceMap.decode compiled once: the same floats, no eager ops)."""
+        d = self.data
+        return np.asarray(_decode_jit(np.asarray(z, np.float64), d["net"], d["q_scale"], self._basis_full,
+                                      self._rest_full, self.kind))
 
     def encode(self, x) -> np.ndarray:
         """z = ψ(x), (r,)."""
@@ -254,7 +257,9 @@ class ReducedModel:
 
     # ------------------------------------------------------------------ energy, gradient, Hessian
     def _args(self, z, z_prev, z_prev2, young, poisson, rin):
-        f = lambda a: jnp.asarray(a, jnp.float64)  # noqa: E731
+        # numpy float64, not jnp.asarray: the jitted kernels take numpy arguments directly, while jnp.asarray is
+        # an eager dispatch (≈0.3 ms each, several per Newton iteration)
+        f = lambda a: np.asarray(a, np.float64)  # noqa: E731
         return f(z), f(z_prev), f(z_prev2), f(young), f(poisson), rin
 
     def energy(self, z, inputs, young, poisson, z_prev, z_prev2) -> float:
@@ -296,15 +301,15 @@ class ReducedModel:
         z_prev, z_prev2 = np.asarray(z_prev, np.float64), np.asarray(z_prev2, np.float64)
         z = (2.0 * z_prev - z_prev2) if z_init is None else np.asarray(z_init, np.float64)
         rest = self._args(z, z_prev, z_prev2, young, poisson, rin)[1:]
-        e, g = (np.asarray(a) for a in self._EG(jnp.asarray(z), *rest))
+        e, g = (np.asarray(a) for a in self._EG(z, *rest))
         if not np.isfinite(e):
             z = z_prev.copy()
-            e, g = (np.asarray(a) for a in self._EG(jnp.asarray(z), *rest))
+            e, g = (np.asarray(a) for a in self._EG(z, *rest))
         inv = self._inv if (reuse_hessian and getattr(self, "_inv", None) is not None) else None
         fresh = False
         n_hess = 0
         d = self.data
-        f_ext = np.asarray(_jqt_jit(jnp.asarray(z), d["grav_q"] + rin.load_q, d["net"], d["q_scale"], self.kind))
+        f_ext = np.asarray(_jqt_jit(z, d["grav_q"] + rin.load_q, d["net"], d["q_scale"], self.kind))
         g0 = max(float(np.linalg.norm(g)) + float(np.linalg.norm(f_ext)), 1e-300)  # as stages.sim.scene.step
         tol = rtol * g0
         it = 0
@@ -319,7 +324,7 @@ class ReducedModel:
                     inv = None  # quasi-Newton is making slow progress: a fresh Hessian
                 since, g_ref = 0, gn
             if inv is None:
-                inv = _inverse(_factorise(np.asarray(self._H(jnp.asarray(z), *rest))))
+                inv = _inverse(_factorise(np.asarray(self._H(z, *rest))))
                 fresh, n_hess = True, n_hess + 1
                 since, g_ref = 0, gn
             since += 1
@@ -328,7 +333,7 @@ class ReducedModel:
             alpha = 1.0
             while slope < 0 and alpha > 1e-10:  # backtracking on E; ∂E/∂z comes with it (same cost)
                 z_try = z + alpha * dz
-                e_new, g_new = (np.asarray(a) for a in self._EG(jnp.asarray(z_try), *rest))
+                e_new, g_new = (np.asarray(a) for a in self._EG(z_try, *rest))
                 e_new = float(e_new)
                 if np.isfinite(e_new) and e_new <= e + 1e-4 * alpha * slope + 1e-13 * abs(e):
                     break
@@ -406,7 +411,7 @@ class ReducedModel:
             args = self._args(states[t + 2], states[t + 1], states[t], young[t], poisson[t], rins[t])
             h = np.asarray(self._H(*args))
             lam[t] = _solve_sym(h, rhs[t])
-            d1, d2, dy, dn = (np.asarray(a) for a in self._hvjp(*args, jnp.asarray(lam[t])))
+            d1, d2, dy, dn = (np.asarray(a) for a in self._hvjp(*args, lam[t]))
             gy[t], gn[t] = -dy, -dn
             for k, dk in ((t - 1, d1), (t - 2, d2)):  # h_t depends on z_{t−1}, z_{t−2}
                 if k >= 0:
@@ -422,6 +427,12 @@ def _jqt_jit(z, w, net, q_scale, kind):
     """(∂q/∂z)ᵀ w, w (p,) → (r,)."""
     _, vjp = jax.vjp(lambda zz: _q_of_z(kind, net, q_scale, zz), z)
     return vjp(w)[0]
+
+
+@partial(jax.jit, static_argnames=("kind",))
+def _decode_jit(z, net, q_scale, basis, rest, kind):
+    """φ(z) = x̄ + U q(z), z (..., r) → (..., n, 3): SubspaceMap.decode, compiled."""
+    return rest + jnp.einsum("nip,...p->...ni", basis, _q_of_z(kind, net, q_scale, z))
 
 
 @partial(jax.jit, static_argnames=("kind",))

@@ -29,7 +29,10 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import optax  # noqa: E402
+import scipy.sparse as sp  # noqa: E402
+from scipy.sparse.linalg import splu  # noqa: E402
 
+from stages.sim.quadrature import P2_EDGES, element_order  # noqa: E402
 from stages.subspace.networks import Autoencoder, SubspaceMap  # noqa: E402
 
 
@@ -88,8 +91,6 @@ def stiffness_laplacian(rest: np.ndarray, tets: np.ndarray):
     λ the barycentric (hat) functions of each tet; symmetric positive semi-definite, K 1 = 0, and
     ½ fᵀ K f = ½ ∫|∇f|² for piecewise-linear f.  Degenerate tets (zero volume) add nothing.
     """
-    import scipy.sparse as sp
-
     x = rest[tets]  # (m, 4, 3)
     e = np.transpose(x[:, 1:] - x[:, :1], (0, 2, 1))  # (m, 3, 3), columns x_i − x_0
     det = np.linalg.det(e)
@@ -114,11 +115,6 @@ def harmonic_weights(rest: np.ndarray, tets: np.ndarray, handle_ids: np.ndarray)
     Quadratic tets (m, 10): solved on the corner tets (handles must be corners), mid-edge nodes
     interpolated linearly along their edges.
     """
-    import scipy.sparse as sp
-    from scipy.sparse.linalg import splu
-
-    from stages.sim.quadrature import P2_EDGES, element_order
-
     n, k = len(rest), len(handle_ids)
     handle_ids = np.asarray(handle_ids, np.int64)
     tets = np.asarray(tets, np.int64)
@@ -202,8 +198,6 @@ def lbs_basis(rest: np.ndarray, tets: np.ndarray, masses: np.ndarray, r: int,
     Returns (U, info{"handle_ids" (k,), "handles" (k, 3), "weights" (n, k), "span" (n, 3, P),
     "span_dim" P, "selection"}).
     """
-    from stages.sim.quadrature import element_order
-
     k = max(1, math.ceil(r / 12))
     if element_order(tets) == 2:  # handles at corner nodes
         corners = np.unique(np.asarray(tets)[:, :4])

@@ -37,6 +37,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from stages.errors import RslError
@@ -80,16 +81,12 @@ class Board:
         return (0.0, 0.0, self.cols * s, self.rows * s)
 
     def _cv_board(self):
-        import cv2
-
         d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
         return cv2.aruco.CharucoBoard((self.cols, self.rows), self.square_m, self.marker_m, d)
 
 
 def parse_board(spec: str) -> Board:
     """Parse a board spec (module doc); a malformed one raises RslError naming the spec."""
-    import cv2
-
     s = spec.strip()
     m = _CHESS_RE.match(s)
     if m:
@@ -121,8 +118,6 @@ class Detection:
 
 def to_gray(image: np.ndarray) -> np.ndarray:
     """RGB or gray uint8 -> gray uint8 (H, W)."""
-    import cv2
-
     img = np.asarray(image)
     if img.ndim == 3:
         return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
@@ -139,8 +134,6 @@ def detect(board: Board, image: np.ndarray, min_corners: int = 6, subpix_window:
     all corners are required.
     ChArUco: ``CharucoDetector.detectBoard``; at least ``min_corners`` corners.
     """
-    import cv2
-
     gray = to_gray(image)
     if board.kind == "chessboard":
         flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
@@ -171,8 +164,6 @@ def detect(board: Board, image: np.ndarray, min_corners: int = 6, subpix_window:
 def board_texture(board: Board, px_per_square: int = 40) -> tuple[np.ndarray, np.ndarray]:
     """A printable image of the board (gray uint8, with a one-square white margin) and the 3×3
     matrix A mapping texture pixel centres (u, v, 1) (OpenCV: integer = centre) to board (x, y, 1)."""
-    import cv2
-
     s = board.square_m
     p = int(px_per_square)
     if board.kind == "chessboard":
@@ -208,8 +199,6 @@ def render_board(board: Board, K: np.ndarray, R: np.ndarray, t: np.ndarray, size
     """Pinhole picture (gray uint8 (H, W), no distortion) of the board at pose board→camera (R, t):
     homography H = K [r1 r2 t] A from texture pixels to image pixels, drawn ``supersample``
     times larger (x_big = s·x + (s−1)/2) and area-averaged down, against aliasing."""
-    import cv2
-
     w, h = size
     ss = int(supersample)
     tex, A = board_texture(board, px_per_square)

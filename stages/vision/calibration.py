@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from stages.errors import RslError
@@ -41,8 +42,6 @@ class Intrinsics:
 def calibration_flags(fix_aspect_ratio: bool = False, zero_tangent: bool = False, fix_k3: bool = False,
                       fix_principal_point: bool = False) -> int:
     """OpenCV ``calibrateCamera`` flags from named switches."""
-    import cv2
-
     f = 0
     if fix_aspect_ratio:
         f |= cv2.CALIB_FIX_ASPECT_RATIO
@@ -56,8 +55,6 @@ def calibration_flags(fix_aspect_ratio: bool = False, zero_tangent: bool = False
 
 
 def _opencv_calibrate(board: Board, dets: dict[str, Detection], size: tuple[int, int], flags: int):
-    import cv2
-
     names = list(dets)
     obj = [board.object_points[dets[n].ids].astype(np.float32) for n in names]
     img = [dets[n].image_points.astype(np.float32).reshape(-1, 1, 2) for n in names]
@@ -128,8 +125,6 @@ class Extrinsics:
 
 
 def _solve_pnp(obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray) -> tuple:
-    import cv2
-
     ok, rv, tv = cv2.solvePnP(obj.astype(np.float64), img.astype(np.float64).reshape(-1, 1, 2), K, dist,
                               flags=cv2.SOLVEPNP_ITERATIVE)
     if not ok:

@@ -8,6 +8,7 @@ mesh for the first frame, then the previous frame's mask.
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from stages.errors import RslError
@@ -61,8 +62,6 @@ def build_predictor(state_dict: dict, config_name: str, where: str, device: str 
 
 def prompt_from_prior(prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(box [x0, y0, x1, y1], point [[x, y]]) prompting SAM 2 from a prior mask (H, W) bool."""
-    import cv2
-
     ys, xs = np.nonzero(prior)
     box = np.array([xs.min(), ys.min(), xs.max(), ys.max()], np.float32)
     dt = cv2.distanceTransform(np.asarray(prior, np.uint8), cv2.DIST_L2, 5)

@@ -17,22 +17,21 @@ All functions take RGB uint8 images (H, W, 3) and return boolean masks (H, W); n
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
+
+from stages.vision.geometry import project
 
 
 # =========================================================================== helpers
 def disc(radius: int) -> np.ndarray:
     """Elliptic structuring element of the given radius (pixels)."""
-    import cv2
-
     r = max(int(radius), 0)
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
 
 
 def largest_component(mask: np.ndarray) -> np.ndarray:
     """The largest 8-connected component of a boolean mask (empty stays empty)."""
-    import cv2
-
     m = np.asarray(mask, np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
     if n <= 1:
@@ -43,8 +42,6 @@ def largest_component(mask: np.ndarray) -> np.ndarray:
 
 def fill_holes(mask: np.ndarray) -> np.ndarray:
     """Mask with every background region not connected to the image border filled."""
-    import cv2
-
     m = np.asarray(mask, np.uint8)
     h, w = m.shape
     pad = np.zeros((h + 2, w + 2), np.uint8)
@@ -64,8 +61,6 @@ def clean_mask(mask: np.ndarray, open_px: int = 1, close_px: int = 2, largest: b
     kept component is the component of mask ∪ ignore holding the most mask pixels, and holes of that
     component are filled before the ignored pixels are taken out).
     """
-    import cv2
-
     ign = None if ignore is None or not np.any(ignore) else np.asarray(ignore, bool)
     m = np.asarray(mask, bool)
     if ign is not None:
@@ -159,8 +154,6 @@ def border_color(image: np.ndarray, width: int = 4) -> np.ndarray:
 def chroma_key(frame: np.ndarray, key_rgb: np.ndarray | None = None, threshold: float = 0.0) -> np.ndarray:
     """Raw foreground (H, W) bool: (Cr, Cb) distance from the key colour above τ
     (τ = 0: Otsu's threshold on the distance image, at least 8)."""
-    import cv2
-
     img = np.asarray(frame, np.uint8)
     key = border_color(img) if key_rgb is None else np.asarray(key_rgb, np.float64)
     ycc = cv2.cvtColor(img, cv2.COLOR_RGB2YCrCb).astype(np.float64)
@@ -179,8 +172,6 @@ def backdrop_uniformity(image: np.ndarray, width: int = 4) -> tuple[float, np.nd
     distance of the border pixels' shading-free chroma c = 128 (Cr − 128, Cb − 128) / max(Y, 16) (YCrCb, 0–255
     units; a colour scaled by a shading factor keeps its c) from their median.  A backdrop of one colour
     (a chroma-key screen, a plain wall), shaded or not, gives a few units; a scene gives tens."""
-    import cv2
-
     img = np.asarray(image, np.uint8)
     w = max(1, int(width))
     border = np.concatenate([img[:w].reshape(-1, 3), img[-w:].reshape(-1, 3),
@@ -203,8 +194,6 @@ def grabcut(frame: np.ndarray, prior: np.ndarray, band_px: int = 0, iterations: 
     ``band_px``, while it would keep under 10 % of the prior).  band_px 0 = 6 % of the prior's
     equivalent diameter (at least 2 px); reach_px 0 = reach_factor × band_px.  Returns (H, W) bool.
     """
-    import cv2
-
     img = np.asarray(frame, np.uint8)
     prior = np.asarray(prior, bool)
     H, W = prior.shape
@@ -249,8 +238,6 @@ def mesh_silhouette(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, dist
     (vertices (n, 3) m, faces (k, 3)); triangles with a vertex behind the camera are skipped.
     A centre is inside when all three edge functions e_i(p) = (b − a) × (p − a) share the sign
     of the triangle's area (≥ 0 after orientation, so shared edges leave no gap)."""
-    from stages.vision.geometry import project
-
     uv, z = project(vertices, np.asarray(K), np.asarray(dist), np.asarray(R), np.asarray(t))
     faces = np.asarray(faces, np.int64)
     ok = np.all(z[faces] > 1e-6, axis=1)
@@ -276,8 +263,6 @@ def mesh_silhouette(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, dist
 def overlay(frame: np.ndarray, mask: np.ndarray, color=(255, 64, 64), alpha: float = 0.45,
             truth: np.ndarray | None = None) -> np.ndarray:
     """RGB picture for inspection: the mask tinted and outlined (and the truth outline in green)."""
-    import cv2
-
     img = np.asarray(frame, np.uint8).copy()
     m = np.asarray(mask, bool)
     tint = np.asarray(color, np.float64)

@@ -15,9 +15,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from stages.errors import RslError
+from stages.vision.boards import detect
+from stages.vision.colmap_io import intrinsics_from_model
+from stages.vision.geometry import triangulate, undistort_points
 
 
 @dataclass
@@ -40,7 +44,6 @@ def reconstruct(images: dict[str, np.ndarray], workdir: Path, seed: int = 0, max
     Intrinsics: one camera per folder of the names, or one for all with ``single_camera``.
 
     Raises RslError when no model with at least two images can be built."""
-    import cv2
     import pycolmap
 
     workdir = Path(workdir)
@@ -87,8 +90,6 @@ def reconstruct(images: dict[str, np.ndarray], workdir: Path, seed: int = 0, max
 
 def result_from_reconstruction(rec, names: dict[str, str], total: int) -> SfmResult:
     """Convert a pycolmap.Reconstruction (image names mapped back through ``names``)."""
-    from stages.vision.colmap_io import intrinsics_from_model
-
     poses, intr = {}, {}
     for im in rec.images.values():
         if not (im.has_pose if not callable(getattr(im, "has_pose", None)) else im.has_pose()):
@@ -118,9 +119,6 @@ def scale_by_distance(rec: SfmResult, a: str, b: str, metres: float) -> float:
 
 def scale_by_board(rec: SfmResult, board, images: dict[str, np.ndarray]) -> float:
     """Scale s from board corners triangulated with the SfM cameras (module doc)."""
-    from stages.vision.boards import detect
-    from stages.vision.geometry import triangulate, undistort_points
-
     seen: dict[int, list] = {}
     for name, img in images.items():
         if name not in rec.poses:

@@ -1,0 +1,198 @@
+"""`rsl adapt --substeps S` on captures whose truth is finer in time: settled E error and per-frame time.
+
+Captures by `rsl synth` of sample_data/bar pulled by a cable (constant E_true), truth on P2 tets with 3
+substeps per frame and hard handles, for each start state (rest: released at t = 0, a large fast motion;
+equilibrium: at rest under gravity at t = 0).  rsl adapt runs online on a P2 mesh from
+`rsl tetrahedralize --order 2` (coarsened by --max-tets), markers, the gn estimator, window 3, E initialised
+at 0.5 E_true, in full and reduced space, with --substeps 1, 2, 3.  Per row: the median relative error of E
+over the settled frames (≥ w + 5 after the start), the median settled E / E_true, and the median per-frame
+time of adapt (ratio against --substeps 1 of the same start and space, measured in the same run).
+
+    nice .venv/bin/python bench/substeps.py [--frames 30] [--starts rest,equilibrium] [--spaces full,reduced]
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+os.environ.setdefault("JAX_ENABLE_X64", "1")
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+E_TRUE = 1.0e5
+POISSON = 0.45
+WINDOW = 3
+TRUTH_SUBSTEPS = 3
+
+
+def rsl(*args) -> float:
+    """Run the CLI; the wall time in s."""
+    env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
+    t0 = time.perf_counter()
+    p = subprocess.run([sys.executable, "-m", "rsl_cli.app", *map(str, args)], capture_output=True, text=True,
+                       env=env, cwd=ROOT)
+    if p.returncode != 0:
+        raise RuntimeError(f"rsl {' '.join(map(str, args))} failed:\n{p.stderr[-3000:]}")
+    return time.perf_counter() - t0
+
+
+def run_start(work: Path, start: str, frames: int, spaces, substeps, max_tets: int) -> list[dict]:
+    from stages.artefacts import AdaptArtefact, MeshArtefact
+    from stages.capture import load_capture, read_truth
+
+    cap, ws = work / f"cap_{start}", work / f"ws_{start}"
+    reuse = os.environ.get("RSL_BENCH_REUSE")
+    if not (reuse and (cap / "capture.toml").is_file()):
+        rsl("synth", ROOT / "sample_data/bar/object.mesh", cap, "--scenario", "cable", "--young", E_TRUE, "--size",
+            0.25, "--cameras", 3, "--frames", frames, "--resolution", 32, "--markers", 40, "--calib-views", 0,
+            "--poisson", POISSON, "--start", start, "--truth-order", 2, "--substeps", TRUTH_SUBSTEPS, "--handles",
+            "hard", "--seed", 0, "--overwrite")
+    if not (reuse and (ws / "mesh.h5").is_file()):
+        rsl("tetrahedralize", cap, "-w", ws, "--order", 2, "--max-tets", max_tets)
+    if "reduced" in spaces and not (reuse and (ws / "subspace.h5").is_file()):
+        rsl("generate-data", cap, "-w", ws, "--sequences", 4, "--frames", frames, "--workers", 1)
+        rsl("train-subspace", "-w", ws, "--dim", 12)
+    truth = read_truth(load_capture(cap))
+    n_vertices = MeshArtefact.load(ws / "mesh.h5").n_vertices
+    rows = []
+    for space in spaces:
+        for S in substeps:
+            base = {"start": start, "space": space, "substeps": S, "vertices": n_vertices}
+            try:
+                t_run = rsl("adapt", cap, "-w", ws, "--space", space, "--loss", "markers", "--estimator", "gn",
+                            "--window", WINDOW, "--young-init", f"{0.5 * E_TRUE:g}", "--substeps", S)
+            except RuntimeError as e:
+                rows.append({**base, "error": str(e)[-500:]})
+                print(_row(rows[-1]), flush=True)
+                continue
+            a = AdaptArtefact.load(ws / "adapt.h5")
+            yt = truth.young[np.asarray(a.frames)][:, 0]
+            y = np.asarray(a.young)[:, 0]
+            ok = np.arange(len(y)) >= WINDOW + 5
+            rows.append({**base, "frames": int(len(y)), "settled_frames": int(ok.sum()),
+                         "median_error": float(np.median(np.abs(y[ok] - yt[ok]) / yt[ok])),
+                         "median_ratio": float(np.median(y[ok] / yt[ok])),
+                         "time_per_frame_s": float(np.median(a.time_total_s)), "adapt_s": t_run,
+                         "young": y.tolist(), "young_true": yt.tolist()})
+            print(_row(rows[-1]), flush=True)
+    for r in rows:  # time ratio against --substeps 1 of the same start and space (this run)
+        ref = [q for q in rows if q["space"] == r["space"] and q["substeps"] == 1 and "error" not in q]
+        if "error" not in r and ref:
+            r["time_ratio"] = r["time_per_frame_s"] / ref[0]["time_per_frame_s"]
+    return rows
+
+
+def _row(r: dict) -> str:
+    if "error" in r:
+        return f"| {r['start']} | {r['space']} | {r['substeps']} | failed | — | — | — |"
+    ratio = f"{r['time_ratio']:.2f}" if "time_ratio" in r else "—"
+    return (f"| {r['start']} | {r['space']} | {r['substeps']} | {100 * r['median_error']:.1f} | "
+            f"{r['median_ratio']:.3f} | {r['time_per_frame_s']:.2f} | {ratio} |")
+
+
+def summary(rows: list[dict]) -> str:
+    """Per space and S: the mean over the start states of the settled error and of the time ratio against S = 1;
+    per space, the smallest S whose mean error is within 1 percentage point of that space's lowest."""
+    ok = [r for r in rows if "error" not in r]
+    lines = []
+    for space in sorted({r["space"] for r in ok}):
+        mean_err = {}
+        for S in sorted({r["substeps"] for r in ok if r["space"] == space}):
+            sub = [r for r in ok if r["space"] == space and r["substeps"] == S]
+            mean_err[S] = float(np.mean([r["median_error"] for r in sub]))
+            tr = [r["time_ratio"] for r in sub if "time_ratio" in r]
+            each = ", ".join(f"{r['start']} {100 * r['median_error']:.1f} %" for r in sub)
+            lines.append(f"- {space}, --substeps {S}: mean settled error {100 * mean_err[S]:.1f} % over "
+                         f"{len(sub)} start state(s) ({each}), per-frame time {np.mean(tr):.2f}× that of "
+                         f"--substeps 1.")
+        best = min(mean_err.values())
+        pick = min(S for S, e in mean_err.items() if e <= best + 0.01)
+        lines.append(f"- {space}: the smallest S whose mean settled error is within 1 percentage point of the "
+                     f"lowest ({100 * best:.1f} %) is S = {pick}.")
+    return "\n".join(lines)
+
+
+def write(rows: list[dict], out: Path, plan: dict, measured: dict | None = None) -> None:
+    """docs/results/substeps.{md,json,png}; ``measured``: a previous run's JSON (its machine and date kept)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    data = measured or {
+        "machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs, {platform.python_version()}",
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), "plan": plan,
+        "load_average_end": list(os.getloadavg()), "cases": rows}
+    (out / "substeps.json").write_text(json.dumps(data, indent=1))
+    head = ("| start | space | --substeps | median \\|E−E_true\\|/E_true (%) | median E/E_true | s / frame | "
+            "time / time(S=1) |\n| --- | --- | --- | --- | --- | --- | --- |")
+    table = "\n".join([head] + [_row(r) for r in rows])
+    nv = sorted({r["vertices"] for r in rows})
+    la = data.get("load_average_end")
+    load = f" (load average {la[0]:.1f} at the end: the times are under that load)" if la else ""
+    md = (f"# rsl adapt --substeps: a capture finer in time than one step per frame\n\n"
+          f"Truth: sample_data/bar pulled by a cable, P2 tets, {TRUTH_SUBSTEPS} substeps per frame, hard handles "
+          f"(`rsl synth --truth-order 2 --substeps {TRUTH_SUBSTEPS} --handles hard --start rest|equilibrium`), "
+          f"E_true = {E_TRUE:g} Pa, ν = {POISSON}, {plan['frames']} frames, 3 cameras, markers.  rsl adapt: "
+          f"P2 mesh from `rsl tetrahedralize --order 2 --max-tets {plan['max_tets']}` ({', '.join(map(str, nv))} "
+          f"vertices), markers, gn estimator, online, window {WINDOW}, E initialised at 0.5 E_true, reduced "
+          f"space r = 12.  Settled frames: ≥ w + 5 after the start.\n\n{table}\n\n{summary(rows)}\n\n"
+          f"Machine: {data['machine']}{load}; date {data['date']}.  Produced by `bench/substeps.py`.\n\n"
+          f"![E over time](substeps.png)\n")
+    (out / "substeps.md").write_text(md)
+    ok = [r for r in rows if "error" not in r]
+    keys = sorted({(r["start"], r["space"]) for r in ok})
+    fig, axes = plt.subplots(1, max(1, len(keys)), figsize=(3.2 * max(1, len(keys)), 3.4), squeeze=False)
+    for ax, key in zip(axes[0], keys):
+        sub = [r for r in ok if (r["start"], r["space"]) == key]
+        ax.plot(sub[0]["young_true"], "k-", lw=2, label="truth")
+        for r in sub:
+            ax.plot(r["young"], label=f"S = {r['substeps']}")
+        ax.set_title(f"start {key[0]}, {key[1]}", fontsize=9)
+        ax.set_xlabel("frame")
+        ax.set_ylabel("E (Pa)")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "substeps.png", dpi=100)
+    print(table)
+    print(summary(rows))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_substeps"))
+    ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--starts", default="rest,equilibrium")
+    ap.add_argument("--spaces", default="full,reduced")
+    ap.add_argument("--substeps", default="1,2,3")
+    ap.add_argument("--max-tets", type=int, default=500)
+    ap.add_argument("--from-json", type=Path, default=None, help="rewrite the page from a previous run's JSON")
+    a = ap.parse_args()
+    if a.from_json is not None:
+        data = json.loads(a.from_json.read_text())
+        write(data["cases"], a.out, data["plan"], data)
+        return
+    a.work.mkdir(parents=True, exist_ok=True)
+    plan = {"frames": a.frames, "starts": a.starts.split(","), "spaces": a.spaces.split(","),
+            "substeps": [int(s) for s in a.substeps.split(",")], "max_tets": a.max_tets}
+    print("| start | space | --substeps | median err (%) | median E/E_true | s / frame | time ratio |", flush=True)
+    rows = []
+    for start in plan["starts"]:
+        rows += run_start(a.work, start, a.frames, plan["spaces"], plan["substeps"], a.max_tets)
+    write(rows, a.out, plan)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,91 @@
+"""Handle and obstacle forces along a trajectory, and their error against a truth — shared by ``rsl export
+--forces`` (forces.csv) and ``rsl evaluate`` (the error against truth/forces.csv); not a stage.
+
+Per frame and per handle / obstacle (stages.sim.stress.set_forces): the internal-force sum over its vertices
+and the force it exerts on the object — a spring handle's pull Σ k (x̄ − x), a hard handle's reaction (the
+residual of the implicit-Euler step without the handle at its vertices, with the inertia of x_{t−1}, x_{t−2}),
+an obstacle's contact force −∂E_c/∂x.  The states before a row follow the start convention (docs/capture.md):
+the earlier rows when their frames are consecutive, and before frame 0, x_{−1} = x_{−2} = x_0; a row whose
+earlier frames are not in the trajectory is taken at rest (x_{t−1} = x_{t−2} = x_t).
+
+The error against a truth (rows of forces.csv, stages.capture.FORCE_HEADER): per handle / obstacle and frame,
+e_t = ‖F_t − F_t^true‖ / ‖F_t^true‖ on the applied force (N), over the frames where ‖F_t^true‖ is at least
+``floor`` × its largest value (a contact that is not there has no relative error); the median over them.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from stages.progress import Reporter, SilentReporter
+from stages.results import previous_states
+from stages.sim import stress as st
+
+APPLIED = ("applied_fx_N", "applied_fy_N", "applied_fz_N")
+
+
+def states_before(frames: np.ndarray, positions: np.ndarray, row: int) -> tuple[np.ndarray, np.ndarray]:
+    """(x_{t−1}, x_{t−2}) (n, 3) of row ``row`` of a trajectory (frames (T,), positions (T, n, 3)) under the
+    start convention: earlier consecutive rows, else the row itself (frame 0: x_{−1} = x_{−2} = x_0)."""
+    return previous_states(frames, positions, positions[row], row)
+
+
+def trajectory_forces(scene, controls, frames: np.ndarray, positions: np.ndarray, internal: np.ndarray,
+                      contact_distance: float = 1.0e-3, reporter: Reporter = SilentReporter()
+                      ) -> tuple[list[tuple[int, st.SetForce]], np.ndarray]:
+    """Forces of every handle and obstacle of ``scene`` (stages.sim Scene built with ``controls``) at each row
+    of a trajectory: frames (T,), positions (T, n, 3) m, internal nodal forces (T, n, 3) N.  Returns the rows
+    [(frame, SetForce)] and the per-vertex force (T, n, 3) N the handles and obstacles apply."""
+    from stages.sim.scene import frame_inputs
+
+    rows: list[tuple[int, st.SetForce]] = []
+    applied = np.zeros_like(positions)
+    with reporter.task("forces", len(frames)) as task:
+        for i, frame in enumerate(frames):
+            inputs = frame_inputs(scene, controls, int(frame))
+            x = positions[i]
+            xp, xpp = states_before(frames, positions, i)
+            for f in st.set_forces(scene, inputs, x, xp, internal[i], contact_distance, x_prev2=xpp):
+                rows.append((int(frame), f))
+            applied[i] = st.applied_forces(scene, inputs, x, xp, x_prev2=xpp, f_int=internal[i])
+            task.advance(1)
+    return rows, applied
+
+
+def force_table(rows: Sequence[tuple[int, st.SetForce]], dt: float) -> list[dict]:
+    """The rows as forces.csv dicts (stages.capture.FORCE_HEADER columns, numbers as float)."""
+    out = []
+    for frame, f in rows:
+        d = {"frame": float(frame), "time_s": frame * dt, "name": f.name, "kind": f.kind,
+             "fx_N": float(f.internal[0]), "fy_N": float(f.internal[1]), "fz_N": float(f.internal[2]),
+             "magnitude_sum_N": float(f.magnitude_sum), "n_vertices": float(f.n_vertices)}
+        d.update({k: float(v) for k, v in zip(APPLIED, f.applied)})
+        out.append(d)
+    return out
+
+
+def force_errors(estimated: Sequence[dict], truth: Sequence[dict], floor: float = 0.05) -> dict[str, dict]:
+    """Per handle / obstacle name of the truth: {"kind", "median_relative_error" (None when no frame counts),
+    "frames" (those compared), "rel_error_per_frame", "truth_max_N"} of the applied forces (module doc).
+    ``estimated`` / ``truth``: forces.csv rows as dicts; only frames present in both count."""
+    est = {(int(r["frame"]), r["name"]): np.array([r[k] for k in APPLIED], float) for r in estimated}
+    out: dict[str, dict] = {}
+    names = list(dict.fromkeys(r["name"] for r in truth))
+    for name in names:
+        tr = {int(r["frame"]): (np.array([r[k] for k in APPLIED], float), r["kind"]) for r in truth
+              if r["name"] == name}
+        common = sorted(t for t in tr if (t, name) in est)
+        kind = next(iter(tr.values()))[1]
+        if not common:
+            out[name] = {"kind": kind, "median_relative_error": None, "frames": [], "rel_error_per_frame": [],
+                         "truth_max_N": None, "note": "no frame of the estimate matches the truth's"}
+            continue
+        mags = np.array([np.linalg.norm(tr[t][0]) for t in common])
+        top = max(float(np.linalg.norm(f)) for f, _ in tr.values())  # the truth's largest, over all its frames
+        keep = mags >= floor * top if top > 0 else np.zeros(len(common), bool)
+        errs = [float(np.linalg.norm(est[(t, name)] - tr[t][0]) / m) for t, m, k in zip(common, mags, keep) if k]
+        out[name] = {"kind": kind, "median_relative_error": float(np.median(errs)) if errs else None,
+                     "frames": [t for t, k in zip(common, keep) if k], "rel_error_per_frame": errs,
+                     "truth_max_N": top}
+    return out
