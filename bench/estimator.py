@@ -296,8 +296,8 @@ def write(cases: list, args) -> None:
             "model_error_poisson": old.get("model_error_poisson", _default("model_error_poisson")),
             "poisson_true": 0.45,
             "setup": old.get("setup", (
-                f"Coarse_beam (the shared beam, 0.2 m) pulled by a cable, filmed by rsl synth with a truth of quadratic "
-                f"tets on the once-refined mesh (1632 tets), 3 substeps per frame, hard handles, start = equilibrium, "
+                f"Coarse_beam (the shared beam, 0.2 m) pulled by a cable, filmed by rsl synth with a truth of "
+                f"quadratic tets on the once-refined mesh (1632 tets), 3 substeps per frame, hard handles, start = equilibrium, "
                 f"30 markers with σ 0.2 mm noise; rsl adapt: full space, quadratic tets on the beam's own 204 tets, "
                 f"{ADAPT_SUBSTEPS} substeps per frame, markers, w = {W}, E_init = E0/2, default --process-noise, "
                 f"--model-error, --change-threshold")),

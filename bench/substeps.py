@@ -100,11 +100,68 @@ def _row(r: dict) -> str:
             f"{r['median_ratio']:.3f} | {r['time_per_frame_s']:.2f} | {ratio} |")
 
 
+def window_cost(work: Path, start: str, spaces, substeps, reps: int = 3) -> list[dict]:
+    """CPU seconds (time.process_time, less sensitive to other processes than wall time) of one gn window
+    linearisation — forward, 26 sensitivity directions (θ and the state correction), adjoint — over frames
+    10–12, per space and S, the S values interleaved in each repetition; median over ``reps``."""
+    import dataclasses
+
+    from stages.artefacts import MeshArtefact, SubspaceArtefact
+    from stages.capture import load_capture
+    from stages.sim.scene import frame_inputs, make_scene
+    from stages.steps.adapt import StartWindow, _FullSpace, _ReducedSpace, substepped
+    from stages.subspace import ReducedModel
+
+    cap = load_capture(work / f"cap_{start}")
+    ws = work / f"ws_{start}"
+    mesh = MeshArtefact.load(ws / "mesh.h5")
+    controls = cap.controls()
+    scene = make_scene(mesh, controls, cap.material.model, cap.dt, cap.gravity)
+    E, nu = np.array([E_TRUE]), np.array([POISSON])
+    frames = [10, 11, 12]
+    out = []
+    for space in spaces:
+        backends, befores = {}, {}
+        for S in substeps:
+            at = (lambda f: frame_inputs(scene, controls, f))
+            b = (_FullSpace(scene, at, "auto") if space == "full" else
+                 _ReducedSpace(ReducedModel.from_artefacts(SubspaceArtefact.load(ws / "subspace.h5"), scene), at))
+            b = substepped(b, S, at)
+            X = StartWindow(b, start).forward(list(range(frames[0])), E, nu, None)
+            backends[S], befores[S] = b, X[-2:]
+        k = 26
+        times = {S: [] for S in substeps}
+        for _ in range(reps):
+            for S in substeps:
+                b, before = backends[S], befores[S]
+                dim = before.shape[1:]
+                de, dn = np.zeros((k, 1)), np.zeros((k, 1))
+                de[0, 0], dn[1, 0] = E_TRUE, 0.01
+                db = np.random.default_rng(0).normal(size=(k, 2) + dim) * 1e-4
+                db[:2] = 0.0
+                Ew, nw = np.tile(E, (3, 1)), np.tile(nu, (3, 1))
+                t0 = time.process_time()
+                st = b.forward(frames, Ew, nw, before)
+                b.state_sensitivity(frames, Ew, nw, st, before, de, dn, db)
+                b.backward(frames, Ew, nw, st, before, np.ones_like(b.decode(st)))
+                times[S].append(time.process_time() - t0)
+        for S in substeps:
+            out.append({"start": start, "space": space, "substeps": S, "window_cpu_s": float(np.median(times[S])),
+                        "window_cpu_ratio": float(np.median(times[S]) / np.median(times[substeps[0]]))})
+            print(f"| {space} | {S} | {out[-1]['window_cpu_s']:.2f} | {out[-1]['window_cpu_ratio']:.2f} |", flush=True)
+    return out
+
+
 def summary(rows: list[dict]) -> str:
     """Per space and S: the mean over the start states of the settled error and of the time ratio against S = 1;
     per space, the smallest S whose mean error is within 1 percentage point of that space's lowest."""
+    import dataclasses
+
+    from stages.steps.adapt import AdaptConfig
+
+    defaults = {f.name: f.default for f in dataclasses.fields(AdaptConfig)}
     ok = [r for r in rows if "error" not in r]
-    lines = []
+    lines, picks = [], {}
     for space in sorted({r["space"] for r in ok}):
         mean_err = {}
         for S in sorted({r["substeps"] for r in ok if r["space"] == space}):
@@ -116,13 +173,16 @@ def summary(rows: list[dict]) -> str:
                          f"{len(sub)} start state(s) ({each}), per-frame time {np.mean(tr):.2f}× that of "
                          f"--substeps 1.")
         best = min(mean_err.values())
-        pick = min(S for S, e in mean_err.items() if e <= best + 0.01)
+        pick = picks[space] = min(S for S, e in mean_err.items() if e <= best + 0.01)
         lines.append(f"- {space}: the smallest S whose mean settled error is within 1 percentage point of the "
                      f"lowest ({100 * best:.1f} %) is S = {pick}.")
+    if defaults["space"] in picks:
+        lines.append(f"\nrsl adapt's default space is {defaults['space']}: its pick above is S = "
+                     f"{picks[defaults['space']]}; the default of --substeps is {defaults['substeps']}.")
     return "\n".join(lines)
 
 
-def write(rows: list[dict], out: Path, plan: dict, measured: dict | None = None) -> None:
+def write(rows: list[dict], out: Path, plan: dict, measured: dict | None = None, cost: list | None = None) -> None:
     """docs/results/substeps.{md,json,png}; ``measured``: a previous run's JSON (its machine and date kept)."""
     import matplotlib
 
@@ -133,12 +193,21 @@ def write(rows: list[dict], out: Path, plan: dict, measured: dict | None = None)
     data = measured or {
         "machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs, {platform.python_version()}",
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), "plan": plan,
-        "load_average_end": list(os.getloadavg()), "cases": rows}
+        "load_average_end": list(os.getloadavg()), "cases": rows, "window_cost": cost or [], "window_cost_reps": 3}
     (out / "substeps.json").write_text(json.dumps(data, indent=1))
     head = ("| start | space | --substeps | median \\|E−E_true\\|/E_true (%) | median E/E_true | s / frame | "
             "time / time(S=1) |\n| --- | --- | --- | --- | --- | --- | --- |")
     table = "\n".join([head] + [_row(r) for r in rows])
     nv = sorted({r["vertices"] for r in rows})
+    cost = ""
+    if data.get("window_cost"):
+        wc = data["window_cost"]
+        cost = ("The wall times above were taken on a shared, loaded machine.  CPU time of one gn window "
+                f"linearisation (forward, 26 sensitivity directions, adjoint; frames 10–12, start {wc[0]['start']}, "
+                f"S values interleaved, median of {data.get('window_cost_reps', 3)}):\n\n| space | --substeps | "
+                "CPU s | CPU / CPU(S=1) |\n| --- | --- | --- | --- |\n"
+                + "\n".join(f"| {c['space']} | {c['substeps']} | {c['window_cpu_s']:.2f} | {c['window_cpu_ratio']:.2f} |"
+                             for c in wc) + "\n\n")
     la = data.get("load_average_end")
     load = f" (load average {la[0]:.1f} at the end: the times are under that load)" if la else ""
     md = (f"# rsl adapt --substeps: a capture finer in time than one step per frame\n\n"
@@ -147,7 +216,7 @@ def write(rows: list[dict], out: Path, plan: dict, measured: dict | None = None)
           f"E_true = {E_TRUE:g} Pa, ν = {POISSON}, {plan['frames']} frames, 3 cameras, markers.  rsl adapt: "
           f"P2 mesh from `rsl tetrahedralize --order 2 --max-tets {plan['max_tets']}` ({', '.join(map(str, nv))} "
           f"vertices), markers, gn estimator, online, window {WINDOW}, E initialised at 0.5 E_true, reduced "
-          f"space r = 12.  Settled frames: ≥ w + 5 after the start.\n\n{table}\n\n{summary(rows)}\n\n"
+          f"space r = 12.  Settled frames: ≥ w + 5 after the start.\n\n{table}\n\n{summary(rows)}\n\n{cost}"
           f"Machine: {data['machine']}{load}; date {data['date']}.  Produced by `bench/substeps.py`.\n\n"
           f"![E over time](substeps.png)\n")
     (out / "substeps.md").write_text(md)
@@ -179,9 +248,15 @@ def main() -> None:
     ap.add_argument("--substeps", default="1,2,3")
     ap.add_argument("--max-tets", type=int, default=500)
     ap.add_argument("--from-json", type=Path, default=None, help="rewrite the page from a previous run's JSON")
+    ap.add_argument("--cost", default="", help="with --from-json: also measure the CPU time of one window on the "
+                    "captures of this start state in --work")
     a = ap.parse_args()
     if a.from_json is not None:
         data = json.loads(a.from_json.read_text())
+        if a.cost:  # add the CPU cost of one window (measured now) to that run's page
+            data["window_cost"] = window_cost(a.work, a.cost, data["plan"]["spaces"], data["plan"]["substeps"])
+            data["window_cost_reps"] = 3
+            data["window_cost_date"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
         write(data["cases"], a.out, data["plan"], data)
         return
     a.work.mkdir(parents=True, exist_ok=True)
@@ -191,7 +266,8 @@ def main() -> None:
     rows = []
     for start in plan["starts"]:
         rows += run_start(a.work, start, a.frames, plan["spaces"], plan["substeps"], a.max_tets)
-    write(rows, a.out, plan)
+    cost = window_cost(a.work, plan["starts"][0], plan["spaces"], plan["substeps"])
+    write(rows, a.out, plan, None, cost)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,9 @@ frames from stored states, and none pays a first call's compilation (JAX traces 
 stored states at frame w, the start-state window at frames 0..w−1; numba compiles at frame 0) — adapt.h5 keeps
 those frames' times, which show it.  (Earlier runs took frame ≥ w, so frame w's compilation entered the median
 of the 2 timed frames of --quick.)
-The ratio is full total / reduced total of the same run.
+The ratio is full total / reduced total of the same run.  The process CPU time per frame (all threads) is
+measured as well, between adapt's per-frame progress calls (cpu_per_frame.json beside each adapt.h5): on a
+shared machine the wall times include waiting for the cores.
 
     python bench/table1.py                  # full size (Table 1's cameras and windows, 128² images)
     nice python bench/table1.py --quick     # sized down (fewer frames and Gaussians, 64² images)

@@ -12,7 +12,8 @@ Two observation models, each a pure function of simulated positions X (w, n, 3):
   fitted to the images of one frame with the mesh posed at x_fit (gaussians.h5 ``fit_positions``: that
   frame's state under the capture's start convention with the initial θ; the rest shape for older files);
   :meth:`ImageLoss.rebind` re-binds them to the tets of that frame's configuration simulated with the
-  current θ (so that rendered there they are exactly the fitted ones), see :func:`locate_in_tets`.
+  current θ (so that rendered there they are exactly the fitted ones), see :func:`locate_in_tets`;
+  dL/dx_f (that configuration's part of dL/dθ) comes from :meth:`ImageLoss.anchored_geometry`.
 
 Nothing here reads files or prints.
 """
@@ -271,6 +272,9 @@ class ImageLoss:
     x_fit as θ changes: :meth:`rebind` moves each Gaussian (μ and Σ as fitted, in world space) into the tet
     of x_f that holds μ, with barycentric β = bary(μ; x_f) and rest covariance F_f⁻¹ Σ F_f⁻ᵀ: rendered at x_f
     the Gaussians are then exactly the fitted ones, and at x_t they follow the motion from x_f to x_t.
+    Since x_f = x_f(θ), dL/dθ has a part through the anchor: :meth:`anchored_geometry` is the binding as a
+    differentiable function of x_f and ``__call__(..., anchor_grad=True)`` returns dL/dx_f beside dL/dx (held
+    fixed, frame f's loss — constant in θ — still pulled θ: docs/results/vision_bias.md).
     """
 
     def __init__(self, gaussians, mesh, cameras: list, appearance: bool = False, lr_appearance: float = 2e-3,

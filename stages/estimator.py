@@ -22,6 +22,12 @@ Filter over frames (:class:`WindowFilter`): the window's unknowns share θ; when
 window its linearised residuals are folded into the arrival cost by a Kalman update
 (:func:`fold`), and the arrival cost is inflated by the process noise Q per frame (:func:`inflate`), so a
 material that changes over time can be followed (random walk of log E with σ_q per frame).
+A step of the material is caught by :class:`ChangeDetector` (a CUSUM of the new frame's normalised innovation);
+the caller then widens the prior and restarts its window.
+
+Honest σ: ``GNResult.cov`` is the posterior with the assumed σ (the closed form above); ``GNResult.cov_scaled``
+replaces σ² by the residuals' own level, s² σ² with s² = :func:`residual_scale2` (RSS/dof, Huber's variance factor
+with the Huber loss); :func:`bounded_sigma` keeps the σ of a parameter held at a bound from collapsing.
 """
 from __future__ import annotations
 

@@ -118,8 +118,8 @@ STAGES: tuple[Stage, ...] = (
                   "writes WS/adapt.h5."),
     Stage("evaluate", "stages.steps.evaluate", "EvaluateConfig", None, writes="evaluation.json, evaluation_young.png",
           reads=("adapt", "mesh", "gaussians", "cameras", "masks"),
-          summary="Compare adapt.h5 with CAPTURE/truth (E, ν, surface distance, PSNR); writes WS/evaluation.json "
-                  "and WS/evaluation_young.png."),
+          summary="Compare adapt.h5 with CAPTURE/truth (E, ν, surface distance, PSNR, handle and obstacle forces) "
+                  "and, with --sweep, the loss over a grid of fixed E; writes WS/evaluation.json and its plots."),
     Stage("export", "stages.steps.export", "ExportConfig", None, writes="export/", reads=("adapt", "mesh", "gaussians",
                                                                                    "cameras"),
           arguments=(), flags=(("out", ("--out", "-o")),),

@@ -131,6 +131,7 @@ def test_evaluate_sweep_minimum_lies_at_the_truth(same_model, rsl):
     sw = ev["sweep"]
     assert "young_rel_error_median" not in ev  # no adapt.h5: the sweep alone
     assert sw["loss"] == "markers" and sw["interior"] and sw["young_true"] == pytest.approx(E_TRUE)
+    assert sw["loss_contrast"] > 0.5 and "flat" not in p.stderr
     assert len(sw["young_pa"]) == 7 and sw["young_pa"][3] == pytest.approx(E_TRUE)
     assert abs(sw["min_over_true"] - 1) < 0.01, sw["min_over_true"]
     losses = np.array(sw["loss_values"])

@@ -348,3 +348,99 @@ def test_solve_guard_tolerates_a_sliver_but_not_a_collapse(tmp_path: Path) -> No
         guard([3], (x * np.array([1.0, 1.0, -1.0]))[None], young)  # mirrored: every element inverted
     with pytest.raises(SolveCollapsed, match="NaN"):
         guard([1], np.full_like(x, np.nan)[None], young)
+
+
+# --------------------------------------------------------------------------- Ctrl-C at a bad moment (in-process)
+# A Ctrl-C that arrives while compiled code runs can be lost (numba's _numba_unpickle, called back from an njit
+# kernel, drops the KeyboardInterrupt) or come out as a SystemError; a second Ctrl-C can land inside the save.
+# signal.raise_signal runs the Python handler before it returns, so each moment is hit exactly.
+
+def _ctrl_c_run(base, tmp_path: Path, monkeypatch, at_frame: int, how: str):
+    """adapt.run (markers, gn, frames 0:4) with a Ctrl-C injected at the `at_frame`-th frame's σ computation."""
+    import threading
+
+    from stages.steps import adapt
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signal handlers need the main thread")
+    cap, ws = _copy(base, tmp_path)
+    before = tree_bytes(ws)
+    real, calls = adapt._sigma_from_cov, [0]
+
+    def sigma(*a, **k):
+        calls[0] += 1
+        if calls[0] == at_frame + 1:
+            if how == "lost":
+                try:
+                    signal.raise_signal(signal.SIGINT)
+                except KeyboardInterrupt:
+                    pass  # what compiled code does with it
+            elif how == "systemerror":
+                try:
+                    signal.raise_signal(signal.SIGINT)
+                except KeyboardInterrupt as e:
+                    raise SystemError("returned a result with an exception set") from e
+            else:
+                signal.raise_signal(signal.SIGINT)
+        return real(*a, **k)
+
+    monkeypatch.setattr(adapt, "_sigma_from_cov", sigma)
+    config = adapt.AdaptConfig(capture=cap, workspace=ws, space="full", loss="markers", window=2, frames="0:4",
+                               iters_per_frame=2, estimator="gn")
+    return adapt, config, ws, before
+
+
+def _assert_partial(ws: Path, before: dict, n_frames: int) -> None:
+    from stages.artefacts import AdaptArtefact
+
+    assert {k: v for k, v in tree_bytes(ws).items() if k != "adapt.partial.h5"} == before  # adapt.h5 unchanged
+    part = AdaptArtefact.load(ws / "adapt.partial.h5", allow_partial=True)
+    assert part.extra["status"] == "interrupted" and part.extra["ended"] == "ctrl-c"
+    assert list(part.frames) == list(range(n_frames))
+    assert len(part.extra["innovation_ratio"]) == n_frames
+
+
+@pytest.mark.parametrize("how,kept", [("lost", 2), ("systemerror", 1)])
+def test_ctrl_c_lost_in_compiled_code_still_stops_and_keeps_the_frames(base, tmp_path, monkeypatch, how, kept):
+    """Lost: the run stops once the frame under way is recorded (2 frames kept); turned into a SystemError: the
+    run ends as interrupted with the frame done before (1 frame), not as a crash."""
+    from stages.errors import Interrupted
+
+    adapt, config, ws, before = _ctrl_c_run(base, tmp_path, monkeypatch, 1, how)
+    with pytest.raises(Interrupted, match="adapt.partial.h5"):
+        adapt.run(config)
+    _assert_partial(ws, before, kept)
+    assert signal.getsignal(signal.SIGINT) is not None and "CtrlC" not in repr(signal.getsignal(signal.SIGINT))
+
+
+def test_second_ctrl_c_during_the_save_does_not_abort_it(base, tmp_path, monkeypatch):
+    """Ctrl-C at frame 1, and again while adapt.partial.h5 is being written: the write completes."""
+    from stages.artefacts import AdaptArtefact
+    from stages.errors import Interrupted
+
+    adapt, config, ws, before = _ctrl_c_run(base, tmp_path, monkeypatch, 1, "raise")
+    real_save = AdaptArtefact.save
+
+    def save(self, *a, **k):
+        signal.raise_signal(signal.SIGINT)
+        return real_save(self, *a, **k)
+
+    monkeypatch.setattr(AdaptArtefact, "save", save)
+    with pytest.raises(Interrupted, match="adapt.partial.h5"):
+        adapt.run(config)
+    _assert_partial(ws, before, 1)
+
+
+def test_a_frame_record_cut_half_way_is_dropped() -> None:
+    """A Ctrl-C between the appends of one frame's record: the save keeps the frames every list has."""
+    from stages.steps.adapt import _Record, _trim_record
+
+    rec = _Record(frames=[0, 1, 2], young=[1, 2, 3], poisson=[1, 2], loss=[1, 2, 3], frame_loss=[1, 2, 3],
+                  t_fwd=[1, 2, 3], t_bwd=[1, 2, 3], t_ren=[1, 2, 3], t_tot=[1, 2, 3])
+    rec.innovation = [0.1, 0.2, 0.3, 0.4]
+    _trim_record(rec)
+    assert rec.frames == [0, 1] and rec.t_tot == [1, 2] and rec.innovation == [0.1, 0.2]
+    assert rec.young_sigma == []  # Adam records none: not a reason to drop frames
+    rec.young_sigma, rec.poisson_sigma = [1, 2], [1]
+    _trim_record(rec)
+    assert rec.frames == [0] and rec.young_sigma == [1] and rec.poisson_sigma == [1]

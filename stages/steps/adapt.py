@@ -56,6 +56,7 @@ from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, MeshArte
 from stages.capture import (IMAGE_SUFFIXES, Capture, CaptureError, check_obstacles_clear, load_capture,
                             read_image)
 from stages.errors import Interrupted, RslError
+from stages.interrupt import CheckedReporter, CtrlC
 from stages.parameters import Adam, chain_params, params_from_theta, theta_from_params
 from stages.progress import Reporter, SilentReporter
 from stages.sim.meshgen import refine_tets  # noqa: F401  (re-exported: stages.steps.adapt.refine_tets)
@@ -118,8 +119,8 @@ class AdaptConfig:
     estimator: Literal["auto", "adam", "gn"] = "auto"
     """adam: a few Adam steps on the window loss per frame; gn: Gauss–Newton / Levenberg–Marquardt on the window
     residuals with an arrival-cost prior and process noise (a moving-horizon filter), reporting E ± σ; auto: gn
-    with markers (it settles in 4 frames against Adam's 33, docs/results/estimator.md), adam with images (whose
-    Gauss–Newton Jacobian is not validated yet)."""
+    with markers (it settles in 4 frames against Adam's 33, docs/results/estimator.md), adam with images (measured
+    closer to the truth than gn on images, docs/results/vision_bias.md)."""
     process_noise: float = 0.02
     """gn: σ of the random walk of log E (and of the ν parameter) per frame — how fast the material may change."""
     state_correction: Literal["states", "past", "off"] = "states"
@@ -151,7 +152,8 @@ class AdaptConfig:
 
 
 def resolve_estimator(config: AdaptConfig) -> str:
-    """The estimator an "auto" config runs: gn with markers, adam with images (docs/results/estimator.md)."""
+    """The estimator an "auto" config runs: gn with markers (docs/results/estimator.md), adam with images
+    (docs/results/vision_bias.md)."""
     if config.estimator != "auto":
         return config.estimator
     return "gn" if config.loss == "markers" else "adam"
@@ -1497,7 +1499,8 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
         inputs_used.append(capture.markers_path)
         if obs.far > 0.05:
             reporter.warn(f"{capture.markers_path}: a frame-0 marker lies {obs.far:.1%} of the object size "
-                          f"away from the rest surface; is the marker frame the mesh's frame?")
+                          f"away from the frame-0 surface simulated with the initial E; is the marker frame the "
+                          f"mesh's frame, or is the initial E far off?")
     else:
         check_same_mesh(mesh_path, ws / KIND_FILES["gaussians"])
         obs = _Vision(capture, ws, config.cameras, mesh, config.appearance, config.gaussian_anchor)
@@ -1568,37 +1571,52 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
         before = np.stack([state_at(frames[0] - 2), state_at(frames[0] - 1)])
         return objective(frames, p, before, need_grad)
 
+    # Ctrl-C raises KeyboardInterrupt at once as usual, but is also counted (stages/interrupt.py): one that
+    # compiled code lost ends the loop when the frame is recorded (the progress step), and none can abort the save
+    ctrl_c = CtrlC()
+    loop_reporter = CheckedReporter(reporter, ctrl_c)
     try:
+        ctrl_c.install()
         if estimator == "gn" and config.mode == "online":
-            _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter,
-                       backend, mat.young_range)
+            _online_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange,
+                       loop_reporter, backend, mat.young_range)
         elif estimator == "gn":  # offline or static: one θ for every frame
             if last is None:
                 raise RslError(f"{capture.toml_path}: --mode offline needs a finite frame range (not --follow "
                                f"without --frames).")
-            _offline_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange, reporter,
-                        mat.young_range)
+            _offline_gn(config, obs, first, last, log_e, s_nu, objective, state_at, stored, rec, prange,
+                        loop_reporter, mat.young_range)
         elif config.mode == "online":
-            _online(config, obs, capture, first, last, params, adam, evaluate, stored, rec, R, prange, reporter,
-                    backend)
+            _online(config, obs, capture, first, last, params, adam, evaluate, stored, rec, R, prange,
+                    loop_reporter, backend)
         else:
             if last is None:
                 raise RslError(f"{capture.toml_path}: --mode offline needs a finite frame range (not --follow "
                                f"without --frames).")
-            params = _offline(config, first, last, params, adam, evaluate, stored, rec, R, prange, reporter)
+            params = _offline(config, first, last, params, adam, evaluate, stored, rec, R, prange, loop_reporter)
         status = "complete"
     except KeyboardInterrupt:
         # With --follow, Ctrl-C is the way to end: the frames so far are the complete result.
         interrupted, status = True, ("complete" if config.follow else "interrupted")
-    except RslError as e:
-        failure = e
+    except Exception as e:
+        if ctrl_c.pressed:  # after a Ctrl-C an error is its doing (numba turns a KeyboardInterrupt into SystemError)
+            interrupted, status = True, ("complete" if config.follow else "interrupted")
+        elif isinstance(e, RslError):
+            failure = e
+        else:
+            raise
     finally:
+        ctrl_c.defer = True  # first: from here a Ctrl-C is only counted, it cannot abort the save
         # Whatever ends the loop (the last frame, Ctrl-C, a failed solve), the frames so far are saved
         # (atomically); extra["status"] says which.  Only a complete run writes adapt.h5: an interrupted or
         # failed one goes to adapt.partial.h5 and the previous adapt.h5 stays as it was.
-        if rec.frames:
-            path = _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs,
-                         status, time.perf_counter() - t_start, n, ended_by_ctrl_c=interrupted)
+        try:
+            _trim_record(rec)
+            if rec.frames:
+                path = _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs,
+                             status, time.perf_counter() - t_start, n, ended_by_ctrl_c=interrupted)
+        finally:
+            ctrl_c.restore()
     final = ws / KIND_FILES["adapt"]
     unchanged = f"{final.name} is unchanged" if final.exists() else f"no {final.name} was written"
     if failure is not None:
@@ -1904,6 +1922,18 @@ def _offline(config, first, last, params, adam, evaluate, stored, rec, R, prange
         rec.t_ren.append(tr / k)
         rec.t_tot.append((tf + tb + tr) / k)
     return params
+
+
+def _trim_record(rec: _Record) -> None:
+    """Drop a frame whose record a Ctrl-C cut half-way (its entries are appended one by one): every per-frame
+    list keeps the frames all of them have."""
+    names = [f.name for f in dataclasses.fields(rec) if f.name not in ("young_sigma", "poisson_sigma")]
+    names += [k for k in ("young_sigma", "poisson_sigma") if getattr(rec, k)]  # empty with Adam
+    k = min(len(getattr(rec, f)) for f in names)
+    for f in names:
+        del getattr(rec, f)[k:]
+    if hasattr(rec, "innovation"):  # gn: appended before the frame's other entries
+        del rec.innovation[k:]
 
 
 def _save(config, ws, backend, mesh, rec, stored, names, inputs_used, obs, status, wall_s, n,

@@ -12,8 +12,8 @@
   adapt.h5 as ``rsl export --forces`` computes it (stages.forces), against the truth's: per handle/obstacle
   the median over frames of ‖F − F_true‖ / ‖F_true‖ (frames where ‖F_true‖ ≥ 5 % of its largest value), and
   the median over every compared (frame, handle/obstacle) pair.
-* ``--sweep``: the loss (markers or images) of the capture over a grid of fixed E, ν fixed at the truth's,
-  simulated in full space on mesh.h5 from the declared start (stages.sweep) — its minimum beside E_true, the
+* ``--sweep``: the loss (markers, images or silhouettes) of the capture over a grid of fixed E, ν fixed at the
+  truth's, simulated in full space on mesh.h5 from the declared start (stages.sweep) — its minimum beside E_true, the
   check that a loss is unbiased before an optimiser runs on it; it needs no adapt.h5.
 
 Writes WS/evaluation.json (atomic), WS/evaluation_young.png (E(t) estimated vs truth) and, with ``--sweep``,
@@ -125,6 +125,9 @@ def run(config: EvaluateConfig, reporter: Reporter = SilentReporter()) -> Path:
         out["sweep"] = _sweep(config, ws, capture, truth, MeshArtefact.load(mesh_path), reporter)
         sw = out["sweep"]
         where = "" if sw["interior"] else " (at an end of the grid: widen it)"
+        if sw["loss_contrast"] < 1e-4:
+            where += (f" — but the loss is flat over the grid (it varies by {sw['loss_contrast']:.1e}): it does not "
+                      f"tell E")
         summary.append(f"{sw['loss']} loss lowest at E = {sw['young_min']:.4g} Pa = {sw['min_over_true']:.3f} "
                        f"E_true{where}")
     out["provenance"] = Provenance.make(config, inputs).inputs
@@ -273,6 +276,8 @@ def _sweep(config, ws, capture, truth, mesh, reporter) -> dict:
     return {"loss": config.sweep_loss, "frames": res.info["frames"], "start": res.info["start"],
             "substeps": config.sweep_substeps, "poisson": float(nu_true[0]), "young_pa": res.young.tolist(),
             "loss_values": res.loss.tolist(), "young_min": res.young_min, "interior": res.interior,
+            # (max − min) / max over the grid: ~0 when the loss does not depend on E (e.g. images of a still capture)
+            "loss_contrast": float((res.loss.max() - res.loss.min()) / max(abs(res.loss.max()), 1e-300)),
             "young_true": e_ref, "min_over_true": res.young_min / e_ref,
             "constant_truth": bool(np.all(truth.young[res.info["frames"][0]:res.info["frames"][1], idx[0]] == e_ref)),
             "order": res.info["order"], "n_vertices": res.info["n_vertices"]}

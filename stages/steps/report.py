@@ -35,10 +35,10 @@ from stages.artefacts import (KIND_FILES, AdaptArtefact, ArtefactError, CamerasA
                               MeshArtefact, describe, read_provenance)
 from stages.capture import Capture, CaptureError, load_capture, read_forces_csv, read_material_csv
 from stages.errors import RslError
+from stages.forces import trajectory_forces
 from stages.progress import Reporter, SilentReporter
-from stages.results import compute_stress, gaussian_anchor, material_setting, previous_states, recorded_capture
+from stages.results import compute_stress, gaussian_anchor, material_setting, recorded_capture
 from stages.workspace import artefact_state, write_text_atomic
-from stages.sim import stress as st
 
 REPORT_FILE = "report.html"
 
@@ -400,25 +400,22 @@ def _read_force_csv(path: Path) -> dict:
 
 
 def _compute_forces(ctx: Context) -> dict:
-    """The same sums as ``rsl export --forces`` (stages.sim.stress.set_forces) for every adapt.h5 frame."""
-    from stages.sim.scene import frame_inputs, make_scene
+    """The same forces as ``rsl export --forces`` (stages.forces.trajectory_forces) for every adapt.h5 frame."""
+    from stages.sim.scene import make_scene
 
     ad, mesh = ctx.adapt, ctx.mesh
     controls = ctx.capture.controls()
     if not controls.handles and not controls.obstacles:
         raise SectionMissing(f"{ctx.capture.controls_path}: no handle and no obstacle.")
     scene = make_scene(mesh, controls, ctx.model, ctx.dt, ctx.gravity)
+    rows, _ = trajectory_forces(scene, controls, ad.frames, ad.positions, ctx.internal_forces(),
+                                ctx.config.contact_distance)
     out: dict = {}
-    for i in range(len(ad.frames)):
-        frame = int(ad.frames[i])
-        f_int = ctx.internal_forces()[i]
-        before = previous_states(ad.frames, ad.positions, mesh.vertices, i)  # as rsl export takes them
-        for sf in st.set_forces(scene, frame_inputs(scene, controls, frame), ad.positions[i], before[0], f_int,
-                                ctx.config.contact_distance, x_prev2=before[1]):
-            d = out.setdefault(sf.name, {"t": [], "internal": [], "applied": []})
-            d["t"].append(frame * ctx.dt)
-            d["internal"].append(np.asarray(sf.internal, np.float64))
-            d["applied"].append(np.asarray(sf.applied, np.float64))
+    for frame, sf in rows:
+        d = out.setdefault(sf.name, {"t": [], "internal": [], "applied": []})
+        d["t"].append(frame * ctx.dt)
+        d["internal"].append(np.asarray(sf.internal, np.float64))
+        d["applied"].append(np.asarray(sf.applied, np.float64))
     return {k: {kk: np.asarray(vv, np.float64) for kk, vv in v.items()} for k, v in out.items()}
 
 
