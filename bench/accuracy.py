@@ -46,6 +46,7 @@ POISSON = 0.45
 WINDOW = 3
 TRUTH_SUBSTEPS = 3
 MAX_TETS = 1500  # adapt mesh size (fTetWild): ~1.2K P2 tets ≈ 7K DOFs on the bar
+SUBSPACE_DIM = 30  # r, the paper's Bar (docs/results/reduced_accuracy.md: r = 12 biases E by 1.5–3.5 %)
 EXTRA: list = []  # extra rsl adapt options (--estimator, --substeps)
 
 # (case, start, adapt element order, loss, space): the full run's rows, most telling first.
@@ -96,8 +97,15 @@ def settled_mask(young_true: np.ndarray, first: int = 0) -> np.ndarray:
     return ok
 
 
+MADE: set = set()  # artefacts this run has made (each is made once per run, whatever rows need it)
+
+
 def _reuse(path: Path) -> bool:
-    return path.is_file() and bool(os.environ.get("RSL_BENCH_REUSE"))
+    """Skip the step that makes ``path``: made earlier in this run, or found there with RSL_BENCH_REUSE=1."""
+    if path.is_file() and (path in MADE or os.environ.get("RSL_BENCH_REUSE")):
+        return True
+    MADE.add(path)
+    return False
 
 
 def capture(work: Path, case: str, start: str, frames: int, refine: int) -> Path:
@@ -119,7 +127,7 @@ def workspace(work: Path, cap: Path, case: str, start: str, order: int, loss: st
         rsl("fit-gaussians", cap, "-w", ws, "--frame", 0)
     if space == "reduced" and not _reuse(ws / "subspace.h5"):
         rsl("generate-data", cap, "-w", ws, "--sequences", 4, "--frames", frames, "--workers", 1)
-        rsl("train-subspace", "-w", ws, "--dim", 12)
+        rsl("train-subspace", "-w", ws, "--dim", SUBSPACE_DIM)
     return ws
 
 
@@ -200,23 +208,33 @@ def main() -> None:
     ap.add_argument("--cases", default="", help="only these cases, comma-separated (bar, dino, beam)")
     ap.add_argument("--starts", default="", help="only these start states, comma-separated")
     ap.add_argument("--losses", default="", help="only these losses, comma-separated (markers, vision)")
+    ap.add_argument("--spaces", default="", help="only these spaces, comma-separated (reduced, full)")
+    ap.add_argument("--orders", default="", help="only these adapt element orders, comma-separated (1, 2)")
+    ap.add_argument("--merge", nargs="+", type=Path, default=None,
+                    help="write the tables from the rows of these accuracy.json files (runs split over processes)")
     ap.add_argument("--estimator", default="", help="rsl adapt --estimator (default: adapt's own default)")
     ap.add_argument("--substeps", type=int, default=0, help="rsl adapt --substeps (default: adapt's own default)")
     a = ap.parse_args()
+    if a.merge:
+        runs = [json.loads(f.read_text()) for f in a.merge]
+        write([r for run in runs for r in run["cases"]], a.out, runs[0]["mode"] == "quick", runs[0]["plan"])
+        return
     a.work.mkdir(parents=True, exist_ok=True)
     frames, refine = (30, 0) if a.quick else (36, 0)
     plan = list(QUICK_PLAN if a.quick else FULL_PLAN)
-    for opt, i in ((a.cases, 0), (a.starts, 1), (a.losses, 3)):
+    for opt, i in ((a.cases, 0), (a.starts, 1), (a.orders, 2), (a.losses, 3), (a.spaces, 4)):
         if opt:
-            plan = [r for r in plan if r[i] in opt.split(",")]
+            plan = [r for r in plan if str(r[i]) in opt.split(",")]
     global EXTRA
     EXTRA = (["--estimator", a.estimator] if a.estimator else []) + (["--substeps", a.substeps] if a.substeps else [])
     print(HEAD, flush=True)
     rows = []
+    meta = {"frames": frames, "refine": refine, "rows": plan, "adapt_options": EXTRA}
     for row in plan:
         rows.append(run_row(a.work, row, frames, refine))
         print(_row(rows[-1]), flush=True)
-    write(rows, a.out, a.quick, {"frames": frames, "refine": refine, "rows": plan, "adapt_options": EXTRA})
+        write(rows, a.out, a.quick, meta, quiet=True)  # after every row: a stopped run keeps what it measured
+    write(rows, a.out, a.quick, meta)
 
 
 HEAD = ("| case | start | adapt mesh | loss | space | estimator | DOFs | median |E−E_true|/E_true per region (%) | "
@@ -224,7 +242,7 @@ HEAD = ("| case | start | adapt mesh | loss | space | estimator | DOFs | median 
         "| --- | --- | --- | --- | --- | --- | ---: | --- | ---: | ---: | ---: | ---: | ---: |")
 
 
-def write(rows: list[dict], out: Path, quick: bool, plan: dict) -> None:
+def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = False) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -247,7 +265,7 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict) -> None:
     md = (f"# Accuracy on captures rsl did not make\n\nTruth: P2 tets{' on the mesh refined once' if plan['refine'] else ''}, "
           f"{TRUTH_SUBSTEPS} substeps per frame, hard handles (`rsl synth --truth-order 2 --truth-refine "
           f"{plan['refine']} --substeps {TRUTH_SUBSTEPS} --handles hard`), {plan['frames']} frames, ν = {POISSON}, "
-          f"3 cameras at 96², 40 markers. rsl: fTetWild mesh (`--max-tets {MAX_TETS}`), adapt online, window "
+          f"3 cameras at 96², 40 markers. rsl: fTetWild mesh (`--max-tets {MAX_TETS}`), reduced space r = {SUBSPACE_DIM} (generate-data 4 sequences), adapt online, window "
           f"{WINDOW}, E initialised at 0.5 E0{', options ' + ' '.join(map(str, plan['adapt_options'])) if plan['adapt_options'] else ''}; "
           f"mode {data['mode']}. Settled frames: ≥ w + 5 after the start and after each step of E_true. "
           f"Force error: median relative error of the handle/obstacle forces of `rsl export --forces` against "
@@ -275,7 +293,9 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict) -> None:
         ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(out / "accuracy.png", dpi=110)
-    print(table)
+    plt.close(fig)
+    if not quiet:
+        print(table)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,20 @@ an obstacle's contact force −∂E_c/∂x.  The states before a row follow the 
 the earlier rows when their frames are consecutive, and before frame 0, x_{−1} = x_{−2} = x_0; a row whose
 earlier frames are not in the trajectory is taken at rest (x_{t−1} = x_{t−2} = x_t).
 
+Two ways to get the states, one definition of the force (:func:`step_forces`, also what ``rsl synth`` writes to
+truth/forces.csv): the force at frame t is the residual of the LAST implicit-Euler step that produced x_t
+(Δt / S with S substeps per frame, from that step's own x_{t−1}, x_{t−2}), at its held vertices.
+* :func:`replay_forces` (the default of export/evaluate): the controls re-simulated in the full space with θ(t) of
+  the trajectory, the capture's start state and the trajectory's substeps, so every step is a solved step of
+  the model (free-vertex residual 0, held vertices at their targets, inertia from that step's own states).
+* :func:`trajectory_forces`: the recorded positions themselves, with frame-level finite differences.  Only
+  meaningful for a trajectory that IS one simulation: an online adapt records frame t from a window solved with
+  θ_t (a splice of simulations, so x − 2x_{t−1} + x_{t−2} is not an acceleration), and a reduced-space state
+  leaves a residual on the free vertices and holds hard handles as springs.  On the bar cable capture
+  (docs/results/accuracy.md, first row; truth P2, 3 substeps, hard base): recorded positions 62 % median error
+  (reduced space), 78 % (full space); the replay of the same θ(t) 14 % (S = 1) / 11 % (S = 3, full-space θ);
+  the replay of the true E 12.8 % (S = 1) / 1.4 % (S = 3).
+
 The error against a truth (rows of forces.csv, stages.capture.FORCE_HEADER): per handle / obstacle and frame,
 e_t = ‖F_t − F_t^true‖ / ‖F_t^true‖ on the applied force (N), over the frames where ‖F_t^true‖ is at least
 ``floor`` × its largest value (a contact that is not there has no relative error); the median over them.
@@ -51,6 +65,73 @@ def trajectory_forces(scene, controls, frames: np.ndarray, positions: np.ndarray
             applied[i] = st.applied_forces(scene, inputs, x, xp, x_prev2=xpp, f_int=internal[i])
             task.advance(1)
     return rows, applied
+
+
+def step_forces(scene, controls, X: np.ndarray, states: Sequence[tuple[np.ndarray, np.ndarray]],
+                young: np.ndarray, poisson: np.ndarray, substeps: int = 1, contact_distance: float = 1.0e-3,
+                frames: np.ndarray | None = None) -> tuple[list[tuple[int, st.SetForce]], np.ndarray, np.ndarray]:
+    """Forces at frames of a simulation: X (T, n, 3) m, ``states`` per frame (x_{t−1}, x_{t−2}) (n, 3) of the
+    last step that made X[t] (stages.sim.static.simulate_from_start(states=...)), θ young/poisson (T, R), its
+    substeps S (the step is Δt / S).  Returns the rows [(frame, SetForce)], the applied per-vertex force and the
+    internal nodal forces, both (T, n, 3) N."""
+    import dataclasses
+
+    from stages.sim.scene import frame_inputs, internal_forces
+
+    fine = scene if substeps == 1 else dataclasses.replace(scene, dt=scene.dt / substeps)
+    frames = np.arange(len(X)) if frames is None else np.asarray(frames)
+    rows: list[tuple[int, st.SetForce]] = []
+    applied, internal = np.zeros_like(X), np.zeros_like(X)
+    for i, frame in enumerate(frames):
+        inputs = frame_inputs(fine, controls, int(frame))
+        (xp, xpp), x = states[i], X[i]
+        internal[i] = internal_forces(x, fine, young[i], poisson[i])
+        rows += [(int(frame), f) for f in st.set_forces(fine, inputs, x, xp, internal[i], contact_distance,
+                                                         x_prev2=xpp)]
+        applied[i] = st.applied_forces(fine, inputs, x, xp, x_prev2=xpp, f_int=internal[i])
+    return rows, applied, internal
+
+
+def adapted_forces(scene, controls, adapt, start: str | None, substeps: int, internal, contact_distance: float = 1.0e-3,
+                   reporter: Reporter = SilentReporter()) -> tuple[list[tuple[int, st.SetForce]], np.ndarray, str]:
+    """The forces ``rsl export --forces``, ``rsl evaluate`` and ``rsl report`` give for an adapt.h5 trajectory, one
+    rule for all three: an online run that starts at frame 0 (a splice of windows) is replayed in the full space
+    (:func:`replay_forces`, from the capture's ``start`` with ``substeps`` per frame); an offline or static run,
+    one that does not start at frame 0, or one whose capture is unknown (``start`` None) uses its recorded
+    positions (:func:`trajectory_forces`; ``internal()`` gives their internal forces (T, n, 3) N).
+    Returns (rows, applied (T, n, 3) N, a phrase naming the source)."""
+    if getattr(adapt, "mode", "online") == "online" and start is not None and replayable(adapt.frames):
+        rows, applied, _ = replay_forces(scene, controls, np.asarray(adapt.young), np.asarray(adapt.poisson), start,
+                                         substeps, contact_distance, reporter)
+        return rows, applied, f"full-space replay of the controls with θ(t) of adapt.h5, {substeps} substep(s) per frame"
+    rows, applied = trajectory_forces(scene, controls, adapt.frames, adapt.positions, internal(), contact_distance,
+                                      reporter)
+    return rows, applied, "adapt.h5 positions"
+
+
+def replayable(frames: np.ndarray) -> bool:
+    """Whether a trajectory's frames are 0, 1, …, T−1 (a replay starts at frame 0's start state)."""
+    frames = np.asarray(frames)
+    return len(frames) > 0 and bool(np.array_equal(frames, np.arange(len(frames))))
+
+
+def replay_forces(scene, controls, young: np.ndarray, poisson: np.ndarray, start: str, substeps: int = 1,
+                  contact_distance: float = 1.0e-3, reporter: Reporter = SilentReporter()
+                  ) -> tuple[list[tuple[int, st.SetForce]], np.ndarray, np.ndarray]:
+    """Forces of the controls re-simulated in the full space (module doc): frames 0..T−1 from the ``start`` state
+    (docs/capture.md), θ(t) = young/poisson (T, R), ``substeps`` implicit-Euler steps per frame.  Returns
+    (rows [(frame, SetForce)], applied per-vertex force (T, n, 3) N, replayed positions (T, n, 3) m)."""
+    from stages.sim.scene import frame_inputs
+    from stages.sim.static import simulate_from_start
+
+    T = len(young)
+    states: list = []
+    with reporter.task("forces (full-space replay)", T) as task:
+        X = simulate_from_start(scene, lambda f: frame_inputs(scene, controls, f), young, poisson, T, start,
+                                substeps, callback=lambda _t: task.advance(1), states=states)
+    rows, applied, _ = step_forces(scene, controls, X, states, np.asarray(young), np.asarray(poisson), substeps,
+                                   contact_distance)
+    return rows, applied, X
 
 
 def force_table(rows: Sequence[tuple[int, st.SetForce]], dt: float) -> list[dict]:

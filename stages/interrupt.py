@@ -1,9 +1,9 @@
 """Ctrl-C (SIGINT) for a loop whose finished steps must be saved however it ends.
 
-Python turns SIGINT into a KeyboardInterrupt at whatever bytecode the main thread is running.  Inside
-compiled code that calls back into Python (numba's ``_numba_unpickle`` during an njit call, for one) that
-exception can be lost (the loop goes on to the end) or turned into a SystemError.  :class:`CtrlC` keeps
-Python's behaviour (a KeyboardInterrupt at once) and records every SIGINT, so that
+Python turns SIGINT into a KeyboardInterrupt at whatever bytecode the main thread is running.  Inside compiled
+code that calls back into Python that exception can come out as another one (seen in `rsl adapt`: numba's
+``_numba_unpickle``, called back from an njit kernel, returned with it set, a SystemError) or be dropped.
+:class:`CtrlC` keeps Python's behaviour (a KeyboardInterrupt at once) and records every SIGINT, so that
 
 - :meth:`CtrlC.check`, called where a step is complete, raises the KeyboardInterrupt a lost one should have
   been (the loop ends at the next step boundary at the latest);
@@ -11,7 +11,7 @@ Python's behaviour (a KeyboardInterrupt at once) and records every SIGINT, so th
 - :attr:`CtrlC.defer` holds SIGINT back (recorded, no exception) while the result is written, so a
   second (or late) Ctrl-C cannot abort the write half-way.
 
-Outside the main thread (where signal handlers cannot be installed) it does nothing but :meth:`check`.
+Where it installs no handler (see :meth:`CtrlC.install`) it changes nothing.
 """
 from __future__ import annotations
 
@@ -38,7 +38,10 @@ class CtrlC:
             raise KeyboardInterrupt
 
     def install(self) -> "CtrlC":
-        if self._previous is None and threading.current_thread() is threading.main_thread():
+        """Replace Python's default SIGINT handler; a caller's own handler, SIG_IGN (a background job) or a
+        non-main thread is left alone."""
+        if (self._previous is None and threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
             self._previous = signal.signal(signal.SIGINT, self._handler)
         return self
 

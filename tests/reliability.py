@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -55,7 +56,9 @@ def batch(commands: list[list], folder: Path, prelude: str = "") -> list[subproc
 
 
 def rsl_proc(*args, **kw) -> subprocess.Popen:
-    """`python -m rsl_cli.app ARGS` started (not waited for), stderr piped as text."""
+    """`python -m rsl_cli.app ARGS` started (not waited for), stderr piped as text; SIGINT at its default, as a
+    terminal's Ctrl-C finds it (a background pytest inherits SIGINT ignored)."""
+    kw.setdefault("preexec_fn", lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     return subprocess.Popen([sys.executable, "-m", "rsl_cli.app", *map(str, args)], stderr=subprocess.PIPE,
                             stdout=subprocess.PIPE, text=True, env=env(), cwd=ROOT, **kw)
 

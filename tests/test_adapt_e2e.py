@@ -476,7 +476,9 @@ def test_follow_ends_cleanly_on_ctrl_c_with_the_frames_so_far_saved(beam, tmp_pa
     env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu", COLUMNS="200")
     proc = subprocess.Popen([sys.executable, "-m", "rsl_cli.app", "adapt", str(cap2), "-w", str(ws2), "--space",
                              "full", "--loss", "markers", "--window", "2", "--follow"],
-                            stderr=subprocess.PIPE, text=True, env=env)
+                            stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as a terminal's
+    # Ctrl-C finds it, also when pytest itself runs as a background job (SIGINT ignored, and inherited)
     for line in proc.stderr:  # frames 0-5 get processed, then it says it waits for frame 6
         if "waiting for frame 6" in line:
             break

@@ -423,7 +423,7 @@ def test_image_residual_jacobian_and_exact_gradient(beam, tmp_path):
     gauss.save(ws2 / "gaussians.h5")
     gn, obj, backend = _gn_window(cap, ws2, "vision")
     frames, before, p = _window(backend, 20, w=2)
-    r, J, jtw = gn.evaluate(frames, p, before, None, True, rebind=False)
+    r, J, jtw = gn.evaluate(frames, p, before, None, True)  # re-anchored, as every evaluation below
     W = np.where(np.arange(len(r)) % 7 == 0, 0.5, 1.0)  # some IRLS-like weights
     g = jtw(W)
     assert np.abs(g).max() > 0

@@ -80,6 +80,24 @@ def test_force_error_vanishes_at_the_truth_and_grows_with_a_wrong_young(same_mod
     assert wrong["per_set"]["right"]["median_relative_error"] > 0.3
 
 
+def test_forces_are_replayed_whatever_adapt_h5_recorded(same_model, rsl):
+    """An online run's forces come from θ(t) replayed from the start state (stages.forces.adapted_forces), not
+    from adapt.h5's positions: recorded positions that no simulation made (an online splice) leave the error at the
+    truth's."""
+    cap, ws = same_model
+    _adapt_h5(cap, ws, E_TRUE)
+    a = AdaptArtefact.load(ws / "adapt.h5")
+    a.positions = a.positions + np.random.default_rng(0).normal(0.0, 1e-3, a.positions.shape)  # 1 mm jitter
+    a.mode, a.window = "online", 3  # an online run: a splice of windows, so its forces are replayed
+    a.save(ws / "adapt.h5", Provenance.make({"capture": str(cap), "workspace": str(ws)}))
+    p = rsl("evaluate", cap, "-w", ws, "--psnr-frames", "0", "--no-plot")
+    assert p.returncode == 0, p.stderr[-2000:]
+    f = json.loads((ws / "evaluation.json").read_text())["forces"]
+    assert f["median_relative_error"] < 1e-4 and "replay" in f["source"]
+    p = rsl("evaluate", cap, "-w", ws, "--psnr-frames", "0", "--no-plot", "--force-substeps", "-1")
+    assert p.returncode != 0 and "--force-substeps" in p.stderr and "Traceback" not in p.stderr
+
+
 def test_export_forces_match_evaluate_on_the_same_trajectory(same_model, rsl, tmp_path):
     """`rsl export --forces` and `rsl evaluate` compute the forces through stages.forces alike: the exported
     forces.csv against truth/forces.csv gives evaluate's numbers."""

@@ -26,7 +26,7 @@ def _adapt_from_simulation(ws, cap, mesh, young, poisson, frames):
         frames=np.arange(T), young=np.full((T, R), young), poisson=np.full((T, R), poisson), z=np.zeros((T, 0)),
         positions=X, loss=np.zeros(T), time_forward_s=np.zeros(T), time_backward_s=np.zeros(T),
         time_render_s=np.zeros(T), time_total_s=np.zeros(T), region_names=list(mesh.region_names),
-        mode="online", space="full", loss_kind="markers", window=1,
+        mode="offline", space="full", loss_kind="markers", window=T,  # one simulation: forces from its positions
     ).save(ws / "adapt.h5", Provenance.make({"capture": str(cap), "workspace": str(ws)}))
     return scene, X
 

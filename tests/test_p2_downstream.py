@@ -580,7 +580,7 @@ def p2_stretch_ws(tmp_path_factory):
         frames=np.arange(T), young=np.full((T, 1), E), poisson=np.full((T, 1), NU), z=np.zeros((T, 0)),
         positions=pos, loss=np.linspace(1.0, 0.1, T), time_forward_s=np.full(T, 0.1),
         time_backward_s=np.full(T, 0.2), time_render_s=np.full(T, 0.05), time_total_s=np.full(T, 0.4),
-        region_names=["body"], mode="online", space="full", loss_kind="markers", window=3,
+        region_names=["body"], mode="offline", space="full", loss_kind="markers", window=T,  # forces from positions
     ).save(ws / "adapt.h5", Provenance.make({"capture": str(cap), "workspace": str(ws)}))
     return {"ws": ws, "mesh": mesh, "stretches": stretches, "l2s": l2s, "root": root, "mu": mu, "lam": lam}
 

@@ -27,12 +27,20 @@ GROUPS = {"test_adapt_case": "rsl adapt: frames, meshes, obstacles, material",
           "test_failed_run_keeps_adapt_h5": "rsl adapt: unfinished runs never replace adapt.h5",
           "test_ctrl_c_keeps_adapt_h5": "rsl adapt: unfinished runs never replace adapt.h5",
           "test_downstream_refuses_partial": "rsl adapt: unfinished runs never replace adapt.h5",
+          "test_ctrl_c_lost_in_compiled_code_still_stops_and_keeps_the_frames":
+              "rsl adapt: unfinished runs never replace adapt.h5",
+          "test_second_ctrl_c_during_the_save_does_not_abort_it": "rsl adapt: unfinished runs never replace adapt.h5",
+          "test_a_frame_record_cut_half_way_is_dropped": "rsl adapt: unfinished runs never replace adapt.h5",
           "test_mp4_frames_are_read": "legal inputs are accepted (no false alarm)",
           "test_rotation_angle_small_angles": "arithmetic: rotation angle"}
 LABELS = {"test_failed_run_keeps_adapt_h5": "a run that fails after some frames (the mesh collapses): adapt.h5 kept, "
                                             "the frames done in adapt.partial.h5",
           "test_ctrl_c_keeps_adapt_h5": "Ctrl-C of a non-follow run: adapt.h5 kept, the frames done in "
                                         "adapt.partial.h5, the sentence says so",
+          "test_second_ctrl_c_during_the_save_does_not_abort_it": "a second Ctrl-C while adapt.partial.h5 is "
+                                                                  "written: the write completes",
+          "test_a_frame_record_cut_half_way_is_dropped": "Ctrl-C between the appends of one frame's record: "
+                                                         "that frame is dropped, the others saved",
           "test_mp4_frames_are_read": "frames given as MP4 videos: the vision loss reads them"}
 
 MARKERS = ["--space", "full", "--loss", "markers", "--window", "2"]
@@ -210,13 +218,20 @@ def test_failed_run_keeps_adapt_h5(base, tmp_path: Path) -> None:
     assert "adapt adapt.h5 up to date" in " ".join(flat(status.stdout).replace("│", " ").split())
 
 
+def _sigint_default() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.fixture(scope="module")
 def interrupted(base, tmp_path_factory) -> dict:
     """A non-follow adapt stopped by Ctrl-C after a few frames, then what downstream does with the result."""
     root = tmp_path_factory.mktemp("ctrl_c")
     cap, ws = _copy(base, root)
     before = tree_bytes(ws)
-    proc = rsl_proc("-v", "adapt", cap, "-w", ws, *MARKERS, "--frames", "0:40", "--iters-per-frame", "8")
+    # SIGINT at its default in the child, as a terminal's Ctrl-C finds it: a pytest started in the background
+    # (`make test &`, nohup) passes SIG_IGN on, and rsl (rightly) keeps ignoring it, so the run would end complete
+    proc = rsl_proc("-v", "adapt", cap, "-w", ws, *MARKERS, "--frames", "0:40", "--iters-per-frame", "8",
+                    preexec_fn=_sigint_default)
     lines = []
     for line in proc.stderr:  # --verbose without a terminal: a line per frame; stop after the third
         lines.append(line)
@@ -355,14 +370,22 @@ def test_solve_guard_tolerates_a_sliver_but_not_a_collapse(tmp_path: Path) -> No
 # kernel, drops the KeyboardInterrupt) or come out as a SystemError; a second Ctrl-C can land inside the save.
 # signal.raise_signal runs the Python handler before it returns, so each moment is hit exactly.
 
-def _ctrl_c_run(base, tmp_path: Path, monkeypatch, at_frame: int, how: str):
-    """adapt.run (markers, gn, frames 0:4) with a Ctrl-C injected at the `at_frame`-th frame's σ computation."""
+@pytest.fixture
+def default_sigint():
+    """Python's own SIGINT handler for the test (a pytest started in the background inherits SIG_IGN)."""
     import threading
-
-    from stages.steps import adapt
 
     if threading.current_thread() is not threading.main_thread():
         pytest.skip("signal handlers need the main thread")
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
+def _ctrl_c_run(base, tmp_path: Path, monkeypatch, at_frame: int, how: str):
+    """adapt.run (markers, gn, frames 0:4) with a Ctrl-C injected at the `at_frame`-th frame's σ computation."""
+    from stages.steps import adapt
+
     cap, ws = _copy(base, tmp_path)
     before = tree_bytes(ws)
     real, calls = adapt._sigma_from_cov, [0]
@@ -400,20 +423,24 @@ def _assert_partial(ws: Path, before: dict, n_frames: int) -> None:
     assert len(part.extra["innovation_ratio"]) == n_frames
 
 
-@pytest.mark.parametrize("how,kept", [("lost", 2), ("systemerror", 1)])
-def test_ctrl_c_lost_in_compiled_code_still_stops_and_keeps_the_frames(base, tmp_path, monkeypatch, how, kept):
+@pytest.mark.parametrize("how,kept", [("lost", 2), ("systemerror", 1)],
+                         ids=["Ctrl-C whose KeyboardInterrupt compiled code loses: the run stops a frame later",
+                              "Ctrl-C that compiled code turns into a SystemError: interrupted, not a crash"])
+def test_ctrl_c_lost_in_compiled_code_still_stops_and_keeps_the_frames(base, tmp_path, monkeypatch, how, kept,
+                                                                        default_sigint):
     """Lost: the run stops once the frame under way is recorded (2 frames kept); turned into a SystemError: the
     run ends as interrupted with the frame done before (1 frame), not as a crash."""
     from stages.errors import Interrupted
 
     adapt, config, ws, before = _ctrl_c_run(base, tmp_path, monkeypatch, 1, how)
+    handler = signal.getsignal(signal.SIGINT)
     with pytest.raises(Interrupted, match="adapt.partial.h5"):
         adapt.run(config)
     _assert_partial(ws, before, kept)
-    assert signal.getsignal(signal.SIGINT) is not None and "CtrlC" not in repr(signal.getsignal(signal.SIGINT))
+    assert signal.getsignal(signal.SIGINT) == handler  # the caller's handler is back
 
 
-def test_second_ctrl_c_during_the_save_does_not_abort_it(base, tmp_path, monkeypatch):
+def test_second_ctrl_c_during_the_save_does_not_abort_it(base, tmp_path, monkeypatch, default_sigint):
     """Ctrl-C at frame 1, and again while adapt.partial.h5 is being written: the write completes."""
     from stages.artefacts import AdaptArtefact
     from stages.errors import Interrupted
@@ -426,8 +453,14 @@ def test_second_ctrl_c_during_the_save_does_not_abort_it(base, tmp_path, monkeyp
         return real_save(self, *a, **k)
 
     monkeypatch.setattr(AdaptArtefact, "save", save)
-    with pytest.raises(Interrupted, match="adapt.partial.h5"):
+    try:
         adapt.run(config)
+    except KeyboardInterrupt:  # (caught here: left alone it would end the pytest session)
+        pytest.fail("the second Ctrl-C escaped from the save")
+    except Interrupted as e:
+        assert "adapt.partial.h5" in str(e)
+    else:
+        pytest.fail("the run was not interrupted")
     _assert_partial(ws, before, 1)
 
 

@@ -200,6 +200,88 @@ def test_window_gradient_carries_the_anchor_through_its_simulation(capture):
         assert g[i] == pytest.approx(chain, rel=1e-3, abs=1e-6 * abs(held)), (i, g, chain, held)
 
 
+def _reduced_objective(cap: Path, ws: Path):
+    """WindowObjective in a 6-dim PCA subspace trained on full-space runs of the capture's own controls."""
+    from stages.sim.scene import frame_inputs, make_scene
+    from stages.sim.static import simulate_from_start
+    from stages.steps.adapt import WindowObjective, _ReducedSpace, _Vision
+    from stages.subspace import ReducedModel
+    from stages.subspace.train import fit_subspace
+
+    capture = load_capture(cap)
+    mesh = MeshArtefact.load(ws / "mesh.h5")
+    controls = capture.controls()
+    scene = make_scene(mesh, controls, capture.material.model, capture.dt, capture.gravity)
+    at = lambda t: frame_inputs(scene, controls, int(round(t)))  # noqa: E731
+    train = np.concatenate([simulate_from_start(scene, at, np.array([e]), np.array([0.42]), 6, capture.start)
+                            for e in (0.5 * E_TRUE, E_TRUE)])
+    sub, _ = fit_subspace("pca", scene.rest, scene.masses, train, 6)
+    backend = _ReducedSpace(ReducedModel(sub, scene), at)
+    backend.rtol = 1e-12
+    obs = _Vision(capture, ws, "", mesh, False, "rebind")
+    return WindowObjective(backend, obs, scene.n_regions, (0.3, 0.49), capture.start), backend
+
+
+@pytest.mark.parametrize("frames", [[0, 1, 2], [3, 4, 5]])
+def test_reduced_window_gradient_carries_the_anchor_through_its_simulation(capture, frames):
+    """The reduced-space twin of the test above (decode, Jᵀ, the reduced static adjoint of the anchor x_f = decode
+    (z_f(θ))): dL/dθ = Σ_t dL/dX_t · dX_t/dθ + dL/dx_a · dx_a/dθ, dX/dθ and dx_a/dθ by central differences of the
+    reduced simulations, on the window holding frame 0 and on a later one started from two stored states."""
+    cap, ws, _ = capture
+    obj, backend = _reduced_objective(cap, ws)
+    p = np.concatenate(params_from_theta(np.array([0.7 * E_TRUE]), np.array([0.42]), (0.3, 0.49)))
+    E, nu = theta_from_params(p[:1], p[1:], (0.3, 0.49))
+    before = None
+    if frames[0] > 0:
+        Z = obj.win.forward(list(range(frames[0])), E, nu, None)
+        before = np.stack([Z[-2], Z[-1]])
+    _, _, g, _ = obj(frames, p, before)
+    obj.obs.rebind(obj.anchor_positions(E, nu))
+    X = backend.decode(obj.win.forward(frames, E, nu, before))
+    _, dX = obj.obs.loss(frames, X)
+    ga = obj.obs.anchor_grad
+    assert np.abs(ga).max() > 0
+    for i, h in ((0, 1e-5), (1, 1e-4)):
+        e = np.zeros(2)
+        e[i] = h
+        sims = []
+        for q in (p + e, p - e):
+            Eq, nq = theta_from_params(q[:1], q[1:], (0.3, 0.49))
+            sims.append((backend.decode(obj.win.forward(frames, Eq, nq, before)), obj.anchor_positions(Eq, nq)))
+        held = np.sum(dX * (sims[0][0] - sims[1][0]) / (2 * h))
+        anchor_part = np.sum(ga * (sims[0][1] - sims[1][1]) / (2 * h))
+        assert abs(anchor_part) > 1e-3 * abs(held)  # the anchor's part is there to be checked
+        assert g[i] == pytest.approx(held + anchor_part, rel=1e-3, abs=1e-6 * abs(held)), (i, g, held, anchor_part)
+
+
+def test_window_after_the_fit_frame_anchors_at_the_stored_state(capture):
+    """Online, a window after the fit frame starts from stored states simulated from the *stored* x_f (under the θ
+    of their time): it anchors the Gaussians there, held fixed — its loss is the one rendered with that anchor and
+    dL/dθ = Σ_t dL/dX_t · dX_t/dθ only (central differences of the window's simulation)."""
+    cap, ws, _ = capture
+    obj, backend = _objective(cap, ws)
+    pr = (0.3, 0.49)
+    p = np.concatenate(params_from_theta(np.array([0.7 * E_TRUE]), np.array([0.42]), pr))
+    E, nu = theta_from_params(p[:1], p[1:], pr)
+    old = obj.win.forward([0, 1, 2], 1.4 * E, nu, None)  # the stored past, simulated with another E
+    obj.stored = {0: old[0], 1: old[1], 2: old[2]}
+    frames, before = [3, 4], old[1:3]
+    _, losses, g, _ = obj(frames, p, before)
+    obj.obs.rebind(old[0])
+    X = backend.decode(obj.win.forward(frames, E, nu, before))
+    ref, dX = obj.obs.loss(frames, X)
+    assert np.allclose(losses, ref, rtol=1e-6)
+    obj.obs.rebind(obj.anchor_positions(E, nu))  # the re-simulated anchor renders another loss
+    assert not np.allclose(obj.obs.loss(frames, X)[0], ref, rtol=1e-3)
+    for i, h in ((0, 1e-5), (1, 1e-4)):
+        e = np.zeros(2)
+        e[i] = h
+        Xs = [backend.decode(obj.win.forward(frames, *theta_from_params(q[:1], q[1:], pr), before))
+              for q in (p + e, p - e)]
+        held = np.sum(dX * (Xs[0] - Xs[1]) / (2 * h))
+        assert g[i] == pytest.approx(held, rel=1e-3, abs=1e-9), (i, g, held)
+
+
 # =========================================================================== Gauss–Newton image Jacobian
 def test_gn_image_jacobian_agrees_with_autograd_and_finite_differences(capture):
     """GN's J (central-difference renders along the sensitivities, the anchor's moved jointly): Jᵀ W r against the

@@ -9,7 +9,8 @@
 * PSNR of the Gaussians rendered on the adapted mesh against the (masked) images, when
   gaussians.h5 exists: PSNR = 10 log10(1 / MSE) on [0, 1] RGB.
 * Forces, when the capture has truth/forces.csv: the force each handle and obstacle exerts, computed from
-  adapt.h5 as ``rsl export --forces`` computes it (stages.forces), against the truth's: per handle/obstacle
+  adapt.h5 as ``rsl export --forces`` computes it (stages.forces: θ(t) replayed in the full space from the
+  start state with adapt's substeps, the truth's definition), against the truth's: per handle/obstacle
   the median over frames of ‖F − F_true‖ / ‖F_true‖ (frames where ‖F_true‖ ≥ 5 % of its largest value), and
   the median over every compared (frame, handle/obstacle) pair.
 * ``--sweep``: the loss (markers, images or silhouettes) of the capture over a grid of fixed E, ν fixed at the
@@ -68,6 +69,8 @@ class EvaluateConfig:
     """Frames of the sweep, 'A:B' (B excluded); empty = the whole sequence."""
     sweep_substeps: int = 1
     """Implicit-Euler steps per frame in the sweep's simulation."""
+    force_substeps: int = 0
+    """Implicit-Euler steps per frame of the full-space replay the forces are computed on; 0 = adapt's --substeps."""
 
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -199,23 +202,30 @@ def _adapt_errors(config, ws, capture, truth, adapt_path, mesh_path, reporter) -
 def _forces(config, capture, adapt, mesh, reporter) -> dict | None:
     """Force errors against truth/forces.csv (stages.forces.force_errors), None without the file or --forces."""
     from stages.capture import read_forces_csv
-    from stages.forces import force_errors, force_table, trajectory_forces
+    from stages.forces import adapted_forces, force_errors, force_table, replayable
     from stages.results import compute_stress, material_setting
     from stages.sim.scene import make_scene
 
     path = capture.truth_dir / "forces.csv"
     if not config.forces or not path.is_file():
         return None
+    if config.force_substeps < 0:
+        raise RslError(f"--force-substeps should be 0 (adapt's) or at least 1, found {config.force_substeps}.")
     truth_rows = read_forces_csv(path)
     controls = capture.controls()
     model, dt, gravity = material_setting(capture, adapt)
-    field = compute_stress(adapt, mesh, model, reporter, sigma=False)
     scene = make_scene(mesh, controls, model, dt, gravity)
-    rows, _ = trajectory_forces(scene, controls, adapt.frames, adapt.positions, field.forces, reporter=reporter)
+    substeps = config.force_substeps or int(adapt.extra.get("substeps", 1) or 1)
+    if not (adapt.mode == "online" and replayable(adapt.frames)):
+        reporter.warn(f"adapt.h5 is not an online run from frame 0: forces from its recorded positions (frame-level "
+                      f"differences), not from a replay; see docs/capture.md.")
+    rows, _, source = adapted_forces(scene, controls, adapt, capture.start, substeps,
+                                     lambda: compute_stress(adapt, mesh, model, reporter, sigma=False).forces,
+                                     reporter=reporter)
     per = force_errors(force_table(rows, dt), truth_rows)
     pooled = [e for v in per.values() for e in v["rel_error_per_frame"]]
     return {"truth": str(path), "median_relative_error": float(np.median(pooled)) if pooled else None,
-            "per_set": per}
+            "per_set": per, "source": source}
 
 
 def _check_sweep(config: EvaluateConfig) -> None:

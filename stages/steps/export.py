@@ -7,7 +7,9 @@ artefact's config (for the material model, fps, gravity and controls).  Writes
 into one output folder (default WS/export/, or WS/export_rollout/ for a rollout):
 
     stress.h5, stress_summary.csv      Cauchy σ and von Mises per tet, per-vertex von Mises
-    forces.csv                         per frame and handle/obstacle: Σ internal nodal force
+    forces.csv                         per frame and handle/obstacle: Σ internal nodal force and the force
+                                       it exerts (adapt.h5 from frame 0: of θ(t) replayed in the full
+                                       space, as truth/forces.csv; stages.forces)
     vtk/<source>.pvd, vtk/*.vtu        a ParaView time series
     ply/frame_NNNNNN.ply               3DGS PLY of the deformed Gaussians
     render/...png, render/*.mp4        capture and orbit views, appearance and stress
@@ -93,6 +95,8 @@ class ExportConfig:
     """Width and height of the orbit renders, px."""
     video_fps: float = 0.0
     """Frame rate of the MP4s; 0 = the capture's fps."""
+    force_substeps: int = 0
+    """Implicit-Euler steps per frame of the full-space replay the forces are computed on; 0 = adapt's --substeps."""
 
 
 # =========================================================================== small file helpers
@@ -291,15 +295,25 @@ def compute_forces(seq: Sequence, field: StressField, config: ExportConfig, repo
     """Per frame, per handle and per obstacle: the internal-force sums over its vertices and the force it
     exerts (stages.forces.trajectory_forces, shared with rsl evaluate), with the controls the trajectory was
     made with; and the per-vertex force (T, n, 3) N that handles and obstacles apply."""
-    from stages.forces import trajectory_forces
+    from stages.forces import adapted_forces, trajectory_forces
     from stages.sim.scene import make_scene
 
     controls = seq.controls
+    if config.force_substeps < 0:
+        raise ExportError(f"--force-substeps should be 0 (adapt's) or at least 1, found {config.force_substeps}.")
     if not controls.handles and not controls.obstacles:
         reporter.warn(f"{seq.controls_path}: no handle and no obstacle; forces.csv holds no row.")
     scene = make_scene(seq.mesh, controls, seq.model, seq.dt, seq.gravity)
-    rows, applied = trajectory_forces(scene, controls, seq.adapt.frames, seq.adapt.positions, field.forces,
-                                      config.contact_distance, reporter)
+    if config.source in ("adapt", "partial"):
+        # an online trajectory is spliced from windows (and reduced-space states): the forces of its θ(t)
+        # replayed in the full space, as truth/forces.csv defines them (stages.forces module doc)
+        substeps = config.force_substeps or int(seq.adapt.extra.get("substeps", 1) or 1)
+        start = seq.capture.start if seq.capture is not None else None
+        rows, applied, _ = adapted_forces(scene, controls, seq.adapt, start, substeps, lambda: field.forces,
+                                          config.contact_distance, reporter)
+    else:
+        rows, applied = trajectory_forces(scene, controls, seq.adapt.frames, seq.adapt.positions, field.forces,
+                                          config.contact_distance, reporter)
     times = dict(zip(seq.adapt.frames.tolist(), seq.times.tolist()))
     return [ForceRow(frame, float(times[frame]), f) for frame, f in rows], applied
 

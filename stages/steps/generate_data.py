@@ -121,7 +121,9 @@ def random_controls(controls: Controls, frames: int, gap: int, jitter: float, rn
     it = iter(new)
     out = Controls(friction=controls.friction)
     for h in controls.handles:
-        out.handles.append(type(h)(h.name, h.select, h.stiffness, next(it)))
+        # hard (Dirichlet) handles stay hard: the snapshots then hold their vertices exactly at the targets,
+        # as the capture's simulation does (springs here gave a reduced space with a compliant clamp)
+        out.handles.append(type(h)(h.name, h.select, h.stiffness, next(it), hard=bool(getattr(h, "hard", False))))
     for ld in controls.loads:
         out.loads.append(type(ld)(ld.name, ld.select, next(it)))
     for o in controls.obstacles:

@@ -493,7 +493,8 @@ def truth_forces(scene, ctl: Controls, X: np.ndarray, states: list, young: np.nd
     """Rows of truth/forces.csv (stages.capture.FORCE_HEADER): per frame, per handle and obstacle, the sum of
     the internal nodal forces over its vertices, their magnitude sum, the force it exerts on the object
     (spring pull, hard-handle reaction = −residual of Φ without the handle at its vertices, or −∂E_c/∂x)
-    and its vertex count — what ``rsl export --forces`` computes, on the truth simulation.
+    and its vertex count — what ``rsl export --forces`` computes, on the truth simulation (the same numbers as
+    stages.forces.step_forces / replay_forces: the last substep's residual; tests/test_forces_truth.py).
     ``states``: per frame (x_{t−1}, x_{t−2}) of the last substep (stages.sim.static.simulate_from_start)."""
     from stages.sim.scene import frame_inputs, handle_reactions, internal_forces
     from stages.sim.stress import set_forces

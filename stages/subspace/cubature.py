@@ -149,6 +149,16 @@ def _rows(cols: np.ndarray, ids: np.ndarray, point_region: np.ndarray, n_regions
     return (a / norms[:, None, None, None]).reshape(k * n_regions * r, c)
 
 
+def _carries_force(col_norms: np.ndarray, rel: float = 1e-6) -> np.ndarray:
+    """(c,) bool: the points whose reduced-force column is not negligible (> rel × the median column).  A point
+    whose nodes the subspace holds still (the rows of U at a hard handle's vertices are ~1e-10 when the
+    snapshots held them) has a round-off column: normalised by its own norm it could win the greedy score,
+    and NNLS would give it a weight of ~1e27 (a huge, noisy energy term)."""
+    c = np.asarray(col_norms, np.float64)
+    ref = float(np.median(c[c > 0])) if np.any(c > 0) else 0.0
+    return c > rel * ref
+
+
 def fit_cubature(sampler: ReducedForceSampler, point_region: np.ndarray, n_regions: int, max_points: int = 300,
                  tol: float = 0.01, candidates: int = 1000, seed: int = 0, *, max_tets: int | None = None
                  ) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -169,6 +179,7 @@ def fit_cubature(sampler: ReducedForceSampler, point_region: np.ndarray, n_regio
     if max_points >= m:
         ids = np.arange(m)
         a = _rows(sampler.columns(ids), ids, point_region, n_regions, norms)
+        a = a * _carries_force(np.linalg.norm(a, axis=0))[None, :]  # a zero column gets weight 0
         w, _ = nnls(a, b, maxiter=50 * m)
         keep = w > 0
         return ids[keep], w[keep], {"error_rel": float(np.linalg.norm(a @ w - b) / bnorm), "iterations": 1}
@@ -185,7 +196,8 @@ def fit_cubature(sampler: ReducedForceSampler, point_region: np.ndarray, n_regio
             break
         cand = rng.choice(pool, size=min(candidates, len(pool)), replace=False)
         ac = _rows(sampler.columns(cand), cand, point_region, n_regions, norms)
-        score = (ac.T @ res) / np.maximum(np.linalg.norm(ac, axis=0), 1e-300)
+        cn = np.linalg.norm(ac, axis=0)
+        score = np.where(_carries_force(cn), (ac.T @ res) / np.maximum(cn, 1e-300), -np.inf)
         take = min(per_iter, max_points - len(sel))
         best = np.argsort(-score)[:take]
         best = best[score[best] > 0]

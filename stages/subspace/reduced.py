@@ -104,8 +104,11 @@ class ReducedModel:
         g_mat = np.einsum("nip,ni,niq->pq", basis, np.repeat(m[:, None], 3, 1), basis)  # Uᵀ M U
         grav_q = np.einsum("nip,ni->p", basis, m[:, None] * np.asarray(scene.gravity)[None, :])  # Uᵀ M g
         if any(getattr(h, "hard", False) for h in scene.handles):
-            # the subspace cannot hold vertices exactly: a hard handle acts as a spring of its stiffness here
-            # (both the fast path and the reference see the same spring)
+            # a hard handle acts as a spring of its stiffness here (both the fast path and the reference see the
+            # same spring).  generate-data keeps handles hard, so a subspace trained on its snapshots has rows
+            # of ~1e-10 at a still hard handle's vertices: they sit at their targets for every z and the spring
+            # is inert.  For a moving hard handle a stiffer spring pins the vertices closer but the rest of the
+            # body follows the full space less well (docs/results/reduced_accuracy.md), so it is not stiffened.
             import dataclasses
 
             scene = dataclasses.replace(scene, handles=tuple(dataclasses.replace(h, hard=False)
