@@ -217,7 +217,10 @@ def main() -> None:
     a = ap.parse_args()
     if a.merge:
         runs = [json.loads(f.read_text()) for f in a.merge]
-        write([r for run in runs for r in run["cases"]], a.out, runs[0]["mode"] == "quick", runs[0]["plan"])
+        plan = {**runs[0]["plan"], "merged_from": [{"file": str(f), "date": run["date"],
+                                                    "load_average_end": run.get("load_average_end")}
+                                                   for f, run in zip(a.merge, runs)]}
+        write([r for run in runs for r in run["cases"]], a.out, runs[0]["mode"] == "quick", plan)
         return
     a.work.mkdir(parents=True, exist_ok=True)
     frames, refine = (30, 0) if a.quick else (36, 0)
@@ -272,8 +275,11 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
           f"truth/forces.csv, as `rsl evaluate` reports it.\n\n{table}\n\n"
           f"{n5} of {len(ok)} rows have every region's median E error ≤ 5 %; {n10} of {len(nf)} rows with a force "
           f"error have it ≤ 10 %.{' Failed rows:' + failed if failed else ''}\n\n"
-          f"Machine: {data['machine']}, load average {data['load_average_end']:.1f} at the end; date {data['date']}. "
-          f"Produced by `bench/accuracy.py{' --quick' if quick else ''}`.\n\n![E over time](accuracy.png)\n")
+          + (f"Rows merged from {len(plan['merged_from'])} runs (one per space/loss, run side by side), ended "
+             + ", ".join(f"{m['date']} (load average {m['load_average_end']:.1f})" for m in plan["merged_from"])
+             + f"; machine {data['machine']}. " if plan.get("merged_from") else
+             f"Machine: {data['machine']}, load average {data['load_average_end']:.1f} at the end; date {data['date']}. ")
+          + f"Produced by `bench/accuracy.py{' --quick' if quick else ''}`.\n\n![E over time](accuracy.png)\n")
     (out / "accuracy.md").write_text(md)
     keys = sorted({(r["case"], r["start"]) for r in ok})
     fig, axes = plt.subplots(1, max(1, len(keys)), figsize=(4.2 * max(1, len(keys)), 3.8), squeeze=False)
@@ -282,10 +288,11 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
         yt = np.asarray(sub[0]["young_true"])
         for j in range(yt.shape[1]):
             ax.plot(yt[:, j], "k-", lw=2, label="truth" if j == 0 else None)
-        for r in sub:
+        for c, r in enumerate(sub):
             y = np.asarray(r["young"])
-            for j in range(y.shape[1]):
-                ax.plot(y[:, j], lw=1, label=f"P{r['order']} {r['loss']} {r['space']}" if j == 0 else None)
+            for j in range(y.shape[1]):  # one colour per row, a dashed line per further region
+                ax.plot(y[:, j], lw=1, color=f"C{c}", ls="-" if j == 0 else "--",
+                        label=f"P{r['order']} {r['loss']} {r['space']}" if j == 0 else None)
         ax.set_title(f"{key[0]}, start = {key[1]}")
         ax.set_xlabel("frame")
         ax.set_ylabel("E (Pa)")

@@ -153,7 +153,8 @@ class AdaptConfig:
     """adam, images: where a window after the Gaussians' fit frame anchors them — "simulated": x_f re-simulated
     from the start with the current θ (right while E is constant); "stored": the fit frame's stored state, held
     fixed, like the window's starting states (right when E changed since the fit frame).  Cable bar with E ×2, ×4
-    steps, reduced: median E error 37 % → 12 %; constant E from 0.4 E_true, full: 5.5 % → 24 %."""
+    steps: reduced 37 % → 12 % median E error, full 40 % → 43 %; constant E from 0.4 E_true, full: 5.5 % → 24 %
+    (neither is right on both: experimental)."""
 
 
 def resolve_estimator(config: AdaptConfig) -> str:
