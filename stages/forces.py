@@ -11,7 +11,7 @@ earlier frames are not in the trajectory is taken at rest (x_{t−1} = x_{t−2}
 Two ways to get the states, one definition of the force (:func:`step_forces`, also what ``rsl synth`` writes to
 truth/forces.csv): the force at frame t is the residual of the LAST implicit-Euler step that produced x_t
 (Δt / S with S substeps per frame, from that step's own x_{t−1}, x_{t−2}), at its held vertices.
-* :func:`replay_forces` (the default of export/evaluate): the controls re-simulated in the full space with θ(t) of
+* :func:`replay_forces` (export, evaluate and report for an online run, :func:`adapted_forces`): the controls re-simulated in the full space with θ(t) of
   the trajectory, the capture's start state and the trajectory's substeps, so every step is a solved step of
   the model (free-vertex residual 0, held vertices at their targets, inertia from that step's own states).
 * :func:`trajectory_forces`: the recorded positions themselves, with frame-level finite differences.  Only
