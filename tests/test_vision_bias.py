@@ -187,17 +187,20 @@ def test_window_gradient_carries_the_anchor_through_its_simulation(capture):
     ga = obj.obs.anchor_grad
     assert np.abs(ga).max() > 0
     for i, h in ((0, 1e-5), (1, 1e-4)):
-        e = np.zeros(2)
-        e[i] = h
-        sims = []
-        for q in (p + e, p - e):
-            Eq, nq = theta_from_params(q[:1], q[1:], (0.3, 0.49))
-            sims.append((backend.decode(obj.win.forward(frames, Eq, nq, None)), obj.anchor_positions(Eq, nq)))
-        dXdp = (sims[0][0] - sims[1][0]) / (2 * h)
-        dxadp = (sims[0][1] - sims[1][1]) / (2 * h)
+        dXdp, dxadp = _central_differences(obj, backend, frames, p, None, i, h)
         chain = np.sum(dX * dXdp) + np.sum(ga * dxadp)
         held = np.sum(dX * dXdp)
         assert g[i] == pytest.approx(chain, rel=1e-3, abs=1e-6 * abs(held)), (i, g, chain, held)
+
+
+def _central_differences(obj, backend, frames, p, before, i: int, h: float):
+    """(dX/dp_i (w, n, 3), dx_anchor/dp_i (n, 3)) by central differences of the window's simulation and of the
+    anchor x_0(θ) (p = (log E, s), ν range (0.3, 0.49))."""
+    sims = []
+    for q in (p + h * np.eye(len(p))[i], p - h * np.eye(len(p))[i]):
+        Eq, nq = theta_from_params(q[:1], q[1:], (0.3, 0.49))
+        sims.append((backend.decode(obj.win.forward(frames, Eq, nq, before)), obj.anchor_positions(Eq, nq)))
+    return (sims[0][0] - sims[1][0]) / (2 * h), (sims[0][1] - sims[1][1]) / (2 * h)
 
 
 def _reduced_objective(cap: Path, ws: Path):
@@ -242,14 +245,9 @@ def test_reduced_window_gradient_carries_the_anchor_through_its_simulation(captu
     ga = obj.obs.anchor_grad
     assert np.abs(ga).max() > 0
     for i, h in ((0, 1e-5), (1, 1e-4)):
-        e = np.zeros(2)
-        e[i] = h
-        sims = []
-        for q in (p + e, p - e):
-            Eq, nq = theta_from_params(q[:1], q[1:], (0.3, 0.49))
-            sims.append((backend.decode(obj.win.forward(frames, Eq, nq, before)), obj.anchor_positions(Eq, nq)))
-        held = np.sum(dX * (sims[0][0] - sims[1][0]) / (2 * h))
-        anchor_part = np.sum(ga * (sims[0][1] - sims[1][1]) / (2 * h))
+        dXdp, dxadp = _central_differences(obj, backend, frames, p, before, i, h)
+        held = np.sum(dX * dXdp)
+        anchor_part = np.sum(ga * dxadp)
         assert abs(anchor_part) > 1e-3 * abs(held)  # the anchor's part is there to be checked
         assert g[i] == pytest.approx(held + anchor_part, rel=1e-3, abs=1e-6 * abs(held)), (i, g, held, anchor_part)
 
