@@ -29,17 +29,17 @@ import datetime
 import json
 import os
 import platform
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path[:0] = [str(ROOT), str(Path(__file__).resolve().parent)]
 os.environ.setdefault("JAX_ENABLE_X64", "1")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import _pipeline as pl  # noqa: E402
 
 E0 = 1.0e5
 POISSON = 0.45
@@ -63,26 +63,14 @@ FULL_PLAN = (
 QUICK_PLAN = [("bar", s, o, "markers", "full") for s in ("equilibrium", "rest") for o in (1, 2)]
 
 
-def rsl(*args) -> float:
-    env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
-    t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-m", "rsl_cli.app", *map(str, args)], capture_output=True, text=True,
-                       env=env, cwd=ROOT)
-    if p.returncode != 0:
-        raise RuntimeError(f"rsl {' '.join(map(str, args))} failed:\n{p.stderr[-3000:]}")
-    return time.perf_counter() - t0
-
-
 def scene_args(case: str, frames: int) -> list:
+    """[mesh, rsl synth scenario options...] of a case (bench/_pipeline.py)."""
     if case == "bar":
-        sched = f"{E0:g}@0,{2 * E0:g}@{frames // 3},{4 * E0:g}@{2 * frames // 3}"
-        return [ROOT / "sample_data/bar/object.mesh", "--scenario", "cable", "--young-schedule", sched,
-                "--size", 0.25]
+        return pl.bar_cable(schedule=f"{E0:g}@0,{2 * E0:g}@{frames // 3},{4 * E0:g}@{2 * frames // 3}")
     if case == "dino":
-        return [ROOT / "sample_data/dino/object.mesh", "--scenario", "push", "--young", E0, "--size", 0.22]
+        return pl.dino_push(E0)
     if case == "beam":
-        return [ROOT / "sample_data/bar/object.mesh", "--scenario", "cable", "--young", E0,
-                "--region", f"stiff={3 * E0:g}@x>0.5", "--size", 0.25]
+        return pl.bar_cable(young=E0, region=f"stiff={3 * E0:g}@x>0.5")
     raise ValueError(case)
 
 
@@ -97,37 +85,17 @@ def settled_mask(young_true: np.ndarray, first: int = 0) -> np.ndarray:
     return ok
 
 
-MADE: set = set()  # artefacts this run has made (each is made once per run, whatever rows need it)
-
-
-def _reuse(path: Path) -> bool:
-    """Skip the step that makes ``path``: made earlier in this run, or found there with RSL_BENCH_REUSE=1."""
-    if path.is_file() and (path in MADE or os.environ.get("RSL_BENCH_REUSE")):
-        return True
-    MADE.add(path)
-    return False
-
-
 def capture(work: Path, case: str, start: str, frames: int, refine: int) -> Path:
-    cap = work / f"{case}_{start}"
-    if not _reuse(cap / "capture.toml"):
-        rsl("synth", *scene_args(case, frames), cap, "--cameras", 3, "--frames", frames, "--resolution", 96,
-            "--markers", 40, "--calib-views", 0, "--poisson", POISSON, "--start", start, "--truth-order", 2,
-            "--truth-refine", refine, "--substeps", TRUTH_SUBSTEPS, "--handles", "hard", "--seed", 0, "--overwrite")
-    return cap
+    return pl.foreign_capture(work / f"{case}_{start}", scene_args(case, frames), start=start, frames=frames,
+                              cameras=3, resolution=96, refine=refine, substeps=TRUTH_SUBSTEPS, poisson=POISSON)
 
 
 def workspace(work: Path, cap: Path, case: str, start: str, order: int, loss: str, space: str, frames: int) -> Path:
-    ws = work / f"ws_{case}_{start}_p{order}"
-    if not _reuse(ws / "mesh.h5"):
-        rsl("calibrate", cap, "-w", ws, "--from-json", cap / "cameras.json")
-        rsl("tetrahedralize", cap, "-w", ws, "--order", order, "--max-tets", MAX_TETS)
-    if loss == "vision" and not _reuse(ws / "gaussians.h5"):
-        rsl("segment", cap, "-w", ws)
-        rsl("fit-gaussians", cap, "-w", ws, "--frame", 0)
-    if space == "reduced" and not _reuse(ws / "subspace.h5"):
-        rsl("generate-data", cap, "-w", ws, "--sequences", 4, "--frames", frames, "--workers", 1)
-        rsl("train-subspace", "-w", ws, "--dim", SUBSPACE_DIM)
+    ws = pl.mesh(cap, work / f"ws_{case}_{start}_p{order}", order=order, max_tets=MAX_TETS)
+    if loss == "vision":
+        pl.gaussians(cap, ws, frame=0)
+    if space == "reduced":
+        pl.subspace(cap, ws, frames=frames, dim=SUBSPACE_DIM)
     return ws
 
 
@@ -140,12 +108,12 @@ def run_row(work: Path, row: tuple, frames: int, refine: int) -> dict:
     try:
         cap = capture(work, case, start, frames, refine)
         ws = workspace(work, cap, case, start, order, loss, space, frames)
-        t_adapt = rsl("adapt", cap, "-w", ws, "--window", WINDOW, "--space", space, "--loss", loss,
-                      "--young-init", f"{0.5 * E0:g}", *EXTRA)
-        rsl("export", "-w", ws, "--forces", "--no-plots", "--no-render", "--no-vtk", "--no-stress", "--no-ply",
-            "-o", ws / f"export_{loss}_{space}")
-        rsl("evaluate", cap, "-w", ws, "--psnr-frames", 0, "--no-plot")
-    except RuntimeError as e:
+        t_adapt = pl.adapt(cap, ws, "--window", WINDOW, "--space", space, "--loss", loss,
+                           "--young-init", f"{0.5 * E0:g}", *EXTRA)
+        pl.export(ws, ws / f"export_{loss}_{space}", "--forces", "--no-plots", "--no-render", "--no-vtk",
+                  "--no-stress", "--no-ply")
+        pl.evaluate(cap, ws, "--psnr-frames", 0, "--no-plot")
+    except pl.RslFailed as e:
         return {**out, "error": str(e)[-800:]}
     truth = read_truth(load_capture(cap))
     a = AdaptArtefact.load(ws / "adapt.h5")

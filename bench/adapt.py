@@ -399,12 +399,12 @@ def loss_sweep(cap: Path, ws: Path, loss: str, factors: list[float], ends=(10, 2
     T = max(ends) + 1
     inputs = [frame_inputs(scene, controls, t) for t in range(T)]
     X = np.asarray(simulate(scene, inputs, np.full((T, 1), 1e5), np.full((T, 1), 0.45)))
-    backend = adapt._FullSpace(scene, lambda t: inputs[t], "auto")
+    backend = adapt.FullSpace(scene, lambda t: inputs[t], "auto")
     prange = capture.material.poisson_range
     if loss == "markers":
-        obs = adapt._Markers(capture, X[0], mesh.surface_faces, mesh.n_vertices)
+        obs = adapt.MarkerObservation(capture, X[0], mesh.surface_faces, mesh.n_vertices)
     else:
-        obs = adapt._Vision(capture, ws, "", mesh, False, **obs_kw)
+        obs = adapt.VisionObservation(capture, ws, "", mesh, False, **obs_kw)
     objective = adapt.WindowObjective(backend, obs, 1, prange)
     out = {"factors": list(factors)}
     for t in ends:

@@ -24,7 +24,6 @@ import datetime
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -32,29 +31,22 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path[:0] = [str(ROOT), str(Path(__file__).resolve().parent)]
 os.environ.setdefault("JAX_ENABLE_X64", "1")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
+import _pipeline as pl  # noqa: E402
+
 E_TRUE = 1.0e5
 POISSON = 0.45
-RSL = [sys.executable, "-m", "rsl_cli.app"]
-
-
-def rsl(*args) -> None:
-    env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
-    p = subprocess.run([*RSL, *map(str, args)], capture_output=True, text=True, env=env, cwd=ROOT)
-    if p.returncode != 0:
-        raise SystemExit(f"rsl {' '.join(map(str, args))} failed:\n{p.stderr[-3000:]}")
 
 
 def make_capture(out: Path, start: str, frames: int, refine: int, resolution: int) -> float:
-    """The truth capture (P2, refined ``refine`` times, 3 substeps, hard handles); returns synth seconds."""
+    """The truth capture (P2, refined ``refine`` times, 3 substeps, hard handles); returns synth seconds (0 when
+    RSL_BENCH_REUSE finds it made)."""
     t0 = time.perf_counter()
-    rsl("synth", ROOT / "sample_data/bar/object.mesh", out, "--scenario", "cable", "--cameras", "2",
-        "--frames", frames, "--resolution", resolution, "--markers", 40, "--calib-views", 0, "--young", E_TRUE,
-        "--poisson", POISSON, "--start", start, "--truth-order", 2, "--truth-refine", refine, "--substeps", 3,
-        "--handles", "hard", "--size", 0.25, "--seed", 0, "--overwrite")
+    pl.foreign_capture(out, pl.bar_cable(young=E_TRUE), start=start, frames=frames, cameras=2,
+                       resolution=resolution, refine=refine, substeps=3, poisson=POISSON)
     return time.perf_counter() - t0
 
 
@@ -71,11 +63,9 @@ def shipped_mesh(density: float, order: int):
 
 
 def pipeline(cap: Path, ws: Path) -> None:
-    """cameras, masks, mesh and Gaussians for the vision loss."""
-    rsl("calibrate", cap, "-w", ws, "--from-json", cap / "cameras.json")
-    rsl("tetrahedralize", cap, "-w", ws)
-    rsl("segment", cap, "-w", ws, "--method", "background")
-    rsl("fit-gaussians", cap, "-w", ws, "--frame", 0)
+    """cameras, masks, mesh and Gaussians for the vision loss (made afresh on every run)."""
+    pl.mesh(cap, ws, reuse=False)
+    pl.gaussians(cap, ws, frame=0, segment_method="background", reuse=False)
 
 
 def main() -> None:
@@ -112,8 +102,7 @@ def main() -> None:
     cases = []
     for start in a.starts.split(","):
         cap_dir = a.work / f"bar_cable_{start}"
-        reuse = (cap_dir / "capture.toml").is_file() and os.environ.get("RSL_BENCH_REUSE")
-        t_synth = 0.0 if reuse else make_capture(cap_dir, start, frames, refine, 96)
+        t_synth = make_capture(cap_dir, start, frames, refine, 96)
         cap = load_capture(cap_dir)
         truth_desc = f"P2{' refined ×1' if refine else ''}, 3 substeps, hard handles"
         print(f"capture {cap_dir.name}: synth {t_synth:.0f} s", flush=True)

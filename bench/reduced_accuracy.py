@@ -21,6 +21,13 @@ workspace (reduced; full on the first): the median relative E error over frames 
 
     nice .venv/bin/python bench/reduced_accuracy.py CAPTURE LABEL=WS [LABEL=WS ...] [--grid 0.8:1.2:9]
         [--run-adapt | --adapt EARLIER.json]
+
+Cubature study (``--cubature-tols 0.01,0.002``; the table above is carried over from the existing JSON): per
+workspace and tolerance, the workspace's subspace gets its cubature refitted the way `rsl train-subspace` fits it
+(same poses, median material, ≤ 300 points) and is simulated with the truth's per-frame E from the capture's
+start state: RMS vertex distance from the full space and from the same subspace over every quadrature point,
+and (``--run-adapt``) `rsl adapt` online, markers, window 3, from 0.5 E_true in a copy of the workspace: median
+E error over the settled frames (≥ w + 5 after the start and after each step of E_true, as bench/accuracy.py).
 """
 from __future__ import annotations
 
@@ -45,7 +52,7 @@ def backends(capture, ws: Path, label: str, with_quad: bool):
     """[(name, backend factory)] for one workspace."""
     from stages.artefacts import MeshArtefact, SubspaceArtefact
     from stages.sim.scene import frame_inputs, make_scene
-    from stages.steps.adapt import _FullSpace, _ReducedSpace
+    from stages.window_backends import FullSpace, ReducedSpace
     from stages.subspace import ReducedModel
 
     mesh = MeshArtefact.load(ws / "mesh.h5")
@@ -55,16 +62,16 @@ def backends(capture, ws: Path, label: str, with_quad: bool):
     out = []
     if (ws / "subspace.h5").is_file():
         sub = SubspaceArtefact.load(ws / "subspace.h5")
-        out.append((f"{label} reduced", lambda: _ReducedSpace(ReducedModel.from_artefacts(sub, scene), at)))
+        out.append((f"{label} reduced", lambda: ReducedSpace(ReducedModel.from_artefacts(sub, scene), at)))
         if with_quad:
             out.append((f"{label} reduced-quad",
-                        lambda: _ReducedSpace(ReducedModel.from_artefacts(sub, scene, cubature=False), at)))
+                        lambda: ReducedSpace(ReducedModel.from_artefacts(sub, scene, cubature=False), at)))
     return mesh, scene, ctl, at, out
 
 
 def simulate(backend, start: str, T: int, E: float, nu: float) -> np.ndarray:
     """Positions (T, n, 3) from the start state."""
-    from stages.steps.adapt import StartWindow
+    from stages.windows import StartWindow
 
     states = StartWindow(backend, start).forward(list(range(T)), np.array([E]), np.array([nu]), None)
     return np.asarray(backend.decode(states))
@@ -115,9 +122,13 @@ def main() -> None:
                     "--run-adapt) are carried over")
     ap.add_argument("--run-adapt", action="store_true", help="also run rsl adapt (reduced; full on the first "
                     "workspace) in a copy of each workspace and record its settled E error")
+    ap.add_argument("--cubature-tols", default="", help="comma-separated cubature tolerances: run the cubature "
+                    "study (refit per tolerance, trajectories with the truth's E schedule) instead of the table")
     a = ap.parse_args()
+    if a.cubature_tols:
+        return cubature_study(a)
     from stages.capture import load_capture, read_truth
-    from stages.steps.adapt import _FullSpace
+    from stages.window_backends import FullSpace
 
     cap = load_capture(a.capture)
     truth = read_truth(cap)
@@ -131,7 +142,7 @@ def main() -> None:
     for n, (label, d) in enumerate(w.split("=", 1) for w in a.workspaces):
         mesh, scene, ctl, at, bs = backends(cap, Path(d), label, not a.no_quad)
         if n == 0 and not a.no_full:
-            bs = [("full", lambda: _FullSpace(scene, at, "auto"))] + bs
+            bs = [("full", lambda: FullSpace(scene, at, "auto"))] + bs
         for name, make in bs:
             row, X = measure(name, make, cap, mesh, scene, ctl, at, grid, X_full, E_true, nu)
             if name == "full":
@@ -147,6 +158,8 @@ def main() -> None:
     meta = {"adapt": adapt_rows, "machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs",
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "capture": str(a.capture), "E_true": E_true, "poisson": nu, "cases": rows}
+    if out.with_suffix(".json").is_file():  # a cubature study there is carried over
+        meta["cubature"] = json.loads(out.with_suffix(".json").read_text()).get("cubature")
     out.with_suffix(".json").write_text(json.dumps(meta, indent=1))
     lines = ["# Reduced space vs full space on a capture simulated differently", "",
              f"Capture `{a.capture}` (E_true = {E_true:g} Pa, ν = {nu:g}, start {cap.start}, {len(cap.markers())} "
@@ -165,6 +178,7 @@ def main() -> None:
             lines.append(f"| {r['workspace']} | {r['space']} | {100 * r['median_error']:.1f} | "
                          f"{r['median_ratio']:.3f} |")
     lines += ["", f"Machine: {meta['machine']}; date {meta['date']}.  Produced by `bench/reduced_accuracy.py`."]
+    lines += _cubature_lines(meta.get("cubature"))
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")
 
 
@@ -206,6 +220,179 @@ def run_adapt(capture: Path, workspaces, full: bool, done=frozenset()) -> list[d
                          "median_ratio": float(np.median(y[ok] / yt[ok])), "young_ratio": (y / yt).tolist()})
         print(rows[-1].get("median_error", rows[-1].get("error")), label, space, flush=True)
     return rows
+
+
+CUBATURE_MAX_POINTS = 300  # train-subspace's default --cubature-tets
+CUBATURE_POSES = 40  # train-subspace's default --cubature-poses
+
+
+def refit_cubature(ws: Path, tol: float):
+    """WS/subspace.h5 with its cubature refitted at ``tol`` as `rsl train-subspace` fits it (its split, seed 0,
+    ``CUBATURE_POSES`` training poses, the stored median material, ≤ ``CUBATURE_MAX_POINTS`` points)."""
+    import jax.numpy as jnp
+
+    from stages.artefacts import MeshArtefact, SnapshotsArtefact, SubspaceArtefact, read_provenance
+    from stages.sim.materials import lame
+    from stages.steps.train_subspace import _split
+    from stages.subspace.cubature import ReducedForceSampler, fit_cubature, mesh_quadrature
+    from stages.subspace.networks import SubspaceMap
+
+    art = SubspaceArtefact.load(ws / "subspace.h5")
+    cfg = read_provenance(ws / "subspace.h5").get("config", {})
+    sub = SubspaceMap.from_weights(art.subspace_kind, art.weights)
+    mesh, snap = MeshArtefact.load(ws / "mesh.h5"), SnapshotsArtefact.load(ws / "snapshots.h5")
+    seed = int(cfg.get("seed", 0))
+    tr, _, _ = _split(snap, float(cfg.get("validation_fraction", 0.15)), seed)
+    mu_r, lam_r = lame(np.asarray(art.extra["cubature_young"]), np.asarray(art.extra["cubature_poisson"]))
+    quad = mesh_quadrature(mesh.vertices, mesh.tets, mesh.dm_inv, mesh.rest_volumes)
+    region_q = np.asarray(mesh.tet_region)[quad.element]
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(tr), size=min(CUBATURE_POSES, len(tr)), replace=False)
+    z = np.asarray(sub.encode(jnp.asarray(snap.positions[tr][pick])))
+    sampler = ReducedForceSampler(sub, z, quad, np.asarray(mu_r)[region_q], np.asarray(lam_r)[region_q],
+                                  art.extra["material"])
+    ids, w, info = fit_cubature(sampler, region_q, len(mesh.region_names), CUBATURE_MAX_POINTS, tol, seed=seed)
+    extra = dict(art.extra, cubature_points=ids.tolist(), cubature_weights=w.tolist(),
+                 cubature_error_rel=info["error_rel"])
+    return SubspaceArtefact(art.subspace_kind, art.dim, art.weights, art.train_error_m, art.val_error_m, extra)
+
+
+def schedule_trajectory(backend, capture, young: np.ndarray, poisson: np.ndarray) -> np.ndarray:
+    """Positions (T, n, 3) from the capture's start state with per-frame E, ν (T, R) (the truth's schedule)."""
+    T = len(young)
+    s0 = backend.start(young[0], poisson[0], capture.start, None)
+    rest = backend.forward(list(range(1, T)), young[1:], poisson[1:], np.stack([s0, s0]))
+    return np.asarray(backend.decode(np.concatenate([np.asarray(s0)[None], np.asarray(rest)])))
+
+
+def settled(young_true: np.ndarray, window: int = 3) -> np.ndarray:
+    """(T,) frames ≥ w + 5 after the start and after every change of E_true (bench/accuracy.py's rule)."""
+    ok = np.ones(len(young_true), bool)
+    ok[: window + 5] = False
+    for t in range(1, len(young_true)):
+        if np.any(young_true[t] != young_true[t - 1]):
+            ok[t: t + window + 5] = False
+    return ok
+
+
+def cubature_study(a) -> None:
+    """Per workspace × tolerance: refit, trajectories vs full / all points, optionally rsl adapt."""
+    import shutil
+    import subprocess
+    import tempfile
+
+    from stages.artefacts import AdaptArtefact, MeshArtefact, SubspaceArtefact
+    from stages.capture import load_capture, read_truth
+    from stages.sim.scene import frame_inputs, make_scene
+    from stages.subspace import ReducedModel
+    from stages.window_backends import FullSpace, ReducedSpace
+
+    cap = load_capture(a.capture)
+    truth = read_truth(cap)
+    T = len(cap.markers())
+    Y, N = np.asarray(truth.young[:T], float), np.asarray(truth.poisson[:T], float)
+    E0 = float(Y[0, 0])
+    tols = [float(t) for t in a.cubature_tols.split(",")]
+    rows = []
+    print("| workspace | r | tol | points | fit error (%) | RMS vs all points (mm) | RMS vs full (mm) | "
+          "adapt settled median E error (%) |")
+    for label, d in (w.split("=", 1) for w in a.workspaces):
+        ws = Path(d)
+        mesh = MeshArtefact.load(ws / "mesh.h5")
+        ctl = cap.controls()
+        scene = make_scene(mesh, ctl, cap.material.model, cap.dt, cap.gravity)
+        at = (lambda f: frame_inputs(scene, ctl, f))
+        X_full = schedule_trajectory(FullSpace(scene, at, "auto"), cap, Y, N)
+        art0 = SubspaceArtefact.load(ws / "subspace.h5")
+        X_all = schedule_trajectory(ReducedSpace(ReducedModel.from_artefacts(art0, scene, cubature=False), at),
+                                    cap, Y, N)
+        rms = lambda A, B: 1e3 * float(np.sqrt(np.mean(np.sum((A - B) ** 2, -1))))  # noqa: E731
+        for tol in tols:
+            art = refit_cubature(ws, tol)
+            X = schedule_trajectory(ReducedSpace(ReducedModel.from_artefacts(art, scene), at), cap, Y, N)
+            row = {"workspace": label, "dim": int(art.dim), "tol": tol,
+                   "points": len(art.extra["cubature_points"]), "fit_error_rel": art.extra["cubature_error_rel"],
+                   "rms_vs_all_points_mm": rms(X, X_all), "rms_vs_full_mm": rms(X, X_full),
+                   "all_points_rms_vs_full_mm": rms(X_all, X_full)}
+            if a.run_adapt:
+                with tempfile.TemporaryDirectory() as tmp:
+                    wt = Path(tmp) / "ws"
+                    wt.mkdir()
+                    for f in ("mesh.h5", "cameras.h5", "snapshots.h5"):
+                        if (ws / f).is_file():
+                            shutil.copy(ws / f, wt / f)
+                    art.save(wt / "subspace.h5")
+                    env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
+                    p = subprocess.run([sys.executable, "-m", "rsl_cli.app", "adapt", str(a.capture), "-w", str(wt),
+                                        "--space", "reduced", "--loss", "markers", "--window", "3",
+                                        "--young-init", f"{0.5 * E0:g}"], capture_output=True, text=True, env=env,
+                                       cwd=ROOT)
+                    if p.returncode != 0:
+                        row["adapt_error"] = p.stderr[-500:]
+                    else:
+                        ad = AdaptArtefact.load(wt / "adapt.h5")
+                        yt = Y[np.asarray(ad.frames)]
+                        err = np.abs(np.asarray(ad.young) - yt) / yt
+                        ok = settled(yt)
+                        row["adapt_median_error"] = float(np.max(np.median(err[ok], axis=0)))
+                        row["adapt_young_ratio"] = (np.asarray(ad.young) / yt).tolist()
+            rows.append(row)
+            print(_cub_row(row), flush=True)
+    out = Path(a.out)
+    meta = json.loads(out.with_suffix(".json").read_text()) if out.with_suffix(".json").is_file() else {}
+    study = {"capture": str(a.capture), "start": cap.start, "frames": T, "young_schedule": Y[:, 0].tolist(),
+             "rows": rows, "machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs",
+             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+    # one study per capture: a rerun on the same capture replaces its study, others are kept
+    meta["cubature"] = [s for s in _studies(meta.get("cubature")) if s["capture"] != study["capture"]] + [study]
+    out.with_suffix(".json").write_text(json.dumps(meta, indent=1))
+    md = out.with_suffix(".md")
+    text = md.read_text() if md.is_file() else ""
+    head = text.split(CUBATURE_HEADING)[0].rstrip("\n")
+    md.write_text((head + "\n" if head else "") + "\n".join(_cubature_lines(meta["cubature"])) + "\n")
+
+
+def _studies(c) -> list[dict]:
+    """The JSON's cubature studies as a list (one older run stored a single study)."""
+    return [] if not c else ([c] if isinstance(c, dict) else list(c))
+
+
+CUBATURE_HEADING = "## Cubature tolerance"
+
+
+def _cub_row(r: dict) -> str:
+    ad = (f"{100 * r['adapt_median_error']:.1f}" if "adapt_median_error" in r
+          else ("failed" if "adapt_error" in r else "—"))
+    return (f"| {r['workspace']} | {r['dim']} | {r['tol']:g} | {r['points']} | {100 * r['fit_error_rel']:.2f} | "
+            f"{r['rms_vs_all_points_mm']:.2f} | {r['rms_vs_full_mm']:.2f} | {ad} |")
+
+
+def _cubature_lines(studies) -> list[str]:
+    lines = []
+    for n, c in enumerate(_studies(studies)):
+        lines += _study_lines(c, heading=n == 0)
+    return lines
+
+
+def _study_lines(c: dict, heading: bool) -> list[str]:
+    E = np.asarray(c["young_schedule"])
+    steps = ", ".join(f"{E[t]:g} Pa from frame {t}" for t in range(len(E)) if t == 0 or E[t] != E[t - 1])
+    lines = (["", CUBATURE_HEADING] if heading else []) + ["",
+             f"Capture `{c['capture']}` (start {c['start']}, {c['frames']} frames, E_true: {steps}). The workspace's "
+             f"subspace with its cubature refitted as `rsl train-subspace` fits it (≤ {CUBATURE_MAX_POINTS} points, "
+             f"{CUBATURE_POSES} training poses) at each tolerance, simulated with the truth's E schedule from the "
+             "start state; the all-point rows use the same subspace over every quadrature point. Adapt: `rsl adapt` "
+             "online, markers, window 3, from 0.5 E_true; median relative E error over the settled frames.", "",
+             "| workspace | r | tol | points | fit error (%) | RMS vs all points (mm) | RMS vs full (mm) | "
+             "adapt settled median E error (%) |", "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    lines += [_cub_row(r) for r in c["rows"]]
+    seen = {}
+    for r in c["rows"]:
+        seen.setdefault(r["workspace"], r["all_points_rms_vs_full_mm"])
+    lines += ["", "All points (no cubature) vs full space: " +
+              ", ".join(f"{k} {v:.2f} mm" for k, v in seen.items()) + ".", "",
+              f"Machine: {c['machine']}; date {c['date']}.  Produced by `bench/reduced_accuracy.py --cubature-tols`."]
+    return lines
 
 
 def _row(r: dict) -> str:

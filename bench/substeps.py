@@ -17,7 +17,6 @@ import datetime
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -25,9 +24,11 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path[:0] = [str(ROOT), str(Path(__file__).resolve().parent)]
 os.environ.setdefault("JAX_ENABLE_X64", "1")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import _pipeline as pl  # noqa: E402
 
 E_TRUE = 1.0e5
 POISSON = 0.45
@@ -35,33 +36,15 @@ WINDOW = 3
 TRUTH_SUBSTEPS = 3
 
 
-def rsl(*args) -> float:
-    """Run the CLI; the wall time in s."""
-    env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
-    t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-m", "rsl_cli.app", *map(str, args)], capture_output=True, text=True,
-                       env=env, cwd=ROOT)
-    if p.returncode != 0:
-        raise RuntimeError(f"rsl {' '.join(map(str, args))} failed:\n{p.stderr[-3000:]}")
-    return time.perf_counter() - t0
-
-
 def run_start(work: Path, start: str, frames: int, spaces, substeps, max_tets: int) -> list[dict]:
     from stages.artefacts import AdaptArtefact, MeshArtefact
     from stages.capture import load_capture, read_truth
 
-    cap, ws = work / f"cap_{start}", work / f"ws_{start}"
-    reuse = os.environ.get("RSL_BENCH_REUSE")
-    if not (reuse and (cap / "capture.toml").is_file()):
-        rsl("synth", ROOT / "sample_data/bar/object.mesh", cap, "--scenario", "cable", "--young", E_TRUE, "--size",
-            0.25, "--cameras", 3, "--frames", frames, "--resolution", 32, "--markers", 40, "--calib-views", 0,
-            "--poisson", POISSON, "--start", start, "--truth-order", 2, "--substeps", TRUTH_SUBSTEPS, "--handles",
-            "hard", "--seed", 0, "--overwrite")
-    if not (reuse and (ws / "mesh.h5").is_file()):
-        rsl("tetrahedralize", cap, "-w", ws, "--order", 2, "--max-tets", max_tets)
-    if "reduced" in spaces and not (reuse and (ws / "subspace.h5").is_file()):
-        rsl("generate-data", cap, "-w", ws, "--sequences", 4, "--frames", frames, "--workers", 1)
-        rsl("train-subspace", "-w", ws, "--dim", 12)
+    cap = pl.foreign_capture(work / f"cap_{start}", pl.bar_cable(young=E_TRUE), start=start, frames=frames,
+                             cameras=3, resolution=32, substeps=TRUTH_SUBSTEPS, poisson=POISSON)
+    ws = pl.mesh(cap, work / f"ws_{start}", order=2, max_tets=max_tets, calibrate=False)
+    if "reduced" in spaces:
+        pl.subspace(cap, ws, frames=frames, dim=12)
     truth = read_truth(load_capture(cap))
     n_vertices = MeshArtefact.load(ws / "mesh.h5").n_vertices
     rows = []
@@ -69,8 +52,8 @@ def run_start(work: Path, start: str, frames: int, spaces, substeps, max_tets: i
         for S in substeps:
             base = {"start": start, "space": space, "substeps": S, "vertices": n_vertices}
             try:
-                t_run = rsl("adapt", cap, "-w", ws, "--space", space, "--loss", "markers", "--estimator", "gn",
-                            "--window", WINDOW, "--young-init", f"{0.5 * E_TRUE:g}", "--substeps", S)
+                t_run = pl.adapt(cap, ws, "--space", space, "--loss", "markers", "--estimator", "gn",
+                                 "--window", WINDOW, "--young-init", f"{0.5 * E_TRUE:g}", "--substeps", S)
             except RuntimeError as e:
                 rows.append({**base, "error": str(e)[-500:]})
                 print(_row(rows[-1]), flush=True)
@@ -104,12 +87,12 @@ def window_cost(work: Path, start: str, spaces, substeps, reps: int = 3) -> list
     """CPU seconds (time.process_time, less sensitive to other processes than wall time) of one gn window
     linearisation — forward, 26 sensitivity directions (θ and the state correction), adjoint — over frames
     10–12, per space and S, the S values interleaved in each repetition; median over ``reps``."""
-    import dataclasses
 
     from stages.artefacts import MeshArtefact, SubspaceArtefact
     from stages.capture import load_capture
     from stages.sim.scene import frame_inputs, make_scene
-    from stages.steps.adapt import StartWindow, _FullSpace, _ReducedSpace, substepped
+    from stages.windows import StartWindow
+    from stages.window_backends import FullSpace, ReducedSpace, substepped
     from stages.subspace import ReducedModel
 
     cap = load_capture(work / f"cap_{start}")
@@ -124,8 +107,8 @@ def window_cost(work: Path, start: str, spaces, substeps, reps: int = 3) -> list
         backends, befores = {}, {}
         for S in substeps:
             at = (lambda f: frame_inputs(scene, controls, f))
-            b = (_FullSpace(scene, at, "auto") if space == "full" else
-                 _ReducedSpace(ReducedModel.from_artefacts(SubspaceArtefact.load(ws / "subspace.h5"), scene), at))
+            b = (FullSpace(scene, at, "auto") if space == "full" else
+                 ReducedSpace(ReducedModel.from_artefacts(SubspaceArtefact.load(ws / "subspace.h5"), scene), at))
             b = substepped(b, S, at)
             X = StartWindow(b, start).forward(list(range(frames[0])), E, nu, None)
             backends[S], befores[S] = b, X[-2:]

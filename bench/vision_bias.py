@@ -23,6 +23,12 @@ loss.  Finally `rsl adapt --loss vision` online in full space from 0.4 E_true (-
     nice .venv/bin/python bench/vision_bias.py [--quick] [--estimators adam[,gn]] [--out docs/results]
 
 With RSL_BENCH_REUSE=1 the capture, workspaces and simulations already in --work are reused.
+
+    nice .venv/bin/python bench/vision_bias.py --anchor-study step:full:estimated,step:full:simulated,...
+
+adds online Adam runs per Gaussians' anchor rule (rsl adapt --vision-anchor, "estimated@C": --anchor-change C) on
+bench/accuracy.py's vision bar whose E steps ×2 and ×4 ("step", made through bench/_pipeline.py) and on the
+constant-E capture above ("const") to an earlier run's vision_bias.json/.md (RSL_BENCH_REUSE=1 reuses finished runs).
 """
 from __future__ import annotations
 
@@ -259,7 +265,14 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_vision_bias"))
     ap.add_argument("--online-only", action="store_true",
                     help="only the online runs, added to --out/vision_bias.json of an earlier run (same --work)")
+    ap.add_argument("--anchor-study", default="",
+                    help="only the anchor rows, added to --out/vision_bias.json of an earlier run: comma-separated "
+                         "CASE:SPACE:ANCHOR, CASE step (accuracy.py's bar, E ×2 at T/3, ×4 at 2T/3) or const (this "
+                         "capture), SPACE full|reduced, ANCHOR estimated|simulated (rsl adapt --vision-anchor), "
+                         "estimated@C adds --anchor-change C")
     a = ap.parse_args()
+    if a.anchor_study:
+        return anchor_study(a)
     if a.online_only:
         return online_only(a)
     from stages.capture import load_capture
@@ -334,13 +347,153 @@ def online_only(a) -> None:
               d["resolution"], d["seconds"] + time.perf_counter() - t0)
 
 
+STEP_FRAMES = 36  # bench/accuracy.py's bar: E0 → 2E0 at frame 12 → 4E0 at frame 24
+
+
+def _step_case(work: Path) -> tuple[Path, Path]:
+    """bench/accuracy.py's vision bar (through bench/_pipeline.py): truth P2, 3 substeps, hard handles, start =
+    equilibrium, E steps ×2 and ×4; rsl's P2 mesh (--max-tets 1500), Gaussians fitted at frame 0, subspace r = 30."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import _pipeline as pl
+
+    n = STEP_FRAMES
+    cap = pl.foreign_capture(work / "bar_equilibrium", pl.bar_cable(
+        schedule=f"{E_TRUE:g}@0,{2 * E_TRUE:g}@{n // 3},{4 * E_TRUE:g}@{2 * n // 3}"), start="equilibrium", frames=n,
+        cameras=3, resolution=96, substeps=3, poisson=POISSON)
+    ws = pl.mesh(cap, work / "ws_bar_equilibrium_p2", order=2, max_tets=1500)
+    pl.gaussians(cap, ws, frame=0)
+    return cap, ws
+
+
+def _settled(young_true: np.ndarray, window: int, const: bool) -> np.ndarray:
+    """Frames counted as settled: constant E, frames ≥ T/4 (the online rows above); E steps, bench/accuracy.py's
+    rule (frames ≥ w + 5 after the start and after each change of E_true)."""
+    T = len(young_true)
+    ok = np.ones(T, bool)
+    if const:
+        ok[: T // 4] = False
+        return ok
+    ok[: window + 5] = False
+    for t in range(1, T):
+        if young_true[t] != young_true[t - 1]:
+            ok[t: t + window + 5] = False
+    return ok
+
+
+def anchor_run(case: str, space: str, anchor: str, work: Path, window: int = 3) -> dict:
+    """One `rsl adapt --loss vision --estimator adam --vision-anchor ANCHOR` run (reused from WORK/anchor_CASE_SPACE_
+    ANCHOR with RSL_BENCH_REUSE): E/E_true per frame, the anchor's E, the median settled error."""
+    import h5py
+
+    from stages.artefacts import PARTIAL_ADAPT, AdaptArtefact
+    from stages.capture import load_capture, read_truth
+
+    if case == "step":
+        cap, ws = _step_case(work)
+        young_init = 0.5 * E_TRUE
+    else:
+        cap, ws = work / "cap", work / "ws"
+        young_init = 0.4 * E_TRUE
+    wd = work / f"anchor_{case}_{space}_{anchor}"
+    done = [wd / n for n in ("adapt.h5", PARTIAL_ADAPT) if (wd / n).is_file()]
+    failed = None
+    if os.environ.get("RSL_BENCH_REUSE") and done:
+        with h5py.File(done[0], "r") as f:
+            seconds = float(f.attrs.get("wall_s", float("nan")))
+        failed = "stopped early (adapt.partial.h5)" if done[0].name == PARTIAL_ADAPT else None
+    else:
+        if space == "reduced" and not (ws / "subspace.h5").is_file():
+            sys.path.insert(0, str(Path(__file__).resolve().parent))
+            import _pipeline as pl
+
+            pl.subspace(cap, ws, frames=load_capture(cap).frame_count(), dim=30)
+        shutil.rmtree(wd, ignore_errors=True)
+        wd.mkdir(parents=True)
+        for f in ("mesh.h5", "cameras.h5", "masks.h5", "gaussians.h5", "subspace.h5"):
+            if (ws / f).is_file():
+                shutil.copy(ws / f, wd / f)
+        t0 = time.perf_counter()
+        rule, _, change = anchor.partition("@")  # "estimated@0": --anchor-change 0
+        try:
+            seconds = rsl("adapt", cap, "-w", wd, "--space", space, "--loss", "vision", "--estimator", "adam",
+                          "--young-init", young_init, "--window", window, "--vision-anchor", rule,
+                          *(["--anchor-change", change] if change else []))
+        except SystemExit as e:
+            seconds, failed = time.perf_counter() - t0, str(e).splitlines()[-1][-300:]
+            done = [wd / PARTIAL_ADAPT] if (wd / PARTIAL_ADAPT).is_file() else []
+            if not done:
+                return {"case": case, "space": space, "anchor": anchor, "failed": failed, "seconds": seconds}
+        done = done or [wd / "adapt.h5"]
+    a = AdaptArtefact.load(done[0], allow_partial=True)
+    truth = read_truth(load_capture(cap))
+    yt = truth.young[np.asarray(a.frames)][:, 0]
+    e = a.young[:, 0] / yt
+    ok = _settled(yt, window, case == "const")
+    anchor_e = [row[0] for row in (a.extra.get("anchor_young") or [])]
+    return {"case": case, "space": space, "anchor": anchor, "young_init": young_init, "window": window,
+            "frames": int(len(e)), "young_over_true": e.round(4).tolist(), "young_true": yt.tolist(),
+            "anchor_young_over_true0": (np.asarray(anchor_e) / yt[0]).round(4).tolist(),
+            "anchor_apart_from": a.extra.get("anchor_apart_from", "not recorded"),  # None: never
+            "settled_frames": int(ok.sum()), "median_settled_error": float(np.median(np.abs(e[ok] - 1))),
+            "final_over_true": float(e[-1]), "seconds": seconds, "failed": failed}
+
+
+def anchor_study(a) -> None:
+    """The anchor rows of --anchor-study, added to (replacing rows of the same case, space and anchor in) the
+    vision_bias.json of an earlier run; vision_bias.md is written again."""
+    t0 = time.perf_counter()
+    for spec in [s for s in a.anchor_study.split(",") if s]:
+        case, space, anchor = spec.split(":")
+        run = anchor_run(case, space, anchor, a.work)
+        print(f"anchor {spec}: median settled |E/E_true − 1| = {run.get('median_settled_error', float('nan')):.3f}",
+              flush=True)
+        d = json.loads((a.out / "vision_bias.json").read_text())
+        rows = [r for r in d.get("anchor_study", []) if (r["case"], r["space"], r["anchor"]) != (case, space, anchor)]
+        write(d["cases"], d["gradient"], d["online"], d["pipeline"], a.out, d["mode"] == "quick", d["frames"],
+              d["resolution"], d["seconds"] + time.perf_counter() - t0, anchor_rows=rows + [run])
+
+
+def _anchor_text(rows: list) -> str:
+    if not rows:
+        return ""
+    order = {"step": 0, "const": 1}
+    rows = sorted(rows, key=lambda r: (order.get(r["case"], 2), r["space"], r["anchor"]))
+    what = {"step": f"E ×2 at frame {STEP_FRAMES // 3}, ×4 at {2 * STEP_FRAMES // 3} (bench/accuracy.py's vision bar, "
+                    f"truth P2, 3 substeps, {STEP_FRAMES} frames)",
+            "const": "constant E (the capture above)"}
+
+    def label(a: str) -> str:
+        rule, _, change = a.partition("@")
+        return f"{rule} --anchor-change {change}" if change else a
+
+    def line(r):
+        if "median_settled_error" not in r:
+            return f"| {what[r['case']]} | {r['space']} | {label(r['anchor'])} | — | — | — | — | — | {r.get('failed')} |"
+        an = r["anchor_young_over_true0"]
+        apart = r.get("anchor_apart_from")
+        return (f"| {what[r['case']]} | {r['space']} | {label(r['anchor'])} | {r['young_init'] / E_TRUE:.2f} | "
+                f"{100 * r['median_settled_error']:.1f} % ({r['settled_frames']} frames) | {r['final_over_true']:.3f} | "
+                f"{'—' if apart is None else apart} | {f'{an[-1]:.3f}' if an else '—'} | "
+                f"{r.get('failed') or 'complete'} |")
+    table = "\n".join(["| capture | space | --vision-anchor | E_init / E_true | median settled \\|E/E_true − 1\\| | "
+                       "final E / E_true | anchor its own unknown from frame | anchor's E / E_true(0) at the end | run |",
+                       "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"] + [line(r) for r in rows])
+    per = "\\\n".join(f"{r['case']} {r['space']} {r['anchor']}: " + ", ".join(f"{v:.2f}" for v in r["young_over_true"])
+                      for r in rows if "young_over_true" in r)
+    return ("\n\n## Online with E changing: the material of the Gaussians' anchor\n\n"
+            "`rsl adapt --loss vision --estimator adam --window 3 --vision-anchor A`.  Settled frames: constant E, "
+            "frames ≥ T/4; E steps, frames ≥ w + 5 after the start and after each step (bench/accuracy.py).\n\n"
+            + table + "\n\nE / E_true per frame:\\\n" + per)
+
+
 def _row(c: dict) -> str:
     edge = "" if c["interior"] else " (grid end)"
     return (f"| {c['cause']} | {c['loss']} | {c['dynamics']} | {c['cameras'] or '—'} | {c['ratio']:.3f}{edge} | "
             f"{100 * (c['ratio'] - 1):+.1f} % |")
 
 
-def write(rows, grad, runs, prep, out: Path, quick: bool, frames: int, res: int, seconds: float) -> None:
+def write(rows, grad, runs, prep, out: Path, quick: bool, frames: int, res: int, seconds: float,
+          anchor_rows: list | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -351,6 +504,10 @@ def write(rows, grad, runs, prep, out: Path, quick: bool, frames: int, res: int,
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "mode": "quick" if quick else "full", "frames": frames, "resolution": res, "young_true": E_TRUE,
             "pipeline": prep, "cases": rows, "gradient": grad, "online": runs, "seconds": seconds}
+    if anchor_rows is None and (out / "vision_bias.json").is_file():  # kept from an earlier --anchor-study
+        anchor_rows = json.loads((out / "vision_bias.json").read_text()).get("anchor_study")
+    if anchor_rows:
+        data["anchor_study"] = anchor_rows
     (out / "vision_bias.json").write_text(json.dumps(data, indent=1))
     head = ("| cause switched | loss | dynamics | cameras | E_min / E_true | bias |\n"
             "| --- | --- | --- | --- | --- | --- |")
@@ -381,11 +538,13 @@ def write(rows, grad, runs, prep, out: Path, quick: bool, frames: int, res: int,
           f"E in {min(rows[0]['grid']):g}–{max(rows[0]['grid']):g} Pa, full-space simulation from the declared "
           f"start; minimum refined by a parabola in log E.  Rows marked … change one thing from the row above "
           f"them.\n\n{table}\n\n{len(within)} of {len(vis3)} three-camera vision minima lie within 3 % of E_true.\n\n"
-          f"## The gradient the online estimators follow\n\n{gtext}{otext}\n\n"
+          f"## The gradient the online estimators follow\n\n{gtext}{otext}{_anchor_text(anchor_rows or [])}\n\n"
           f"Machine: {data['machine']}; date {data['date']}; whole run {seconds / 60:.1f} min.  Produced by "
           f"`bench/vision_bias.py{' --quick' if quick else ''}`.\n\n![loss over E](vision_bias.png)\n")
     (out / "vision_bias.md").write_text(md)
-    fig, axes = plt.subplots(1, 2 if runs else 1, figsize=(11 if runs else 6, 4), squeeze=False)
+    step_rows = [r for r in (anchor_rows or []) if r["case"] == "step" and "young_over_true" in r]
+    ncol = 1 + bool(runs) + bool(step_rows)
+    fig, axes = plt.subplots(1, ncol, figsize=(5.5 * ncol, 4), squeeze=False)
     ax = axes[0, 0]
     for c in rows:
         if c["cameras"] in (3, 0):
@@ -407,6 +566,18 @@ def write(rows, grad, runs, prep, out: Path, quick: bool, frames: int, res: int,
         ax.set_ylabel("E / E_true")
         ax.set_title("online, images, full space")
         ax.legend()
+    if step_rows:
+        ax = axes[0, ncol - 1]
+        for r in step_rows:
+            ax.plot(np.asarray(r["young_over_true"]) * np.asarray(r["young_true"]) / E_TRUE, "o-", ms=2,
+                    label=f"{r['space']}, {r['anchor']}")
+        ax.step(np.arange(len(step_rows[0]["young_true"])), np.asarray(step_rows[0]["young_true"]) / E_TRUE, "k",
+                where="post", lw=1, label="truth")
+        ax.set_yscale("log")
+        ax.set_xlabel("frame")
+        ax.set_ylabel("E / E_true(0)")
+        ax.set_title("E steps ×2, ×4: the anchor's material")
+        ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(out / "vision_bias.png", dpi=110)
     print(table)

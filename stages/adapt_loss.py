@@ -22,9 +22,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from stages.sim.mesh import deformation_gradients, shape_matrices
-from stages.sim.quadrature import point_map
+from stages.sim.quadrature import point_map, shape_reference_gradients, shape_values
 
 
 # =========================================================================== markers
@@ -160,8 +161,6 @@ def locate_in_tets_brute(points: np.ndarray, vertices: np.ndarray, tets: np.ndar
 def locate_in_tets(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, candidates: int = 16,
                    widen: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """:func:`locate_in_tets_brute`, vectorised with a k-d tree of the tet centroids."""
-    from scipy.spatial import cKDTree
-
     points = np.asarray(points, np.float64)
     c = vertices[tets]  # (M, 4, 3)
     x0 = c[:, 0]
@@ -196,8 +195,6 @@ def invert_element_map(points: np.ndarray, vertices: np.ndarray, tets: np.ndarra
     (vertices (n, 3), tets (m, 10)): Newton on Σ_a N_a(ξ) x_a = p from bary0 (e.g. the corner tet's
     barycentrics), ξ = (β₁, β₂, β₃), the update solving (Σ_a x_a ⊗ ∂N_a/∂ξ) Δξ = p − x(ξ); stops when
     every |Δξ| < tol."""
-    from stages.sim.quadrature import shape_reference_gradients, shape_values
-
     xe = np.asarray(vertices, np.float64)[np.asarray(tets)[element]]  # (P, 10, 3)
     xi = np.asarray(bary0, np.float64)[:, 1:].copy()
     for _ in range(iterations):
@@ -240,8 +237,6 @@ def locate_in_elements(points: np.ndarray, vertices: np.ndarray, tets: np.ndarra
     bary = invert_element_map(points, vertices, tets, host, bary)
     far = np.flatnonzero(~(bary.min(1) >= -1e-9))  # outside, or NaN
     if len(far):  # a curved element holds the point, not the corner tet: the exact inverse in nearby elements
-        from scipy.spatial import cKDTree
-
         k = min(candidates, len(tets))
         _, cand = cKDTree(vertices[tets[:, :4]].mean(1)).query(points[far], k=k)
         cand = np.asarray(cand, np.int64).reshape(len(far), k).ravel()
@@ -279,8 +274,9 @@ class ImageLoss:
 
     def __init__(self, gaussians, mesh, cameras: list, appearance: bool = False, lr_appearance: float = 2e-3,
                  rasterizer: str = "fast"):
-        import torch
+        import torch  # torch and the numba renderer load only when images are used (rsl adapt --help stays fast)
 
+        from stages.render.bind_project import fitted_binding
         from stages.render.gaussians import BoundGaussians
 
         self.torch = torch
@@ -297,18 +293,20 @@ class ImageLoss:
                              f"has {len(self._rest)} vertices")
         #: (n, 3) m, the mesh positions the Gaussians were fitted at (the rest shape for older files)
         self.fit_positions = self._rest if fit_x is None else np.asarray(fit_x, np.float64)
-        with torch.no_grad():  # the binding as fitted: host tets, barycentrics, rest-frame covariances Σ₀
-            self._fit_host = np.asarray(gaussians.host_tet, np.int64)
-            self._fit_bary = self.g.bary().double().numpy()
-            self._fit_cov0 = self.g.rest_covariances().double().numpy()
+        # the binding as fitted: host tets, barycentrics β, rest-frame covariance factors L₀ = R S and Σ₀ = L₀ L₀ᵀ
+        # (the floats BoundGaussians.render projects with)
+        self._fit_host = np.asarray(gaussians.host_tet, np.int64)
+        self._fit_bary, self._fit_factor0 = fitted_binding(self.g.bary_logits, self.g.log_scales, self.g.rotations)
+        self._fit_cov0 = self._fit_factor0 @ self._fit_factor0.transpose(0, 2, 1)
         # the fitted Gaussians in world space: μ = Σ_a N_a x_fit,a and Σ = F_fit Σ₀ F_fitᵀ at x_fit
         N, G, _ = point_map(self._rest, self._tets, self._fit_host, self._fit_bary)
         xe = self.fit_positions[self._tets[self._fit_host]]
         self._fit_means = np.einsum("gk,gkd->gd", N, xe)
         F_fit = np.einsum("gki,gkj->gij", xe, G)
         self._fit_cov = F_fit @ self._fit_cov0 @ F_fit.transpose(0, 2, 1)
+        self._fit_factor = F_fit @ self._fit_factor0  # (G, 3, 3): Σ = F_fit L₀ (F_fit L₀)ᵀ in world space
         self._anchor_x = None  # (n, 3) the configuration of the last rebind (None: bound as fitted)
-        self._set_binding(self._fit_host, self._fit_bary, self._fit_cov0)
+        self._set_binding(self._fit_host, self._fit_bary, self._fit_cov0, self._fit_factor0)
         self.cams = [self.g.camera(c) for c in cameras]
         self.background = self.g.background.detach().numpy().astype(np.float32)  # (3,)
         self.rasterizer = rasterizer
@@ -320,27 +318,26 @@ class ImageLoss:
                 p.requires_grad_(True)
             self.opt = torch.optim.Adam(ps, lr=lr_appearance)
 
-    def _set_binding(self, host: np.ndarray, bary: np.ndarray, cov0: np.ndarray) -> None:
-        """Geometry used by :meth:`images`: host tet (G,), barycentric (G, 4), rest covariance (G, 3, 3).
-        Quadratic tets: the shape values N (G, 10) and rest gradients G (G, 10, 3) at each Gaussian
-        (stages.sim.quadrature.point_map), μ = Σ N_a x_a, F = Σ x_a ⊗ G_a."""
-        torch, dt = self.torch, self.g.dtype
+    def _set_binding(self, host: np.ndarray, bary: np.ndarray, cov0: np.ndarray, factor: np.ndarray) -> None:
+        """The binding :meth:`images` renders: host element (G,), barycentric β (G, 4), rest covariance
+        Σ₀ (G, 3, 3) = L Lᵀ with its factor L (G, 3, 3); Σ₀ itself is kept for inspection (``_cov0``)."""
+        torch, f64 = self.torch, self.torch.float64
         self.host_tet = np.asarray(host, np.int64)
         self._bary_np = np.asarray(bary, np.float64)
         self._host = torch.as_tensor(self._tets[self.host_tet])  # (G, 4 | 10) vertex ids
-        self._dm_inv = torch.as_tensor(self._dm_inv_all[self.host_tet], dtype=dt)
-        self._bary = torch.as_tensor(np.asarray(bary, np.float64), dtype=dt)
-        self._cov0 = torch.as_tensor(np.asarray(cov0, np.float64), dtype=dt)
-        if self.quadratic:
-            N, G, _ = point_map(self._rest, self._tets, self.host_tet, np.asarray(bary, np.float64))
-            self._N, self._G = torch.as_tensor(N, dtype=dt), torch.as_tensor(G, dtype=dt)
+        self._cov0 = torch.as_tensor(np.asarray(cov0, np.float64), dtype=f64)
+        self._beta64 = torch.as_tensor(self._bary_np, dtype=f64)
+        self._factor = torch.as_tensor(np.asarray(factor, np.float64), dtype=f64)
+        # the element map's rest data (render.gaussians.element_geometry): D_m⁻¹ (P1) or the rest nodes (P2)
+        shape = self._rest[self._tets[self.host_tet]] if self.quadratic else self._dm_inv_all[self.host_tet]
+        self._shape = torch.as_tensor(shape, dtype=f64)
 
     def rebind(self, x_fit: np.ndarray | None) -> None:
         """Bind the fitted Gaussians to the tets of configuration x_fit (n, 3) (None: back to the binding as
         fitted, in the rest frame); see the class docstring.  Always starts from the fitted Gaussians."""
         if x_fit is None:
             self._anchor_x = None
-            self._set_binding(self._fit_host, self._fit_bary, self._fit_cov0)
+            self._set_binding(self._fit_host, self._fit_bary, self._fit_cov0, self._fit_factor0)
             return
         x = np.asarray(x_fit, np.float64)
         self._anchor_x = x.copy()  # (n, 3): the configuration of the binding (see :meth:`anchored_geometry`)
@@ -351,7 +348,7 @@ class ImageLoss:
         else:
             F = deformation_gradients(x, self._tets[host], self._dm_inv_all[host])  # (G, 3, 3) at x_fit
         Finv = np.linalg.inv(F)
-        self._set_binding(host, bary, Finv @ self._fit_cov @ Finv.transpose(0, 2, 1))
+        self._set_binding(host, bary, Finv @ self._fit_cov @ Finv.transpose(0, 2, 1), Finv @ self._fit_factor)
 
     def set_backgrounds(self, backgrounds: list[np.ndarray | None]) -> None:
         """Per camera: None (the Gaussians' background colour) or an (H, W, 3) plate in [0, 1]."""
@@ -367,11 +364,16 @@ class ImageLoss:
         by the implicit-function theorem), Σ₀(xa) = F_a⁻¹ Σ_fit F_a⁻ᵀ with F_a the deformation gradient at the
         Gaussian in xa.  So dμ_t/dxa = −F_t F_a⁻¹ Σ N_a(β) (the Gaussians stay where they were fitted at the
         fit frame, whatever the anchor), which the gradient of :meth:`__call__` with ``anchor_grad`` carries."""
+        beta, Fi, N, G = self._anchored(xa)
+        cov_fit = self.torch.as_tensor(self._fit_cov, dtype=self.torch.float64)
+        return beta, Fi @ cov_fit @ Fi.transpose(1, 2), N, G
+
+    def _anchored(self, xa) -> tuple:
+        """(β, F_a⁻¹, N, G) of :meth:`anchored_geometry` at xa (n, 3), float64 torch."""
         torch = self.torch
         f64 = torch.float64
         xa = torch.as_tensor(xa).to(f64)
         mu = torch.as_tensor(self._fit_means, dtype=f64)
-        cov_fit = torch.as_tensor(self._fit_cov, dtype=f64)
         hv = self._host.reshape(-1)
         ca = xa.index_select(0, hv).reshape(-1, self._host.shape[1], 3)  # (G, k, 3)
         if self.quadratic:
@@ -393,50 +395,42 @@ class ImageLoss:
             beta = torch.cat([1.0 - lam.sum(1, keepdim=True), lam], 1)
             N = G = None
             Fa = D @ torch.as_tensor(self._dm_inv_all[self.host_tet], dtype=f64)
-        Fi = torch.linalg.inv(Fa)
-        return beta, Fi @ cov_fit @ Fi.transpose(1, 2), N, G
+        return beta, torch.linalg.inv(Fa), N, G
 
     def images(self, xt, xa=None) -> list:
         """Renders (H, W, 3) of every camera at positions xt (n, 3), torch, differentiable.
 
-        The same image formation as ``BoundGaussians.render`` (the reference the tests hold this to), with
-        the position-dependent geometry computed once for all cameras: μ = Σ βₖ xₖ (quadratic tets: Σ N_a x_a,
-        F = Σ x_a ⊗ G_a at the Gaussian), Σ = F Σ₀ Fᵀ, where the
-        barycentric weights β and rest covariances Σ₀ = R S² Rᵀ are fixed (only colours and opacities are
-        ever refined here) — or those of :meth:`rebind`; with ``xa`` (n, 3) torch after a :meth:`rebind`, those
-        of :meth:`anchored_geometry` at xa (differentiable in xa too).
+        ``BoundGaussians.shade`` on the Gaussians of the current binding — barycentric β and rest covariance
+        factors L fixed (only colours and opacities are ever refined here): those as fitted, or those of
+        :meth:`rebind`; with ``xa`` (n, 3) torch after a :meth:`rebind`, those of :meth:`anchored_geometry` at
+        xa (differentiable in xa too) — projected by the fused numba kernel (bind_project.project_bound) where
+        it applies (rasterizer "fast", pinhole camera, SH degree 0), else by its torch twin
+        (gaussians.bound_geometry + project_gaussians): μ = Σ βₖ xₖ (quadratic tets: Σ N_a(β) x_a),
+        M = F L, Σ = M Mᵀ.
         """
-        torch = self.torch
-        from stages.render.gaussians import RASTERIZERS, sh_to_color
+        from stages.render.bind_project import project_bound
+        from stages.render.gaussians import bound_geometry
         from stages.render.projection import project_gaussians
 
         g = self.g
-        x = torch.as_tensor(xt).to(g.dtype)
-        bary, N, G, cov0 = self._bary, getattr(self, "_N", None), getattr(self, "_G", None), self._cov0
+        xt = self.torch.as_tensor(xt)
+        beta, factor = self._beta64, self._factor
         if xa is not None and self._anchor_x is not None:
-            bary, cov0, N, G = (None if a is None else a.to(g.dtype) for a in self.anchored_geometry(xa))
-        # index_select: its backward is index_add_, much faster on the CPU than advanced indexing's
-        corners = x.index_select(0, self._host.reshape(-1)).reshape(-1, self._host.shape[1], 3)  # (G, k, 3)
-        if self.quadratic:
-            means = (N[:, :, None] * corners).sum(1)
-            F = torch.einsum("gai,gaj->gij", corners, G)
-        else:
-            means = (bary[:, :, None] * corners).sum(1)
-            ds = (corners[:, 1:4] - corners[:, 0:1]).transpose(1, 2)
-            F = ds @ self._dm_inv
-        covs = F @ cov0 @ F.transpose(1, 2)
-        opac = g.opacities()
+            beta, Fi, _, _ = self._anchored(xa)
+            factor = Fi @ self.torch.as_tensor(self._fit_factor)
+        twin = None  # (centres, factors) in torch, computed once for every camera that needs them
         out = []
         for cam, bg in zip(self.cams, self.backgrounds):
-            proj = project_gaussians(means, covs, cam)
-            dirs = None
-            if g.sh.shape[1] >= 4:
-                d = means - cam.centre
-                dirs = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
-            colors = sh_to_color(g.sh, dirs)
-            premult, alpha = RASTERIZERS[self.rasterizer](proj.means2d, proj.conics, colors, opac, proj.depths,
-                                                          proj.visible, cam.width, cam.height)
-            out.append(premult + (1 - alpha)[..., None] * (g.background if bg is None else bg))
+            if self.rasterizer == "fast" and g.fusable(cam):
+                m2d, con, dep, vis = project_bound(xt, beta, factor, self._host, self._shape, cam, g.dtype)
+                means = None
+            else:
+                if twin is None:
+                    twin = bound_geometry(xt, beta, factor, self._host, self._shape, g.dtype)
+                means = twin[0]
+                proj = project_gaussians(means, None, cam, factors=twin[1])
+                m2d, con, dep, vis = proj.means2d, proj.conics, proj.depths, proj.visible
+            out.append(g.shade(m2d, con, dep, vis, means, cam, bg, self.rasterizer).image)
         return out
 
     def __call__(self, x: np.ndarray, targets: list[np.ndarray], ignore: list[np.ndarray | None] | None = None,

@@ -11,16 +11,26 @@ earlier frames are not in the trajectory is taken at rest (x_{t−1} = x_{t−2}
 Two ways to get the states, one definition of the force (:func:`step_forces`, also what ``rsl synth`` writes to
 truth/forces.csv): the force at frame t is the residual of the LAST implicit-Euler step that produced x_t
 (Δt / S with S substeps per frame, from that step's own x_{t−1}, x_{t−2}), at its held vertices.
-* :func:`replay_forces` (export, evaluate and report for an online run, :func:`adapted_forces`): the controls re-simulated in the full space with θ(t) of
-  the trajectory, the capture's start state and the trajectory's substeps, so every step is a solved step of
-  the model (free-vertex residual 0, held vertices at their targets, inertia from that step's own states).
+* :func:`replay_forces` (export, evaluate and report for an online run, :func:`adapted_forces`): the controls
+  re-simulated in the full space with θ(t) of the trajectory, the capture's start state and S substeps per frame
+  (:func:`replay_substeps`: ``--force-substeps``, default :data:`FORCE_SUBSTEPS`), so every step is a solved step
+  of the model (free-vertex residual 0, held vertices at their targets, inertia from that step's own states).
 * :func:`trajectory_forces`: the recorded positions themselves, with frame-level finite differences.  Only
   meaningful for a trajectory that IS one simulation: an online adapt records frame t from a window solved with
   θ_t (a splice of simulations, so x − 2x_{t−1} + x_{t−2} is not an acceleration), and a reduced-space state
   leaves a residual on the free vertices and holds hard handles as springs.  On the bar cable capture
   (docs/results/accuracy.md, first row; truth P2, 3 substeps, hard base): recorded positions 62 % median error
   (reduced space), 78 % (full space); the replay of the same θ(t) 14 % (S = 1) / 11 % (S = 3, full-space θ);
-  the replay of the true E 12.8 % (S = 1) / 1.4 % (S = 3).
+  the replay of the true E 12.8 % (S = 1) / 1.3 % (S = 3).
+
+The time step of the replay: the model has no material damping, so the dynamic part of a handle's reaction (the
+inertia of the oscillating body) carries implicit Euler's numerical damping, which depends on Δt / S.  Against
+truths simulated with 3 substeps per frame (docs/results/forces.md, bench/forces.py; true E on rsl's own mesh)
+the replay's error is lowest at S = 3 and grows on both sides on the dynamic captures (bar released at rest:
+27 % at S = 1, 12 % at S = 2 and 4, 1.2 % at S = 3): it matches the truth's integrator rather than converging.
+:data:`FORCE_SUBSTEPS` = 3 is therefore the step of the captures the issue specifies (`rsl synth --substeps 3`);
+on a capture made otherwise, the spread of the forces over S is the uncertainty of their dynamic part.  With an
+adapted θ(t) the replay also carries the estimate's start transient (docs/results/forces_notes.md).
 
 The error against a truth (rows of forces.csv, stages.capture.FORCE_HEADER): per handle / obstacle and frame,
 e_t = ‖F_t − F_t^true‖ / ‖F_t^true‖ on the applied force (N), over the frames where ‖F_t^true‖ is at least
@@ -37,6 +47,15 @@ from stages.results import previous_states
 from stages.sim import stress as st
 
 APPLIED = ("applied_fx_N", "applied_fy_N", "applied_fz_N")
+FORCE_SUBSTEPS = 3  # default implicit-Euler steps per frame of the replay (module doc; docs/results/forces.md)
+
+
+def replay_substeps(requested: int, adapt) -> int:
+    """S of the full-space replay: ``requested`` when ≥ 1; 0 = the substeps adapt.h5 was made with
+    (extra['substeps'], 1 when not recorded).  ValueError when negative."""
+    if requested < 0:
+        raise ValueError(f"substeps should be 0 (adapt's) or at least 1, found {requested}")
+    return int(requested) or int((getattr(adapt, "extra", None) or {}).get("substeps", 1) or 1)
 
 
 def states_before(frames: np.ndarray, positions: np.ndarray, row: int) -> tuple[np.ndarray, np.ndarray]:

@@ -1,11 +1,11 @@
 """The interfaces of ``rsl adapt``'s window model, as typing.Protocol classes (structural: the classes in
-stages/steps/adapt.py do not inherit from them; tests/test_window_model.py holds them to these).
+stages/window_backends.py, stages/windows.py and stages/observations.py do not inherit from them; tests/test_window_model.py holds them to these).
 
 * :class:`WindowBackend` — a simulator of a window of frames in some state space (full: positions (n, 3);
-  reduced: subspace coordinates z (r,)), its adjoint and its sensitivities: ``_FullSpace``, ``_ReducedSpace``.
+  reduced: subspace coordinates z (r,)), its adjoint and its sensitivities: ``FullSpace``, ``ReducedSpace``.
 * :class:`Window` — a window under a start convention, θ = (E (R,), ν (R,)) shared by its frames:
   ``StartWindow`` (dynamics), ``StaticWindow`` (one static equilibrium per frame).
-* :class:`Observation` — what a window is compared with, per frame: ``_Markers`` (markers.csv), ``_Vision``
+* :class:`Observation` — what a window is compared with, per frame: ``MarkerObservation`` (markers.csv), ``VisionObservation``
   (images through the Gaussians).
 
 Shapes: w window frames, R regions, n vertices, k directions of p = (log E, s) (k ≤ 2R), ``state`` the

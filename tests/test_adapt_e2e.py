@@ -139,19 +139,19 @@ def test_follow_processes_marker_frames_as_they_arrive(beam, tmp_path):
 
 
 def test_frame_ready_waits_for_complete_pngs(beam, tmp_path):
-    from stages.steps.adapt import _frame_ready
+    from stages.observations import frame_ready
 
     cap, _ = beam
     cap2 = tmp_path / "cap"
     shutil.copytree(cap, cap2)
     capture = load_capture(cap2)
     cam = capture.camera_names[0]
-    assert _frame_ready(capture, [cam], 0)
+    assert frame_ready(capture, [cam], 0)
     png = cap2 / "frames" / cam / "000000.png"
     data = png.read_bytes()
     png.write_bytes(data[: len(data) // 2])  # a writer still busy
-    assert not _frame_ready(capture, [cam], 0)
-    assert not _frame_ready(capture, [cam], 10_000)
+    assert not frame_ready(capture, [cam], 0)
+    assert not frame_ready(capture, [cam], 10_000)
 
 
 # =========================================================================== bad input
@@ -178,7 +178,9 @@ def test_adapt_cli_reports_bad_input_in_one_sentence(beam, rsl, tmp_path):
 
 # =========================================================================== gradients
 def _objective(cap: Path, ws: Path, loss: str, space: str = "full"):
-    from stages.steps.adapt import WindowObjective, _FullSpace, _Markers, _ReducedSpace, _Vision
+    from stages.windows import WindowObjective
+    from stages.window_backends import FullSpace, ReducedSpace
+    from stages.observations import MarkerObservation, VisionObservation
     from stages.sim.scene import frame_inputs, make_scene
 
     capture = load_capture(cap)
@@ -187,17 +189,17 @@ def _objective(cap: Path, ws: Path, loss: str, space: str = "full"):
     scene = make_scene(mesh, controls, capture.material.model, capture.dt, capture.gravity)
     inputs = lambda t: frame_inputs(scene, controls, t)  # noqa: E731
     if space == "full":
-        backend = _FullSpace(scene, inputs, "auto")
+        backend = FullSpace(scene, inputs, "auto")
     else:
         from stages.artefacts import SubspaceArtefact
         from stages.subspace import ReducedModel
 
-        backend = _ReducedSpace(ReducedModel.from_artefacts(SubspaceArtefact.load(ws / "subspace.h5"), scene),
+        backend = ReducedSpace(ReducedModel.from_artefacts(SubspaceArtefact.load(ws / "subspace.h5"), scene),
                                 inputs)
     if loss == "vision":
-        obs = _Vision(capture, ws, "", mesh, False)
+        obs = VisionObservation(capture, ws, "", mesh, False)
     else:
-        obs = _Markers(capture, mesh.vertices, mesh.surface_faces, mesh.n_vertices)
+        obs = MarkerObservation(capture, mesh.vertices, mesh.surface_faces, mesh.n_vertices)
     return WindowObjective(backend, obs, scene.n_regions, (0.3, 0.49), capture.start), backend
 
 

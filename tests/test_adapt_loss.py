@@ -121,17 +121,17 @@ def test_refine_tets_keeps_volume_orientation_and_coarse_vertices():
 def test_camera_choice_by_index_or_name_and_its_errors():
     from pathlib import Path
 
-    from stages.steps.adapt import _pick_cameras
+    from stages.observations import pick_cameras
     from stages.errors import RslError
 
     names = ["cam0", "cam1", "cam2"]
-    assert _pick_cameras("", names, Path("cameras.h5")) == names
-    assert _pick_cameras("2, 0", names, Path("cameras.h5")) == ["cam2", "cam0"]
-    assert _pick_cameras("cam1,1", names, Path("cameras.h5")) == ["cam1"]
+    assert pick_cameras("", names, Path("cameras.h5")) == names
+    assert pick_cameras("2, 0", names, Path("cameras.h5")) == ["cam2", "cam0"]
+    assert pick_cameras("cam1,1", names, Path("cameras.h5")) == ["cam1"]
     with pytest.raises(RslError, match="asks for camera 5 but it holds 3"):
-        _pick_cameras("5", names, Path("cameras.h5"))
+        pick_cameras("5", names, Path("cameras.h5"))
     with pytest.raises(RslError, match="'left', which is not one of"):
-        _pick_cameras("left", names, Path("cameras.h5"))
+        pick_cameras("left", names, Path("cameras.h5"))
 
 
 def test_frame_range_parsing():

@@ -1,4 +1,4 @@
-"""`rsl adapt --substeps S`: window frames of S implicit-Euler substeps each (stages.steps.adapt._Substepped).
+"""`rsl adapt --substeps S`: window frames of S implicit-Euler substeps each (stages.steps.adapt.Substepped).
 
 The forward equals stages.sim.static.simulate_from_start (the convention rsl synth films with), a window restarted
 from the stored states repeats the uninterrupted simulation bit for bit, S = 1 through the wrapper is the plain
@@ -13,7 +13,8 @@ from stages.sim.mesh import rest_quantities
 from stages.sim.meshgen import box_tets
 from stages.sim.scene import FrameInputs, HandleSpec, Scene, simulate, substep_scene
 from stages.sim.static import simulate_from_start
-from stages.steps.adapt import StartWindow, _FullSpace, _ReducedSpace, _StoredStates, _Substepped, substepped
+from stages.windows import StartWindow
+from stages.window_backends import FullSpace, ReducedSpace, StoredStates, Substepped, substepped
 
 YOUNG, POISSON = np.array([3e4, 6e4]), np.array([0.40, 0.45])
 T = 7  # frames 0..6
@@ -52,7 +53,7 @@ def full():
 
 
 def _full_backend(scene, at, S: int, rtol: float | None = None):
-    b = substepped(_FullSpace(scene, at, "auto"), S, at)
+    b = substepped(FullSpace(scene, at, "auto"), S, at)
     if rtol is not None:
         b.fine.step_kw = {"rtol": rtol}
     return b
@@ -61,7 +62,7 @@ def _full_backend(scene, at, S: int, rtol: float | None = None):
 def _chain(b, frames_list, kind="rest"):
     """Windows one after the other, each from the two stored states before it (as rsl adapt does)."""
     win = StartWindow(b, kind)
-    stored = _StoredStates(b) if isinstance(b, _Substepped) else {}
+    stored = StoredStates(b) if isinstance(b, Substepped) else {}
     for frames in frames_list:
         t0 = frames[0]
         before = None if t0 == 0 else np.stack([stored[max(t0 - 2, 0)], stored[t0 - 1]])
@@ -109,9 +110,9 @@ def test_restart_without_records_uses_the_frame_velocity(full):
 
 def test_substeps_one_through_the_wrapper_is_the_plain_backend(full):
     scene, at = full
-    plain = _FullSpace(scene, at, "auto")
+    plain = FullSpace(scene, at, "auto")
     assert substepped(plain, 1, at) is plain  # --substeps 1 runs today's code
-    wrapped = _Substepped(plain, _FullSpace(scene, at, "auto"), 1)
+    wrapped = Substepped(plain, FullSpace(scene, at, "auto"), 1)
     Xp, _ = _chain(plain, [[0, 1, 2], [1, 2, 3], [2, 3, 4]])
     Xw, stored = _chain(wrapped, [[0, 1, 2], [1, 2, 3], [2, 3, 4]])
     assert np.array_equal(Xp, Xw)
@@ -211,7 +212,7 @@ def test_window_holding_frame_zero_gradient_and_sensitivity_match_finite_differe
 def test_full_space_sensitivity_with_hard_handles_matches_finite_differences_without_substeps(full):
     """S = 1 (today's path): the held DOFs have zero sensitivity and the free ones solve the constrained system."""
     scene, at = full
-    b = _FullSpace(scene, at, "auto")
+    b = FullSpace(scene, at, "auto")
     b.step_kw = {"rtol": 1e-12}
     _, stored = _chain(b, [[0, 1, 2, 3]])
     _check_window(b, stored, 1e-3, 2)
@@ -232,7 +233,7 @@ def reduced(full):
 
 def test_reduced_space_substep_gradient_and_sensitivity_match_finite_differences(reduced):
     scene, at, model = reduced
-    b = substepped(_ReducedSpace(model, at), 2, at)
+    b = substepped(ReducedSpace(model, at), 2, at)
     b.fine.rtol = 1e-12
     assert b.fine.model.scene.dt == pytest.approx(scene.dt / 2) and b.fine.model.sub is model.sub
     _, stored = _chain(b, [[0, 1, 2, 3]])
@@ -242,14 +243,14 @@ def test_reduced_space_substep_gradient_and_sensitivity_match_finite_differences
 def test_reduced_space_forward_is_the_fine_model_and_restarts_exactly(reduced):
     scene, at, model = reduced
     S = 3
-    b = substepped(_ReducedSpace(model, at), S, at)
+    b = substepped(ReducedSpace(model, at), S, at)
     X, _ = _chain(b, [[0, 1, 2, 3, 4]])
     fine = b.fine.model
     inputs = [at(t - 1 + k / S) if k < S else at(t) for t in range(1, 5) for k in range(1, S + 1)]
     Zf = fine.simulate(inputs, np.tile(YOUNG, (len(inputs), 1)), np.tile(POISSON, (len(inputs), 1)),
                        z_prev=model.z_rest, z_prev2=model.z_rest)
     np.testing.assert_allclose(X[1:], Zf[S - 1::S], rtol=0, atol=1e-9 * np.abs(Zf).max())
-    Xc, _ = _chain(substepped(_ReducedSpace(model, at), S, at), [[0, 1], [1, 2, 3], [3, 4]])
+    Xc, _ = _chain(substepped(ReducedSpace(model, at), S, at), [[0, 1], [1, 2, 3], [3, 4]])
     np.testing.assert_allclose(Xc, X, rtol=0, atol=1e-9 * np.abs(X).max())
     full_traj = simulate(substep_scene(scene, S), inputs, YOUNG, POISSON, x_prev=scene.rest, x_prev2=scene.rest)
     x_red = model.decode(X[1:])

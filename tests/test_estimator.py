@@ -10,8 +10,8 @@ import pytest
 from scipy.optimize import least_squares
 
 from stages.artefacts import MeshArtefact
-from stages.estimator import (ChangeDetector, Prior, WindowFilter, bounded_sigma, fold, gauss_newton, inflate, marginal,
-                              residual_scale2)
+from stages.estimator import (ChangeDetector, Prior, WindowFilter, bounded_sigma, cluster_scale2, fold, gauss_newton,
+                              inflate, marginal, residual_scale2)
 
 K, M = 2, 4  # unknowns, observations per frame
 
@@ -122,6 +122,66 @@ def test_residual_scale_of_huber_is_consistent_on_gaussian_noise():
     assert residual_scale2(r, 0.1, 1.345, 2) < 1.15 < 10 < residual_scale2(r, 0.1, None, 2)
 
 
+def _block_correlated_problem(rng, blocks: int = 40, size: int = 25):
+    """y = A θ + e over ``blocks`` clusters of ``size`` residuals: A's rows and the noise e vary smoothly within a
+    cluster (a shared part plus 30 % independent), like an image's misfit over neighbouring pixels."""
+    ids = np.repeat(np.arange(blocks), size)
+    A = rng.normal(size=(blocks, K))[ids] + 0.3 * rng.normal(size=(blocks * size, K))
+    e = 0.1 * (rng.normal(size=blocks)[ids] + 0.3 * rng.normal(size=blocks * size))
+    theta = rng.normal(size=K)
+    return A, A @ theta + e, theta, ids
+
+
+def test_cluster_scale_is_calibrated_where_residuals_are_correlated_in_blocks():
+    """Residual errors shared within blocks of 25: taken as independent (residual_scale2) the covariance is far too
+    small (truth within ±2σ on < 50 %); the cluster-robust s² (estimator.cluster_scale2, gauss_newton's
+    ``clusters``) is calibrated (≈ 95 %) and ≈ the block size × the per-residual s²."""
+    rng = np.random.default_rng(11)
+    inside_iid = inside_cl = n = 0
+    ratio = []
+    for _ in range(300):
+        A, y, theta, ids = _block_correlated_problem(rng)
+        ev = (lambda p, nj: (A @ p - y, A if nj else None))
+        prior = Prior(np.zeros(K), np.eye(K) * 1e6)
+        iid = gauss_newton(ev, np.zeros(K), prior, 0.1, max_iterations=2)
+        cl = gauss_newton(ev, np.zeros(K), prior, 0.1, max_iterations=2, clusters=ids)
+        assert np.allclose(iid.p, cl.p) and np.allclose(iid.cov, cl.cov)  # the estimate and the closed form: unchanged
+        inside_iid += int(np.sum(np.abs(iid.p - theta) <= 2 * np.sqrt(np.diag(iid.cov_scaled))))
+        inside_cl += int(np.sum(np.abs(cl.p - theta) <= 2 * np.sqrt(np.diag(cl.cov_scaled))))
+        ratio.append(cl.scale2 / iid.scale2)
+        n += K
+    assert inside_iid / n < 0.5 and 0.9 <= inside_cl / n <= 0.99, (inside_iid / n, inside_cl / n)
+    assert 8 < np.median(ratio) < 25, np.median(ratio)
+
+
+def test_cluster_scale_of_independent_residuals_is_the_residual_scale():
+    """One residual per cluster (or clusters of independent residuals), Gaussian noise of 2σ: s² ≈ 4 as RSS/dof
+    says, with and without Huber (Huber's factor ≈ 1/0.95 × 4 at δ scaled to the noise); too few informative
+    clusters fall back to residual_scale2."""
+    rng = np.random.default_rng(12)
+    A = rng.normal(size=(4000, K))
+    r = rng.normal(0, 0.2, 4000)
+    assert cluster_scale2(r, A, 0.1, None, np.arange(4000)) == pytest.approx(4.0, rel=0.1)
+    assert cluster_scale2(r, A, 0.1, None, np.arange(4000) // 10) == pytest.approx(4.0, rel=0.15)
+    assert cluster_scale2(r, A, 0.2, 1.345, np.arange(4000)) == pytest.approx(1 / 0.95, rel=0.1)
+    assert cluster_scale2(r, A, 0.1, None, np.arange(4000) // 1000) == residual_scale2(r, 0.1, None, K)
+
+
+def test_scale_divides_the_data_information():
+    """gauss_newton(scale=s²) is the fit with σ² s² (the same estimate without a prior, N⁻¹ × s²), while the Huber
+    weights stay those of σ."""
+    rng = np.random.default_rng(13)
+    A = rng.normal(size=(50, K))
+    y = A @ np.array([1.0, -2.0]) + rng.normal(0, 0.1, 50)
+    ev = (lambda p, nj: (A @ p - y, A if nj else None))
+    prior = Prior(np.zeros(K), np.eye(K) * 1e9)
+    a = gauss_newton(ev, np.zeros(K), prior, 0.1, max_iterations=3)
+    b = gauss_newton(ev, np.zeros(K), prior, 0.1, max_iterations=3, scale=9.0)
+    c = gauss_newton(ev, np.zeros(K), prior, 0.3, max_iterations=3)
+    assert np.allclose(a.p, b.p, atol=1e-8) and np.allclose(b.cov, c.cov, rtol=1e-6)
+    assert np.allclose(b.cov, 9.0 * a.cov, rtol=1e-6)
+
+
 def test_sigma_of_a_parameter_held_at_its_bound_is_not_tiny():
     """A bounded parameter at (or within 2 % of the range of) a bound reports at least the uniform prior's σ over
     the range; inside the range its σ is the posterior's.  adapt's σ_ν goes through it (sigmoid slope → 0 at the
@@ -133,18 +193,18 @@ def test_sigma_of_a_parameter_held_at_its_bound_is_not_tiny():
     from types import SimpleNamespace
 
     from stages.parameters import theta_from_params
-    from stages.steps.adapt import _sigma_from_cov
+    from stages.windows import sigma_from_cov
 
     prange = (0.3, 0.49)
     gn = SimpleNamespace(R=1, fit_poisson=True, young_range=(2e4, 2e6), obj=SimpleNamespace(prange=prange))
     gn.theta = lambda p: (*theta_from_params(p[:1], p[1:2], prange), p[1:2])
     cov = np.diag([0.01 ** 2, 0.5 ** 2])
-    sE, sN = _sigma_from_cov(gn, np.array([np.log(1e5), 9.0]), cov, model_error=0.02)  # ν pinned at 0.49
+    sE, sN = sigma_from_cov(gn, np.array([np.log(1e5), 9.0]), cov, model_error=0.02)  # ν pinned at 0.49
     assert sE[0] == pytest.approx(1e5 * np.hypot(0.01, 0.02), rel=1e-9)
     assert sN[0] >= floor * (1 - 1e-12)
-    sE, sN = _sigma_from_cov(gn, np.array([np.log(1e5), 0.0]), cov)  # ν mid-range: the delta method
+    sE, sN = sigma_from_cov(gn, np.array([np.log(1e5), 0.0]), cov)  # ν mid-range: the delta method
     assert sE[0] == pytest.approx(1e3, rel=1e-9) and sN[0] == pytest.approx(0.19 * 0.25 * 0.5, rel=1e-9)
-    sE, _ = _sigma_from_cov(gn, np.array([np.log(2e6), 0.0]), np.diag([1e-8, 0.25]))  # E at the top of its range
+    sE, _ = sigma_from_cov(gn, np.array([np.log(2e6), 0.0]), np.diag([1e-8, 0.25]))  # E at the top of its range
     assert sE[0] >= 2e6 * np.log(100) / np.sqrt(12) * (1 - 1e-12)
 
 
@@ -224,14 +284,28 @@ def test_change_test_stays_quiet_on_a_constant_sequence_with_noise():
 
 
 def test_cusum_declares_a_persistent_moderate_excess_but_not_noise():
-    """One frame above threshold² is a change at once; a smaller excess (z = 4) is declared after it persisted
-    (g grows by z − 1 − drift = 2 per frame, h = τ² − 1 − drift = 7: the fourth frame); z around 1 never
-    accumulates."""
+    """One frame above threshold² is a change at once; after a stretch of z ≈ 1 (the baseline), a smaller excess
+    (z = 4) is declared after it persisted (g grows by z − 1 − drift = 2 per frame, h = τ² − 1 − drift = 7: the
+    fourth frame); z around 1 never accumulates."""
     d = ChangeDetector(3.0)
     assert d.update(10.0) and d.g == 0.0
+    assert not any(d.update(1.0) for _ in range(10))
     assert [d.update(4.0) for _ in range(4)] == [False, False, False, True]
     rng = np.random.default_rng(0)
     assert not any(d.update(float(z)) for z in rng.chisquare(90, 1000) / 90)
+
+
+def test_innovation_growing_with_the_load_is_not_a_change_but_the_step_is():
+    """The innovation ratios of `make demo` (reduced space, markers; E right to 1 % over frames 3–19, E doubled at
+    frame 20): z grows with the cable's load while the material stays the same; it is measured against its own
+    baseline and declares no change there.  The step (z = 14.5) is declared at once."""
+    d = ChangeDetector(3.0)
+    ramp = [2.4, 3.1, 2.3, 3.3, 4.8, 7.7, 2.5, 2.5, 2.0, 1.7, 1.5, 1.4, 1.2, 1.1]
+    assert not any(d.update(z) for z in ramp)
+    assert d.update(14.5)
+    plain = ChangeDetector(3.0)  # the same CUSUM without the baseline (b = 1) declares the ramp a change
+    plain.baseline = lambda: 1.0
+    assert any(plain.update(z) for z in ramp[:6])
 
 
 def test_nonlinear_gauss_newton_matches_scipy_least_squares():
@@ -363,7 +437,7 @@ def beam(tmp_path_factory):
 
 
 def _gn_window(cap, ws, loss):
-    from stages.steps.adapt import GNWindow
+    from stages.windows import GNWindow
     from test_adapt_e2e import _objective
 
     obj, backend = _objective(cap, ws, loss)
@@ -390,7 +464,7 @@ def test_marker_residual_jacobian_matches_finite_differences(beam):
 def test_marker_jacobian_with_the_binding_to_the_equilibrium_start_matches_finite_differences(beam):
     """With start = equilibrium the markers are bound to x_0(θ): r(p) re-binds at every evaluation and ∂r/∂p
     includes the binding's derivative (through the static sensitivity of x_0); against central differences."""
-    from stages.steps.adapt import StartWindow
+    from stages.windows import StartWindow
     from test_adapt_e2e import _window
 
     cap, ws = beam
@@ -438,6 +512,46 @@ def test_image_residual_jacobian_and_exact_gradient(beam, tmp_path):
         assert g[i] == pytest.approx(slope, rel=0.25), (i, g, slope)
     approx = J.T @ (W * r)
     assert np.allclose(approx, g, rtol=0.15, atol=0.02 * np.abs(g).max()), (approx, g)
+
+
+def test_image_jacobian_with_the_anchor_renders_each_column_once(beam, tmp_path):
+    """Images with the Gaussians re-anchored at x_0(θ): jacobian() leaves the θ columns to binding_jacobian()'s
+    joint differences (GNWindow.skip_joint) — the same J as rendering them in both and subtracting (the slow
+    twin), with half the renders for those columns."""
+    from test_adapt_e2e import _random_gaussians, _window
+
+    cap, ws = beam
+    ws2 = tmp_path / "ws"
+    ws2.mkdir()
+    for f in ("mesh.h5", "cameras.h5"):
+        shutil.copy(ws / f, ws2 / f)
+    mesh = MeshArtefact.load(ws2 / "mesh.h5")
+    gauss = _random_gaussians(mesh, 30)
+    gauss.log_scales[:] = np.log(0.015 * np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    gauss.save(ws2 / "gaussians.h5")
+    gn, obj, backend = _gn_window(cap, ws2, "vision")
+    frames, before, p = _window(backend, 20, w=2)
+    calls = []
+    renders = obj.obs._renders
+    obj.obs._renders = lambda x: calls.append(1) or renders(x)
+    # a correction of the starting states along two directions (the anchor does not move with it)
+    D = np.stack([np.stack([v, v]) for v in backend.decode(np.asarray(before))[1:] - backend.decode(
+        np.asarray(before))[:1]] * 2) * np.array([1.0, -0.5])[:, None, None, None]
+    pD = np.concatenate([p, np.zeros(2)])
+    out = {}
+    for skip in (True, False):
+        gn.skip_joint = skip
+        calls.clear()
+        out[skip] = gn.evaluate(frames, pD, before, D, True)[1]
+        out[skip, "renders"] = len(calls)
+    assert np.all(np.linalg.norm(out[True], axis=0) > 0)
+    assert np.allclose(out[True], out[False], rtol=1e-6, atol=1e-6 * np.abs(out[False]).max())
+    assert out[False, "renders"] - out[True, "renders"] == 2 * 2 * len(frames)  # 2 θ columns × 2 renders per frame
+    # the correction columns against central differences of r along them
+    for j in (2, 3):
+        h = 1e-2 * np.eye(4)[j]
+        fd = (gn.evaluate(frames, pD + h, before, D, False)[0] - gn.evaluate(frames, pD - h, before, D, False)[0]) / 2e-2
+        assert np.linalg.norm(out[True][:, j] - fd) <= 0.1 * np.linalg.norm(fd), j
 
 
 def test_adapt_gn_with_images_runs_and_reports_finite_sigma(beam, tmp_path, rsl):

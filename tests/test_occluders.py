@@ -212,10 +212,10 @@ def test_synth_clamp_draws_the_handle_visual_and_no_plates_leaves_background_out
 
 # =========================================================================== rsl adapt's vision observations
 def test_adapt_vision_observations_leave_the_occluder_out(scene, tmp_path) -> None:
-    """stages.steps.adapt._Vision on a capture whose handle carries a visual: the L1 loss it passes ImageLoss carries
+    """stages.steps.adapt.VisionObservation on a capture whose handle carries a visual: the L1 loss it passes ImageLoss carries
     the occluder's ignore mask, and the Gauss–Newton residuals, their Jacobian columns and Jᵀ W r are zero /
     unchanged under it, whatever the frame holds there."""
-    from stages.steps.adapt import _Vision
+    from stages.observations import VisionObservation
     from stages.artefacts import CamerasArtefact
     from stages.capture import load_capture, write_image
 
@@ -233,7 +233,7 @@ def test_adapt_vision_observations_leave_the_occluder_out(scene, tmp_path) -> No
     ws.mkdir()
     CamerasArtefact([cam], "json").save(ws / "cameras.h5")
     scene.gauss.save(ws / "gaussians.h5")
-    obs = _Vision(load_capture(cap), ws, "", mesh, False)
+    obs = VisionObservation(load_capture(cap), ws, "", mesh, False)
     assert obs.occluded
     np.testing.assert_array_equal(obs.ignore(0)[0], ign)
     tgt = obs.targets(0)[0]
@@ -252,7 +252,7 @@ def test_adapt_vision_observations_leave_the_occluder_out(scene, tmp_path) -> No
     other = frame.copy()
     other[ign] = 255 - other[ign]
     write_image(cap / "frames" / "c0" / "000000.png", other)
-    obs2 = _Vision(load_capture(cap), ws, "", mesh, False)
+    obs2 = VisionObservation(load_capture(cap), ws, "", mesh, False)
     np.testing.assert_array_equal(obs2.residuals([0], x[None])[0], r.reshape(-1))
     np.testing.assert_allclose(obs2.exact_jtwr([0], x[None], dX, [r.reshape(-1)], W), g1, rtol=1e-12)
 

@@ -27,11 +27,13 @@ GROUPS = {"test_adapt_case": "rsl adapt: frames, meshes, obstacles, material",
           "test_failed_run_keeps_adapt_h5": "rsl adapt: unfinished runs never replace adapt.h5",
           "test_ctrl_c_keeps_adapt_h5": "rsl adapt: unfinished runs never replace adapt.h5",
           "test_downstream_refuses_partial": "rsl adapt: unfinished runs never replace adapt.h5",
+          "test_downstream_takes_the_partial_run_when_asked": "rsl adapt: unfinished runs never replace adapt.h5",
           "test_ctrl_c_lost_in_compiled_code_still_stops_and_keeps_the_frames":
               "rsl adapt: unfinished runs never replace adapt.h5",
           "test_second_ctrl_c_during_the_save_does_not_abort_it": "rsl adapt: unfinished runs never replace adapt.h5",
           "test_a_frame_record_cut_half_way_is_dropped": "rsl adapt: unfinished runs never replace adapt.h5",
           "test_mp4_frames_are_read": "legal inputs are accepted (no false alarm)",
+          "test_solve_guard_tolerates_a_sliver_but_not_a_collapse": "rsl adapt: frames, meshes, obstacles, material",
           "test_rotation_angle_small_angles": "arithmetic: rotation angle"}
 LABELS = {"test_failed_run_keeps_adapt_h5": "a run that fails after some frames (the mesh collapses): adapt.h5 kept, "
                                             "the frames done in adapt.partial.h5",
@@ -345,11 +347,11 @@ def test_rotation_angle_small_angles(angle_rad: float) -> None:
 
 def test_solve_guard_tolerates_a_sliver_but_not_a_collapse(tmp_path: Path) -> None:
     """One inverted sliver among many elements is no collapse; many inverted elements, NaN or a blow-up are."""
-    from stages.steps.adapt import SolveCollapsed, _SolveGuard
+    from stages.window_backends import SolveCollapsed, SolveGuard
     from stages.sim.meshgen import box_tets
 
     v, t = box_tets((20, 6, 6), (1.0, 0.3, 0.3))
-    guard = _SolveGuard(v, t, ["body"], tmp_path / "capture.toml", 1e5)
+    guard = SolveGuard(v, t, ["body"], tmp_path / "capture.toml", 1e5)
     young = np.array([[1e5]])
     x = v.copy()
     guard([0], x[None], young)  # rest: fine
@@ -388,7 +390,7 @@ def _ctrl_c_run(base, tmp_path: Path, monkeypatch, at_frame: int, how: str):
 
     cap, ws = _copy(base, tmp_path)
     before = tree_bytes(ws)
-    real, calls = adapt._sigma_from_cov, [0]
+    real, calls = adapt.sigma_from_cov, [0]
 
     def sigma(*a, **k):
         calls[0] += 1
@@ -407,7 +409,7 @@ def _ctrl_c_run(base, tmp_path: Path, monkeypatch, at_frame: int, how: str):
                 signal.raise_signal(signal.SIGINT)
         return real(*a, **k)
 
-    monkeypatch.setattr(adapt, "_sigma_from_cov", sigma)
+    monkeypatch.setattr(adapt, "sigma_from_cov", sigma)
     config = adapt.AdaptConfig(capture=cap, workspace=ws, space="full", loss="markers", window=2, frames="0:4",
                                iters_per_frame=2, estimator="gn")
     return adapt, config, ws, before

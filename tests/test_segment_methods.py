@@ -144,3 +144,39 @@ def test_sam2_checkpoint_path(tmp_path):
     with pytest.raises(RslError, match=expected):
         run(SegmentConfig(cap, ws, method="sam2", checkpoint=str(tiny),
                           sam2_config="configs/sam2.1/sam2.1_hiera_t.yaml"))
+
+
+def _bent_bar(droop: float) -> np.ndarray:
+    """(H, W) bool: a bar 12 px thick from x = 20 to 140 whose centre line sags by droop·((x − 20)/120)² px."""
+    m = np.zeros((H, W), np.uint8)
+    xs = np.arange(20, 141)
+    yc = 40 + droop * ((xs - 20) / 120.0) ** 2
+    pts = np.concatenate([np.stack([xs, yc - 6], 1), np.stack([xs[::-1], yc[::-1] + 6], 1)])
+    cv2.fillPoly(m, [np.round(pts).astype(np.int32)], 1)
+    return m.astype(bool)
+
+
+def test_grabcut_over_a_span_of_seeds_does_not_follow_the_guessed_shape():
+    """segment._grabcut_span (the frame-0 seed of a sagging object when capture.toml's E is a guess): a bar that
+    sags 30 px drawn on a textured background, seeded by the span of the shapes sagging 10…60 px, whatever
+    their middle — the mask matches the drawn bar (IoU > 0.9) and barely changes with the span; the one-shape
+    seed of GrabCut with a shape sagging 10 px (a stiff guess) is pulled toward it."""
+    from stages.steps.segment import _grabcut_span
+    from stages.vision import segmentation as seg
+
+    truth = _bent_bar(30)
+    frame = _plate(3).copy()
+    frame[truth] = (200, 60, 50)
+    rng = np.random.default_rng(1)
+    frame = np.clip(frame + rng.normal(0, 4, frame.shape), 0, 255).astype(np.uint8)
+    shapes = [_bent_bar(d) for d in range(10, 61, 5)]
+    inner, outer = np.logical_and.reduce(shapes), np.logical_or.reduce(shapes)
+    cv2.setRNGSeed(0)
+    m1 = _grabcut_span(frame, inner, outer, 0, 4)
+    shapes2 = [_bent_bar(d) for d in range(5, 71, 5)]
+    m2 = _grabcut_span(frame, np.logical_and.reduce(shapes2), np.logical_or.reduce(shapes2), 0, 4)
+    assert iou(m1, truth) > 0.9 and iou(m2, truth) > 0.9
+    assert iou(m1, m2) > 0.95
+    one = seg.grabcut(frame, _bent_bar(10), 0, 4, reach_px=0, reach_factor=2)
+    print(f"IoU vs the drawn bar: span {iou(m1, truth):.3f} / {iou(m2, truth):.3f}, one stiff seed {iou(one, truth):.3f}")
+    assert iou(one, truth) < iou(m1, truth)

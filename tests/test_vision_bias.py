@@ -142,14 +142,16 @@ def test_anchored_geometry_is_the_rebind_and_its_derivative_matches_rebinding(ca
 
 def _objective(cap: Path, ws: Path, anchor: str = "rebind"):
     from stages.sim.scene import frame_inputs, make_scene
-    from stages.steps.adapt import WindowObjective, _FullSpace, _Vision
+    from stages.windows import WindowObjective
+    from stages.window_backends import FullSpace
+    from stages.observations import VisionObservation
 
     capture = load_capture(cap)
     mesh = MeshArtefact.load(ws / "mesh.h5")
     controls = capture.controls()
     scene = make_scene(mesh, controls, capture.material.model, capture.dt, capture.gravity)
-    backend = _FullSpace(scene, lambda t: frame_inputs(scene, controls, t), "auto")
-    obs = _Vision(capture, ws, "", mesh, False, anchor)
+    backend = FullSpace(scene, lambda t: frame_inputs(scene, controls, t), "auto")
+    obs = VisionObservation(capture, ws, "", mesh, False, anchor)
     return WindowObjective(backend, obs, scene.n_regions, (0.3, 0.49), capture.start), backend
 
 
@@ -207,7 +209,9 @@ def _reduced_objective(cap: Path, ws: Path):
     """WindowObjective in a 6-dim PCA subspace trained on full-space runs of the capture's own controls."""
     from stages.sim.scene import frame_inputs, make_scene
     from stages.sim.static import simulate_from_start
-    from stages.steps.adapt import WindowObjective, _ReducedSpace, _Vision
+    from stages.windows import WindowObjective
+    from stages.window_backends import ReducedSpace
+    from stages.observations import VisionObservation
     from stages.subspace import ReducedModel
     from stages.subspace.train import fit_subspace
 
@@ -219,9 +223,9 @@ def _reduced_objective(cap: Path, ws: Path):
     train = np.concatenate([simulate_from_start(scene, at, np.array([e]), np.array([0.42]), 6, capture.start)
                             for e in (0.5 * E_TRUE, E_TRUE)])
     sub, _ = fit_subspace("pca", scene.rest, scene.masses, train, 6)
-    backend = _ReducedSpace(ReducedModel(sub, scene), at)
+    backend = ReducedSpace(ReducedModel(sub, scene), at)
     backend.rtol = 1e-12
-    obs = _Vision(capture, ws, "", mesh, False, "rebind")
+    obs = VisionObservation(capture, ws, "", mesh, False, "rebind")
     return WindowObjective(backend, obs, scene.n_regions, (0.3, 0.49), capture.start), backend
 
 
@@ -252,39 +256,11 @@ def test_reduced_window_gradient_carries_the_anchor_through_its_simulation(captu
         assert g[i] == pytest.approx(held + anchor_part, rel=1e-3, abs=1e-6 * abs(held)), (i, g, held, anchor_part)
 
 
-def test_window_after_the_fit_frame_anchors_at_the_stored_state(capture):
-    """Online, a window after the fit frame starts from stored states simulated from the *stored* x_f (under the θ
-    of their time): it anchors the Gaussians there, held fixed — its loss is the one rendered with that anchor and
-    dL/dθ = Σ_t dL/dX_t · dX_t/dθ only (central differences of the window's simulation)."""
-    cap, ws, _ = capture
-    obj, backend = _objective(cap, ws)
-    pr = (0.3, 0.49)
-    p = np.concatenate(params_from_theta(np.array([0.7 * E_TRUE]), np.array([0.42]), pr))
-    E, nu = theta_from_params(p[:1], p[1:], pr)
-    old = obj.win.forward([0, 1, 2], 1.4 * E, nu, None)  # the stored past, simulated with another E
-    obj.stored = {0: old[0], 1: old[1], 2: old[2]}
-    frames, before = [3, 4], old[1:3]
-    _, losses, g, _ = obj(frames, p, before)
-    obj.obs.rebind(old[0])
-    X = backend.decode(obj.win.forward(frames, E, nu, before))
-    ref, dX = obj.obs.loss(frames, X)
-    assert np.allclose(losses, ref, rtol=1e-6)
-    obj.obs.rebind(obj.anchor_positions(E, nu))  # the re-simulated anchor renders another loss
-    assert not np.allclose(obj.obs.loss(frames, X)[0], ref, rtol=1e-3)
-    for i, h in ((0, 1e-5), (1, 1e-4)):
-        e = np.zeros(2)
-        e[i] = h
-        Xs = [backend.decode(obj.win.forward(frames, *theta_from_params(q[:1], q[1:], pr), before))
-              for q in (p + e, p - e)]
-        held = np.sum(dX * (Xs[0] - Xs[1]) / (2 * h))
-        assert g[i] == pytest.approx(held, rel=1e-3, abs=1e-9), (i, g, held)
-
-
 # =========================================================================== Gauss–Newton image Jacobian
 def test_gn_image_jacobian_agrees_with_autograd_and_finite_differences(capture):
     """GN's J (central-difference renders along the sensitivities, the anchor's moved jointly): Jᵀ W r against the
     exact autograd product (exact_jtwr, anchor included) for random pixel weights W."""
-    from stages.steps.adapt import GNWindow
+    from stages.windows import GNWindow
 
     cap, ws, _ = capture
     obj, backend = _objective(cap, ws)
@@ -328,3 +304,126 @@ def test_vision_sweep_is_lowest_at_the_truth_on_a_foreign_capture(tmp_path, rsl)
     res = sweep(load_capture(cap), MeshArtefact.load(ws / "mesh.h5"), grid, "vision", workspace=ws, poisson=0.45,
                 substeps=2)
     assert res.interior and abs(res.young_min / 1e5 - 1) < 0.05, (res.young_min, res.loss)
+
+
+# =========================================================================== the anchor's own material (E changes)
+def test_held_anchor_renders_at_its_own_material_and_gives_its_own_gradient(capture):
+    """With the anchor's material p_a held apart from the window's p (WindowObjective.anchor_p), the loss is the one
+    rendered with the Gaussians re-bound to x_f(θ(p_a)); dL/dp is the positions' part alone (central differences
+    of the window's simulation) and dL/dp_a = dL/dx_a · dx_a/dp_a (central differences of x_f(θ(p_a)))."""
+    cap, ws, _ = capture
+    obj, backend = _objective(cap, ws)
+    pr = (0.3, 0.49)
+    p = np.concatenate(params_from_theta(np.array([0.7 * E_TRUE]), np.array([0.42]), pr))
+    p_a = np.concatenate(params_from_theta(np.array([1.3 * E_TRUE]), np.array([0.40]), pr))
+    E, nu = theta_from_params(p[:1], p[1:], pr)
+    Ea, nua = theta_from_params(p_a[:1], p_a[1:], pr)
+    past = obj.win.forward([0, 1, 2], Ea, nua, None)
+    frames, before = [3, 4], past[1:3]
+    obj.anchor_p, obj.want_anchor_grad = p_a, True
+    _, losses, g, _ = obj(frames, p, before)
+    g_a = obj.last_anchor_g
+    xa = obj.anchor_positions(Ea, nua)
+    obj.obs.rebind(xa)
+    X = backend.decode(obj.win.forward(frames, E, nu, before))
+    ref, dX = obj.obs.loss(frames, X)
+    ga = obj.obs.anchor_grad
+    assert np.allclose(losses, ref, rtol=1e-6)
+    obj.obs.rebind(obj.anchor_positions(E, nu))  # anchored at the window's θ instead: another loss
+    assert not np.allclose(obj.obs.loss(frames, X)[0], ref, rtol=1e-3)
+    for i, h in ((0, 1e-5), (1, 1e-4)):
+        e = np.eye(2)[i] * h
+        Xs = [backend.decode(obj.win.forward(frames, *theta_from_params(q[:1], q[1:], pr), before))
+              for q in (p + e, p - e)]
+        held = np.sum(dX * (Xs[0] - Xs[1]) / (2 * h))
+        assert g[i] == pytest.approx(held, rel=1e-3, abs=1e-9), (i, g, held)
+        xas = [obj.anchor_positions(*theta_from_params(q[:1], q[1:], pr)) for q in (p_a + e, p_a - e)]
+        part = np.sum(ga * (xas[0] - xas[1]) / (2 * h))
+        assert abs(part) > 0
+        assert g_a[i] == pytest.approx(part, rel=1e-3, abs=1e-9), (i, g_a, part)
+
+
+def _own_model_capture(root: Path, step_at: int | None, frames: int = 10):
+    """A cable-pulled bar filmed by rsl's own model (P1 mesh, 1 step per frame, the random Gaussians re-bound to the
+    true frame 0 and rendered at the true states): E = E_TRUE, doubled from frame ``step_at`` on (None: constant).
+    Returns (capture, workspace)."""
+    from stages.sim.scene import frame_inputs, make_scene
+    from stages.steps import calibrate
+    from stages.steps.synth import SynthConfig, prepare_mesh, run
+    from stages.window_backends import FullSpace
+    from stages.observations import VisionObservation
+    from stages.windows import StartWindow
+    from PIL import Image
+
+    v, t = box_tets((6, 2, 2), (0.2, 0.04, 0.04))
+    path = root / "bar.mesh"
+    meshio.write(str(path), meshio.Mesh(v, [("tetra", t)]), file_format="medit")
+    cap = run(SynthConfig(mesh=path, out=root / "cap", scenario="cable", cameras=2, frames=frames, resolution=40,
+                          markers=8, calib_views=0, young=E_TRUE, start="equilibrium", size=0.2))
+    ws = root / "ws"
+    ws.mkdir()
+    calibrate.run(calibrate.CalibrateConfig(capture=cap, workspace=ws, from_json=str(cap / "cameras.json")))
+    capt = load_capture(cap)
+    pm = prepare_mesh(v, t, 0.2, "")
+    mesh = mesh_artefact(pm.vertices, pm.tets, capt.density, order=1)
+    mesh.save(ws / "mesh.h5")
+    _gaussians(mesh, 60).save(ws / "gaussians.h5")
+    controls = capt.controls()
+    scene = make_scene(mesh, controls, capt.material.model, capt.dt, capt.gravity)
+    backend = FullSpace(scene, lambda k: frame_inputs(scene, controls, k), "auto")
+    win = StartWindow(backend, capt.start)
+    nu = np.array([capt.material.poisson])
+    k = frames if step_at is None else step_at
+    X = win.forward(list(range(k)), np.array([E_TRUE]), nu, None)
+    if k < frames:
+        X = np.concatenate([X, win.forward(list(range(k, frames)), np.array([2 * E_TRUE]), nu, X[-2:])])
+    obs = VisionObservation(capt, ws, "", mesh, False)
+    obs.rebind(X[0])
+    for f in range(frames):
+        for cam, img in zip(obs.cameras, obs.loss_fn.render(X[f])):
+            out = np.clip(np.asarray(img, np.float64) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+            Image.fromarray(out).save(cap / "frames" / cam / f"{f:06d}.png")
+    return cap, ws
+
+
+def _adapt_own_model(cap: Path, ws: Path, anchor: str, change: float = 0.4):
+    """`rsl adapt`'s online Adam (window 2, from E_TRUE, ν held): (E per frame, the anchor's E per frame (NaN unless
+    estimated), the frame from which the anchor's material was its own unknown (None: never))."""
+    from stages.artefacts import AdaptArtefact
+    from stages.steps import adapt
+
+    adapt.run(adapt.AdaptConfig(capture=cap, workspace=ws, window=2, space="full", loss="vision", young_init=E_TRUE,
+                                fit_poisson=False, estimator="adam", vision_anchor=anchor, lr=0.1,
+                                anchor_change=change))
+    a = AdaptArtefact.load(ws / "adapt.h5")
+    Ea = np.asarray(a.extra.get("anchor_young") or [[np.nan]] * len(a.young))[:, 0]
+    return a.young[:, 0], Ea, a.extra.get("anchor_apart_from")
+
+
+def test_anchor_keeps_the_fit_frames_material_after_e_steps(tmp_path):
+    """Online Adam from images of a bar whose E doubles at frame 7 (rsl's own model films it, so E_true is the
+    answer).  --vision-anchor estimated: the window's E moves away from its earlier level, the anchor's material
+    becomes its own unknown started at that level and stays near the frame-0 E_TRUE while the window's E reaches
+    2 E_TRUE.  Anchored at the window's θ (simulated), the re-simulated frame 0 holds E back."""
+    cap, ws = _own_model_capture(tmp_path, step_at=7, frames=16)
+    E, Ea, apart = _adapt_own_model(cap, ws, "estimated")
+    E_sim, _, _ = _adapt_own_model(cap, ws, "simulated")
+    print("estimated", np.round(E / E_TRUE, 3), np.round(Ea / E_TRUE, 3), apart, "simulated", np.round(E_sim / E_TRUE, 3))
+    assert apart is not None and 8 <= apart <= 13, apart
+    assert np.array_equal(Ea[:apart], E[:apart])  # before: the window's own θ
+    assert np.all(np.abs(Ea[apart:] / E_TRUE - 1) < 0.25), Ea  # after: the old material (Adam's steps move it a bit)
+    assert abs(E[-1] / (2 * E_TRUE) - 1) < 0.15, E
+    assert abs(E_sim[-1] / (2 * E_TRUE) - 1) > 2 * abs(E[-1] / (2 * E_TRUE) - 1), (E, E_sim)
+
+
+def test_anchor_follows_the_window_while_e_is_constant(tmp_path):
+    """The same bar at constant E: no change is seen, the anchor's material is the window's θ at every frame, and E
+    stays near E_TRUE; with the anchor its own unknown from the start (--anchor-change 0) it stays with the window's."""
+    cap, ws = _own_model_capture(tmp_path, step_at=None, frames=16)
+    E, Ea, apart = _adapt_own_model(cap, ws, "estimated")
+    E0, Ea0, apart0 = _adapt_own_model(cap, ws, "estimated", change=0.0)
+    print("constant", np.round(E / E_TRUE, 3), apart, "own", np.round(E0 / E_TRUE, 3), np.round(Ea0 / E_TRUE, 3))
+    assert apart is None and np.array_equal(Ea, E)
+    assert np.all(np.abs(E / E_TRUE - 1) < 0.15), E
+    assert apart0 == 2
+    assert np.all(np.abs(np.log(Ea0 / E0)) < 0.2), (E0, Ea0)

@@ -1,4 +1,4 @@
-"""stages/window_model.py: the Protocols of adapt's window model, held to the classes of stages/steps/adapt.py
+"""stages/window_model.py: the Protocols of adapt's window model, held to the classes that implement them
 (every member present; every method takes the Protocol's positional parameters, its own extras defaulted)."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import inspect
 
 import pytest
 
-from stages.steps import adapt
+from stages import observations, window_backends, windows
 from stages.window_model import Observation, Window, WindowBackend
 
 
@@ -51,9 +51,9 @@ def missing_members(cls: type, protocol: type) -> list[str]:
 
 
 @pytest.mark.parametrize("cls, protocol", [
-    (adapt._FullSpace, WindowBackend), (adapt._ReducedSpace, WindowBackend),
-    (adapt.StartWindow, Window), (adapt.StaticWindow, Window),
-    (adapt._Markers, Observation), (adapt._Vision, Observation),
+    (window_backends.FullSpace, WindowBackend), (window_backends.ReducedSpace, WindowBackend),
+    (windows.StartWindow, Window), (windows.StaticWindow, Window),
+    (observations.MarkerObservation, Observation), (observations.VisionObservation, Observation),
 ], ids=lambda x: x.__name__)
 def test_adapt_classes_follow_the_protocols(cls, protocol):
     assert missing_members(cls, protocol) == []

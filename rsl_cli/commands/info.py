@@ -35,7 +35,7 @@ def register(app: typer.Typer) -> None:
 
 
 def _artefact_info(path: Path, as_json: bool, check: bool) -> None:
-    from stages.artefacts import ARTEFACT_TYPES, KIND_FILES, describe, load_any
+    from stages.artefacts import ARTEFACT_TYPES, KIND_FILES, describe, load_any  # h5py: loaded on use
 
     d = describe(path)
     attrs = d["attrs"]
@@ -137,7 +137,6 @@ def register_docs(app: typer.Typer) -> None:
             cmd = root.get_command(ctx, name)
             if cmd is None or cmd.hidden:
                 continue
-            sub = click.Context(cmd, info_name=name, parent=ctx)
             usage = " ".join(["[OPTIONS]"] + [p.name.upper() for p in cmd.params if p.param_type_name == "argument"])
             lines += [f"## rsl {name}", "", f"`rsl {name} {usage}`", "", " ".join((cmd.help or "").split()), ""]
             rows = []

@@ -26,7 +26,7 @@ def register(app: typer.Typer) -> None:
             None, "--set", help="A stage option, STAGE.OPTION=VALUE (repeatable), e.g. tetrahedralize.max_tets=2000."),
         dry_run: bool = typer.Option(False, "--dry-run", help="Only say which stages would run and why."),
     ) -> None:
-        from stages.pipeline import parse_sets, plan, run_pipeline
+        from stages.pipeline import parse_sets, plan, run_pipeline  # loaded on use (`rsl --help` stays fast)
 
         overrides = parse_sets(set_ or [])
         if dry_run:

@@ -21,7 +21,7 @@ def register(app: typer.Typer) -> None:
     @app.command("status", help="Which artefacts of a workspace exist, and which are stale (an input file "
                                 "changed or is gone).")
     def _cmd(workspace: Path = workspace_option()) -> None:
-        from stages.pipeline import STAGES
+        from stages.pipeline import STAGES  # loaded on use: `rsl --help` imports every command module
         from stages.workspace import STALE, artefact_state
 
         if not workspace.is_dir():

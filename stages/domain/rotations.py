@@ -13,6 +13,7 @@ import numpy as np
 
 
 def _R():
+    # scipy.spatial.transform takes ~0.5 s to import: loaded on first use (rsl status/info stay fast)
     from scipy.spatial.transform import Rotation
 
     return Rotation

@@ -26,7 +26,10 @@ API for the stages (adapt, fit-gaussians, export)::
 image.  ``rasterizer="fast"`` (numba, default), ``"tiled"`` or ``"dense"``
 (the pure-PyTorch twins) pick the implementation; with "fast", binding and projection
 run fused in numba too (``bind_project.py``; pinhole cameras, SH degree 0), else as
-torch ops.  Rendering runs in float32;
+torch ops (:func:`bound_geometry`).  A binding given directly by barycentrics β and rest covariance factors
+L (Σ₀ = L Lᵀ) — ``ImageLoss`` after a rebind — projects with ``bind_project.project_bound`` (or
+:func:`bound_geometry`) and shades with :meth:`BoundGaussians.shade`, so every render of the Gaussians is
+this module's image formation.  Rendering runs in float32;
 gradients flow back to ``positions`` in its own dtype.  ``g.double()`` renders in float64
 (for gradient checks).
 
@@ -189,28 +192,28 @@ class BoundGaussians(torch.nn.Module):
         """Rendering dtype: float32, or float64 after ``.double()`` (gradient checks)."""
         return self.dm_inv.dtype
 
+    @property
+    def shape(self) -> torch.Tensor:
+        """What the element map needs besides the positions: D_m⁻¹ (G, 3, 3) of the host tets, or for quadratic
+        tets their rest nodes (G, 10, 3)."""
+        return self.rest_nodes if self.quadratic else self.dm_inv
+
     def _corners(self, positions: torch.Tensor) -> torch.Tensor:
-        x = torch.as_tensor(positions).to(self.dtype)
-        # index_select: its backward is index_add_, much faster on the CPU than advanced indexing's
-        k = self.host_vertices.shape[1]
-        return x.index_select(0, self.host_vertices.reshape(-1)).reshape(-1, k, 3)  # (G, k, 3)
+        return element_nodes(torch.as_tensor(positions).to(self.dtype), self.host_vertices)
 
     def centres(self, positions: torch.Tensor, corners: torch.Tensor | None = None) -> torch.Tensor:
         """μ = Σₖ βₖ x_k over the host tet's corners (quadratic: Σ_a N_a(β) x_a over its nodes), (G, 3)."""
         p = self._corners(positions) if corners is None else corners
-        w = p2_shape(self.bary())[0] if self.quadratic else self.bary()
-        return (w[:, :, None] * p).sum(1)
+        return element_geometry(p, self.bary(), self.shape)[0]
 
     def deformation(self, positions: torch.Tensor, corners: torch.Tensor | None = None) -> torch.Tensor:
         """F = D_s D_m⁻¹ of each Gaussian's host tet (quadratic: D_x J⁻¹ at the Gaussian), (G, 3, 3)."""
         p = self._corners(positions) if corners is None else corners
-        if self.quadratic:
-            dN = p2_shape(self.bary())[1]  # (G, 10, 3)
-            dx = torch.einsum("gai,gaj->gij", p, dN)
-            J = torch.einsum("gai,gaj->gij", self.rest_nodes, dN)
-            return dx @ torch.linalg.inv(J)
-        ds = (p[:, 1:4] - p[:, 0:1]).transpose(1, 2)
-        return ds @ self.dm_inv
+        return element_geometry(p, self.bary(), self.shape)[1]
+
+    def rest_factors(self) -> torch.Tensor:
+        """L = R S with the rest covariance Σ₀ = L Lᵀ, (G, 3, 3) m."""
+        return quat_to_rotmat(self.rotations) * torch.exp(self.log_scales)[:, None, :]
 
     def rest_covariances(self) -> torch.Tensor:
         """R S² Rᵀ, (G, 3, 3) m²."""
@@ -220,9 +223,7 @@ class BoundGaussians(torch.nn.Module):
 
     def covariance_factors(self, positions: torch.Tensor, corners: torch.Tensor | None = None) -> torch.Tensor:
         """M = F R S with Σ = M Mᵀ, (G, 3, 3) m."""
-        F = self.deformation(positions, corners)
-        RS = quat_to_rotmat(self.rotations) * torch.exp(self.log_scales)[:, None, :]
-        return F @ RS
+        return self.deformation(positions, corners) @ self.rest_factors()
 
     def covariances(self, positions: torch.Tensor) -> torch.Tensor:
         """F R S² Rᵀ Fᵀ, (G, 3, 3) m²."""
@@ -243,24 +244,25 @@ class BoundGaussians(torch.nn.Module):
         """(means2d, conics, depths, visible, centres or None) in ``cam``.
 
         ``fused``: the numba twin (bind_project.py) where it applies (pinhole camera, SH degree 0);
-        otherwise the torch ops (centres, covariance_factors, project_gaussians).
+        otherwise the torch ops (:func:`bound_geometry`, project_gaussians).
         """
-        if fused and not cam.has_distortion and self.sh.shape[1] == 1:
-            x = torch.as_tensor(positions)
-            m2d, con, dep, vis = bind_project(x, self.bary_logits, self.log_scales, self.rotations,
-                                              self.host_vertices, self.rest_nodes if self.quadratic else self.dm_inv,
-                                              cam)
+        if fused and self.fusable(cam):
+            m2d, con, dep, vis = bind_project(torch.as_tensor(positions), self.bary_logits, self.log_scales,
+                                              self.rotations, self.host_vertices, self.shape, cam)
             return m2d, con, dep, vis, None
-        corners = self._corners(positions)
-        means = self.centres(positions, corners)
-        proj = project_gaussians(means, None, cam, factors=self.covariance_factors(positions, corners))
+        means, M = bound_geometry(positions, self.bary(), self.rest_factors(), self.host_vertices, self.shape,
+                                  self.dtype)
+        proj = project_gaussians(means, None, cam, factors=M)
         return proj.means2d, proj.conics, proj.depths, proj.visible, means
 
-    def render(self, positions: torch.Tensor, camera, background: torch.Tensor | np.ndarray | None = None,
-               rasterizer: str = "fast", fused_projection: bool = True) -> RenderOutput:
-        """Render the Gaussians at mesh positions (n, 3) into ``camera``; see the module docstring."""
-        cam = self.camera(camera)
-        m2d, con, dep, vis, means = self.project(positions, cam, fused_projection and rasterizer == "fast")
+    def fusable(self, cam: CameraTensors) -> bool:
+        """Whether the fused numba projection models ``cam`` and these Gaussians (pinhole, SH degree 0)."""
+        return not cam.has_distortion and self.sh.shape[1] == 1
+
+    def shade(self, m2d, con, dep, vis, means, cam: CameraTensors, background=None, rasterizer: str = "fast"
+              ) -> RenderOutput:
+        """Colours (SH at the view direction camera → centre, needing ``means`` for degree ≥ 1), opacities and
+        the rasterizer on projected Gaussians; image = premultiplied colour + (1 − A) · background."""
         dirs = None
         if self.sh.shape[1] >= 4:
             d = means - cam.centre
@@ -271,3 +273,43 @@ class BoundGaussians(torch.nn.Module):
         bg = self.background if background is None else torch.as_tensor(background, dtype=self.dtype)
         image = premult + (1 - alpha)[..., None] * bg
         return RenderOutput(image, alpha, premult)
+
+    def render(self, positions: torch.Tensor, camera, background: torch.Tensor | np.ndarray | None = None,
+               rasterizer: str = "fast", fused_projection: bool = True) -> RenderOutput:
+        """Render the Gaussians at mesh positions (n, 3) into ``camera``; see the module docstring."""
+        cam = self.camera(camera)
+        m2d, con, dep, vis, means = self.project(positions, cam, fused_projection and rasterizer == "fast")
+        return self.shade(m2d, con, dep, vis, means, cam, background, rasterizer)
+
+
+# =========================================================================== geometry of a binding (torch)
+def element_nodes(x: torch.Tensor, host_vertices: torch.Tensor) -> torch.Tensor:
+    """Node positions (G, k, 3) of each Gaussian's host element (host_vertices (G, k)) from x (n, 3)."""
+    # index_select: its backward is index_add_, much faster on the CPU than advanced indexing's
+    k = host_vertices.shape[1]
+    return x.index_select(0, host_vertices.reshape(-1)).reshape(-1, k, 3)
+
+
+def element_geometry(nodes: torch.Tensor, beta: torch.Tensor, shape: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(μ (G, 3), F (G, 3, 3)) at barycentric β (G, 4) in elements with nodes (G, k, 3): linear tets (k = 4,
+    ``shape`` = D_m⁻¹ (G, 3, 3)) μ = Σ βₖ pₖ, F = D_s D_m⁻¹; quadratic (k = 10, ``shape`` = rest nodes
+    (G, 10, 3)) μ = Σ_a N_a(β) x_a, F = D_x J⁻¹ (module docstring).  The torch twin of bind_project's
+    element geometry."""
+    if nodes.shape[1] == 10:
+        N, dN = p2_shape(beta)  # (G, 10), (G, 10, 3)
+        dx = torch.einsum("gai,gaj->gij", nodes, dN)
+        J = torch.einsum("gai,gaj->gij", shape, dN)
+        return (N[:, :, None] * nodes).sum(1), dx @ torch.linalg.inv(J)
+    ds = (nodes[:, 1:4] - nodes[:, 0:1]).transpose(1, 2)
+    return (beta[:, :, None] * nodes).sum(1), ds @ shape
+
+
+def bound_geometry(positions: torch.Tensor, beta: torch.Tensor, factors: torch.Tensor, host_vertices: torch.Tensor,
+                   shape: torch.Tensor, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """(centres μ (G, 3), covariance factors M = F L (G, 3, 3), Σ = M Mᵀ) in ``dtype`` of Gaussians at barycentric
+    β (G, 4) with rest-frame factors L (G, 3, 3) (Σ₀ = L Lᵀ), mesh positions (n, 3): torch ops, the twin of
+    bind_project.project_bound's geometry (see :func:`element_geometry` for host_vertices and shape)."""
+    nodes = element_nodes(torch.as_tensor(positions).to(dtype), host_vertices)
+    means, F = element_geometry(nodes, beta.to(dtype), shape.to(dtype))
+    return means, F @ factors.to(dtype)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from stages.domain.rotations import matrix_to_quat_wxyz
 from stages.errors import RslError
 
 
@@ -105,10 +106,8 @@ def read_ply(path: str | Path) -> dict[str, np.ndarray]:
 
 def covariance_to_scale_rotation(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World covariances (G,3,3) → (log std devs (G,3), quaternions wxyz (G,4)) with R S² Rᵀ = Σ."""
-    from stages.render.gaussians import rotmat_to_quat
-
     cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
     w, v = np.linalg.eigh(np.asarray(cov, np.float64))
     det = np.linalg.det(v)
     v[:, :, 0] *= np.sign(det)[:, None]  # proper rotation
-    return 0.5 * np.log(np.maximum(w, 1e-30)), rotmat_to_quat(v)
+    return 0.5 * np.log(np.maximum(w, 1e-30)), matrix_to_quat_wxyz(v)

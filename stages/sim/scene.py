@@ -20,6 +20,8 @@ hard handles x_t is an input (the target), so a_t = 0 there.
 """
 from __future__ import annotations
 
+import dataclasses
+import time
 import weakref
 from dataclasses import dataclass
 from typing import Callable, Sequence
@@ -28,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..domain.controls import apply_pose, select_handles
 from ..errors import RslError
 from . import potential as pot
 from .elements import GRADIENT, HESSIAN, point_terms
@@ -131,8 +134,6 @@ def make_scene(mesh, controls, material: str, dt: float, gravity, contact_stiffn
     """Scene from a MeshArtefact and Controls. Handles use the mesh's stored vertex sets when it has
     them, else the controls' selections. Default κ = 100 M max(|g|, 9.81) / d̂ (the whole weight on one
     vertex sinks d̂/100) and d̂ = 10⁻³ × the bounding-box diagonal."""
-    from stages.domain.controls import select_handles
-
     if material not in MODELS:
         raise RslError(f"unknown material model {material!r}; use one of {', '.join(MODELS)}.")
     rest = np.ascontiguousarray(mesh.vertices, np.float64)
@@ -176,8 +177,6 @@ def make_scene(mesh, controls, material: str, dt: float, gravity, contact_stiffn
 
 def frame_inputs(scene: Scene, controls, frame: int) -> FrameInputs:
     """Handle targets (rigidly moved rest positions), per-vertex load forces and obstacle poses at a frame."""
-    from stages.domain.controls import apply_pose
-
     targets = tuple(apply_pose(h.poses.at(frame), scene.rest[hs.ids])
                     for h, hs in zip(controls.handles, scene.handles))
     forces = np.zeros_like(scene.rest)
@@ -261,6 +260,15 @@ def _contact_energy_jit(x, x_prev, s, poses):
 
 def _vertex_terms(scene: Scene, inputs: FrameInputs, x, y, x_prev, want: int, project: bool):
     """Inertia, gravity, loads, handles and contact: energy (scalar), gradient (n, 3), blocks (n, 3, 3)."""
+    energy, grad, blocks = _inertia_terms(scene, inputs, x, y, want)
+    energy = _add_spring_handles(scene, inputs, x, energy, grad, blocks)
+    if scene.obstacles:
+        return _add_contact(scene, inputs, x, x_prev, energy, grad, blocks, want, project)
+    return energy, grad, blocks
+
+
+def _inertia_terms(scene: Scene, inputs: FrameInputs, x, y, want: int):
+    """½/Δt² ‖x − y‖²_M − (M g + f)·x: energy, gradient (n, 3) | None, blocks (n, 3, 3) | None."""
     m = scene.masses[:, None]
     inv_dt2 = 1.0 / scene.dt ** 2
     d = x - y
@@ -270,8 +278,14 @@ def _vertex_terms(scene: Scene, inputs: FrameInputs, x, y, x_prev, want: int, pr
     if want >= HESSIAN:
         blocks = np.zeros((scene.n_vertices, 3, 3))
         blocks += (inv_dt2 * scene.masses)[:, None, None] * np.eye(3)
+    return energy, grad, blocks
+
+
+def _add_spring_handles(scene: Scene, inputs: FrameInputs, x, energy: float, grad, blocks) -> float:
+    """Σ_h ½ k_h ‖x_h − x̄_h‖² over the spring handles: the energy plus it; grad and blocks (when not
+    None) gain its terms in place.  Hard handles have no term (their DOFs are held at the target)."""
     for h, target in zip(scene.handles, inputs.handle_targets):
-        if h.hard:  # Dirichlet: no energy term, its DOFs are held at the target
+        if h.hard:
             continue
         dh = x[h.ids] - target
         energy += 0.5 * h.stiffness * np.sum(dh * dh)
@@ -279,25 +293,32 @@ def _vertex_terms(scene: Scene, inputs: FrameInputs, x, y, x_prev, want: int, pr
             np.add.at(grad, h.ids, h.stiffness * dh)
         if blocks is not None:
             np.add.at(blocks, h.ids, h.stiffness * np.eye(3))
-    if scene.obstacles:
-        s = pot.scene_data(scene)
-        xp = x if (x_prev is None or scene.friction <= 0.0) else x_prev
-        if x_prev is None or scene.friction <= 0.0:
-            # no friction: zero the friction coefficient contribution by passing x_prev = x and μ_f = 0
-            s = _frictionless(s)
-        if want < GRADIENT:
-            return energy + float(_contact_energy_jit(x, xp, s, inputs.obstacle_poses)), None, None
-        e, g, hc = _contact_terms_jit(jnp.asarray(x), jnp.asarray(xp), s, jnp.asarray(inputs.obstacle_poses))
-        energy += float(jnp.sum(e))
-        if grad is not None:
-            grad = grad + np.asarray(g)
-        if blocks is not None:
-            hc = np.asarray(hc)
-            if project:
-                w, q = np.linalg.eigh(0.5 * (hc + hc.transpose(0, 2, 1)))
-                w = np.abs(w) if project == "abs" else np.maximum(w, 0.0)
-                hc = (q * w[:, None, :]) @ q.transpose(0, 2, 1)
-            blocks += hc
+    return energy
+
+
+def _add_contact(scene: Scene, inputs: FrameInputs, x, x_prev, energy: float, grad, blocks, want: int,
+                 project):
+    """Obstacle contact and friction (lagged at x_prev; none when x_prev is None or μ_f = 0) added to
+    (energy, grad, blocks); the per-vertex 3×3 blocks projected to PSD when ``project`` (True: clamp,
+    "abs": |λ|).  blocks is updated in place, grad replaced."""
+    s = pot.scene_data(scene)
+    xp = x if (x_prev is None or scene.friction <= 0.0) else x_prev
+    if x_prev is None or scene.friction <= 0.0:
+        # no friction: zero the friction coefficient contribution by passing x_prev = x and μ_f = 0
+        s = _frictionless(s)
+    if want < GRADIENT:
+        return energy + float(_contact_energy_jit(x, xp, s, inputs.obstacle_poses)), None, None
+    e, g, hc = _contact_terms_jit(jnp.asarray(x), jnp.asarray(xp), s, jnp.asarray(inputs.obstacle_poses))
+    energy += float(jnp.sum(e))
+    if grad is not None:
+        grad = grad + np.asarray(g)
+    if blocks is not None:
+        hc = np.asarray(hc)
+        if project:
+            w, q = np.linalg.eigh(0.5 * (hc + hc.transpose(0, 2, 1)))
+            w = np.abs(w) if project == "abs" else np.maximum(w, 0.0)
+            hc = (q * w[:, None, :]) @ q.transpose(0, 2, 1)
+        blocks += hc
     return energy, grad, blocks
 
 
@@ -430,6 +451,201 @@ def handle_reactions(scene: Scene, inputs: FrameInputs, x, x_prev, x_prev2, youn
 
 
 # =========================================================================== Newton
+class _Newton:
+    """Φ_t of one step (paper Eq. 1) and its derivatives at trial states, the linear solver, and the
+    seconds spent ("elements", "vertex", "assembly", "solve", "line_search") added to ``timings``."""
+
+    def __init__(self, scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, solver: str,
+                 kernels: str, timings: dict):
+        self.scene, self.inputs, self.kernels, self.tm = scene, inputs, kernels, timings
+        self.x_prev = x_prev
+        self.y = 2.0 * x_prev - x_prev2
+        self.mu, self.lam = _region_lame(scene, young, poisson)
+        self.cache = _cache(scene)
+        self.fixed = self.cache.fixed()[0]
+        self.lin = self.cache.solver(solver)
+        for k in ("elements", "assembly", "solve", "vertex", "line_search"):
+            timings.setdefault(k, 0.0)
+
+    def energy(self, x) -> float:
+        """Φ(x) (x (n, 3)), for the line search."""
+        t0 = time.perf_counter()
+        e = total_energy(self.scene, self.inputs, x, self.y, self.x_prev, self.mu, self.lam, self.kernels)
+        self.tm["line_search"] += time.perf_counter() - t0
+        return e
+
+    def gradient(self, x) -> tuple[float, np.ndarray]:
+        """(Φ(x), ∇Φ(x) (3n,)) with the gradient zeroed on the DOFs of hard handles."""
+        t0 = time.perf_counter()
+        ee, ge, _ = _elastic(self.scene, x, self.mu, self.lam, GRADIENT, True, self.kernels)
+        t1 = time.perf_counter()
+        ev, gv, _ = _vertex_terms(self.scene, self.inputs, x, self.y, self.x_prev, GRADIENT, True)
+        t2 = time.perf_counter()
+        grad = _scatter_grad(self.scene, ge) + gv.reshape(-1)
+        if self.fixed is not None:
+            grad[self.fixed] = 0.0  # Newton on the free DOFs
+        self.tm["elements"] += t1 - t0
+        self.tm["vertex"] += t2 - t1
+        return float(np.sum(ee)) + ev, grad
+
+    def hessian_data(self, x, how: str) -> np.ndarray:
+        """The CSR data of ∇²Φ(x) ("exact" | "projected": element eigenvalues clamped at 0 | "abs":
+        replaced by |λ|), hard-handle rows and columns replaced by a scaled identity."""
+        t0 = time.perf_counter()
+        proj = {"exact": False, "projected": True, "abs": "abs"}[how]
+        _, _, he = _elastic(self.scene, x, self.mu, self.lam, HESSIAN, proj, self.kernels)
+        t1 = time.perf_counter()
+        _, _, hv = _vertex_terms(self.scene, self.inputs, x, self.y, self.x_prev, HESSIAN, proj)
+        t2 = time.perf_counter()
+        data = _constrain(self.cache, self.cache.pattern.assemble(he, hv))
+        self.tm["elements"] += t1 - t0
+        self.tm["vertex"] += t2 - t1
+        self.tm["assembly"] += time.perf_counter() - t2
+        return data
+
+    def jacobians(self, x) -> np.ndarray:
+        """J = det F at every quadrature point of x (n, 3), and for quadratic tets also of every corner tet
+        (its signed volume over the rest one, what the window guard checks): a curved element can fold between
+        its four quadrature points, which the energy does not see."""
+        q = self.scene.quad
+        J = np.linalg.det(np.einsum("qai,qaj->qij", x[q.nodes], q.grad))
+        if self.scene.order == 1:
+            return J
+        c = self.scene.tets[:, :4]
+        ds = (x[c[:, 1:]] - x[c[:, :1]]).transpose(0, 2, 1)  # (m, 3, 3) columns x_k − x_0
+        return np.concatenate([J, np.linalg.det(ds @ self.scene.dm_inv)])
+
+    def factor(self, data: np.ndarray) -> None:
+        t0 = time.perf_counter()
+        try:
+            self.lin.factor(data)
+        finally:
+            self.tm["solve"] += time.perf_counter() - t0
+
+    def newton_step(self, grad: np.ndarray) -> np.ndarray:
+        """Δx = −H⁻¹ ∇Φ (3n,) with the last factorised H."""
+        t0 = time.perf_counter()
+        dx = -self.lin.solve(grad)
+        self.tm["solve"] += time.perf_counter() - t0
+        return dx
+
+
+# The Newton direction of each hessian_mode: (newton, x, ∇Φ, the mode of this iteration) -> (Δx (3n,), the
+# Hessian it used, which is the mode of the next iteration before "auto" returns to "exact").
+_FALLBACK = "abs"
+
+
+def _direction_exact(nt: _Newton, x, grad, mode: str) -> tuple[np.ndarray, str]:
+    """The exact Hessian; LU (this and the next iterations) once Cholesky finds it indefinite."""
+    data = nt.hessian_data(x, "exact")
+    try:
+        nt.factor(data)
+    except NotPositiveDefinite:
+        nt.lin = nt.cache.solver("splu")
+        nt.factor(data)
+    return nt.newton_step(grad), "exact"
+
+
+def _direction_projected(nt: _Newton, x, grad, mode: str) -> tuple[np.ndarray, str]:
+    """A projected Hessian (mode "projected" or "abs"); |λ| from here on if Cholesky refuses it."""
+    try:
+        nt.factor(nt.hessian_data(x, mode))
+    except NotPositiveDefinite:
+        mode = _FALLBACK
+        nt.factor(nt.hessian_data(x, mode))
+    return nt.newton_step(grad), mode
+
+
+def _direction_auto(nt: _Newton, x, grad, mode: str) -> tuple[np.ndarray, str]:
+    """The exact Hessian while it gives a descent direction (CHOLMOD: while the Cholesky factorisation
+    accepts it; LU cannot tell an indefinite matrix, a non-descent direction does), else the |λ| one."""
+    if mode != "exact":
+        return _direction_projected(nt, x, grad, mode)
+    try:
+        nt.factor(nt.hessian_data(x, "exact"))
+    except NotPositiveDefinite:
+        pass
+    else:
+        dx = nt.newton_step(grad)
+        if nt.lin.kind == "cholmod" or float(grad @ dx) < 0.0:
+            return dx, "exact"
+    nt.factor(nt.hessian_data(x, _FALLBACK))  # indefinite: this and the next steps projected
+    return nt.newton_step(grad), _FALLBACK
+
+
+_DIRECTIONS = {"exact": _direction_exact, "projected": _direction_projected, "abs": _direction_projected,
+               "auto": _direction_auto}
+
+
+def _line_search(nt: _Newton, x, dx, e_x: float, slope: float, gnorm: float, expand: bool, feasible: bool = False
+                 ) -> tuple[float, np.ndarray]:
+    """(α, x + α Δx) for x, Δx (n, 3), Φ(x) = e_x, slope = ∇Φ·Δx < 0, ‖∇Φ(x)‖ = gnorm.
+    ``feasible``: α ≤ α_max, the largest of 1, ½, ¼, … that inverts no element that x does not
+    (:func:`_feasible_step`; else α_max = 1).
+    Near the solution the predicted decrease −slope/2 drowns in the round-off of Φ (a sum of element
+    energies that cancel to strain² μV): there the full step is taken when it lowers ‖∇Φ‖.  Else Armijo
+    backtracking on Φ from α_max; α_max when no decrease is measurable.  ``expand``: a full step that Φ
+    accepts is doubled (up to 64×) while Φ keeps falling (:func:`_expand`)."""
+    a_max, ok = _feasible_step(nt, x, dx) if feasible else (1.0, None)
+    if a_max == 1.0 and -slope <= 1e-9 * (abs(e_x) + 1e-300):
+        x_new = x + dx
+        if float(np.linalg.norm(nt.gradient(x_new)[1])) < gnorm:
+            return 1.0, x_new
+    alpha, x_new, e_new = _backtrack(nt, x, dx, e_x, slope, a_max)
+    if alpha < 1e-10:  # no decrease measurable: near round-off, take the (feasible) Newton step
+        return a_max, x + dx if a_max == 1.0 else x + a_max * dx
+    if alpha == 1.0 and expand:
+        x_new = _expand(nt, x, dx, x_new, e_new, ok)
+    return alpha, x_new
+
+
+def _feasible_step(nt: _Newton, x, dx) -> tuple[float, np.ndarray]:
+    """(α_max, the quadrature points not inverted at x (Q,) bool): the largest α = 2⁻ᵏ ≤ 1 with det F > 0 at
+    x + α Δx on every point where det F(x) > 0.  Stable Neo-Hookean has no barrier at det F = 0, and Newton
+    from the extrapolated state y can otherwise step through it into an inverted local minimum of Φ (a
+    pushed dinosaur: Φ = −2.1e−4 J with 3 elements inverted, where the minimum reached from x_{t−1} has
+    Φ = −1.8e−2 J and none).  1 when no such α ≥ 1e−10 exists (the step is then not restricted)."""
+    ok = nt.jacobians(x) > 0.0
+    a = 1.0
+    while a >= 1e-10:
+        if np.all(nt.jacobians(x + a * dx)[ok] > 0.0):
+            return a, ok
+        a *= 0.5
+    return 1.0, ok
+
+
+def _backtrack(nt: _Newton, x, dx, e_x: float, slope: float, a_max: float = 1.0
+               ) -> tuple[float, np.ndarray, float]:
+    """Armijo on Φ: the first α = a_max, a_max/2, … (down to 1e-10) with Φ(x + α Δx) ≤ Φ(x) + 10⁻⁴ α slope
+    (+ round-off); (α, x + α Δx, Φ there)."""
+    tol_round = 1e-12 * (abs(e_x) + 1e-300)
+    a = a_max
+    while True:
+        z = x + a * dx
+        e = nt.energy(z)
+        if (np.isfinite(e) and e <= e_x + 1e-4 * a * slope + tol_round) or a < 1e-10:
+            return a, z, e
+        a *= 0.5
+
+
+def _expand(nt: _Newton, x, dx, x_full, e_full: float, ok: np.ndarray | None) -> np.ndarray:
+    """x + 2^k Δx for the largest k ≤ 6 while Φ keeps falling from Φ(x_full = x + Δx) = e_full (and, given ``ok``,
+    no point of it — those not inverted at x — inverts): a full projected step can be too short along the
+    directions whose curvature the projection flipped."""
+    e_best, x_best = e_full, x_full
+    a = 2.0
+    while a <= 64.0:
+        z = x + a * dx
+        if ok is not None and not np.all(nt.jacobians(z)[ok] > 0.0):
+            break
+        e = nt.energy(z)
+        if not (np.isfinite(e) and e < e_best):
+            break
+        e_best, x_best = e, z
+        a *= 2.0
+    return x_best
+
+
 def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_init=None,
          solver: str = "auto", *, rtol: float = 1e-8, xtol: float = 1e-12, max_iterations: int = 100,
          frame: int | None = None,
@@ -452,154 +668,65 @@ def step(scene: Scene, inputs: FrameInputs, young, poisson, x_prev, x_prev2, x_i
     its clamped feet: 350 instead of 484 iterations over two sequences, worst frame 17 instead of 46
     (not every frame gains: one 5K-vertex dinosaur frame takes 59 with |λ|, 21 with clamping).
     info["fallback"] counts the projected iterations of "auto".
-    ``timings`` (optional dict) accumulates seconds spent in "elements", "assembly", "solve", "vertex".
+    A solution with elements inverted (det F ≤ 0 at a quadrature point) that are upright in x_{t−1} is rejected:
+    stable Neo-Hookean has no barrier at det F = 0, and a full Newton step from y can cross it into an inverted
+    local minimum of Φ (seen on a pushed P2 dinosaur); the step is then solved again with every line-search step
+    kept upright (:func:`_feasible_step`), info["inversion_retry"] = True, iterations counting both solves.
+    ``timings`` (optional dict) accumulates seconds spent in "elements", "assembly", "solve", "vertex",
+    "line_search".
     """
-    import time
-
     where = f"frame {frame}" if frame is not None else "this step"
-    x_prev = np.asarray(x_prev, np.float64)
-    x_prev2 = np.asarray(x_prev2, np.float64)
-    y = 2.0 * x_prev - x_prev2
-    x = apply_hard_targets(scene, inputs, y if x_init is None else x_init)
-    mu, lam = _region_lame(scene, young, poisson)
-    cache = _cache(scene)
-    fixed = cache.fixed()[0]
-    lin = cache.solver(solver)
-    tm = timings if timings is not None else {}
-    for k in ("elements", "assembly", "solve", "vertex", "line_search"):
-        tm.setdefault(k, 0.0)
+    nt = _Newton(scene, inputs, young, poisson, np.asarray(x_prev, np.float64), np.asarray(x_prev2, np.float64),
+                 solver, kernels, timings if timings is not None else {})
+    if hessian_mode not in _DIRECTIONS:
+        raise ValueError(f"hessian_mode must be auto, projected, abs or exact, not {hessian_mode!r}")
+    x0 = apply_hard_targets(scene, inputs, nt.y if x_init is None else x_init)
+    x, info = _solve(nt, x0, hessian_mode, rtol, xtol, max_iterations, where, feasible=False)
+    upright = nt.jacobians(nt.x_prev) > 0.0
+    if np.any(nt.jacobians(x)[upright] <= 0.0):
+        # Newton stepped through det F = 0 (stable Neo-Hookean has no barrier there) into a minimum with elements
+        # inverted that x_{t−1} has upright: solve again with the line search kept on the upright side
+        x, again = _solve(nt, x0, hessian_mode, rtol, xtol, max_iterations, where, feasible=True)
+        info = {**again, "iterations": info["iterations"] + again["iterations"], "inversion_retry": True}
+    return x, info
+
+
+def _solve(nt: _Newton, x, hessian_mode: str, rtol: float, xtol: float, max_iterations: int, where: str,
+           feasible: bool) -> tuple[np.ndarray, dict]:
+    """Newton's iteration of :func:`step` from x (n, 3); ``feasible``: every step keeps det F > 0 where it is
+    (:func:`_feasible_step`)."""
+    scene, inputs = nt.scene, nt.inputs
+    direction, auto = _DIRECTIONS[hessian_mode], hessian_mode == "auto"
     force_scale = np.linalg.norm(scene.masses[:, None] * scene.gravity) + np.linalg.norm(inputs.load_forces)
-
-    def energy_at(z):
-        t0 = time.perf_counter()
-        e = total_energy(scene, inputs, z, y, x_prev, mu, lam, kernels)
-        tm["line_search"] += time.perf_counter() - t0
-        return e
-
+    size = float(np.linalg.norm(scene.rest.max(0) - scene.rest.min(0)))
+    mode = "exact" if hessian_mode in ("exact", "auto") else hessian_mode  # the Hessian of the next step
     scale = None
     residual = np.inf
     history: list[float] = []
-    size = float(np.linalg.norm(scene.rest.max(0) - scene.rest.min(0)))
-    e_x = None
-    if hessian_mode not in ("auto", "projected", "exact", "abs"):
-        raise ValueError(f"hessian_mode must be auto, projected, abs or exact, not {hessian_mode!r}")
-    # "auto": the exact Hessian while it gives a descent direction (CHOLMOD: while the Cholesky
-    # factorisation accepts it), else the |λ|-projected one until a projected step is taken in full
-    fallback = "abs"
-    mode = "exact" if hessian_mode in ("exact", "auto") else hessian_mode  # the Hessian of the next step
     n_fallback = 0
     for it in range(max_iterations + 1):
-        t0 = time.perf_counter()
-        ee, ge, _ = _elastic(scene, x, mu, lam, GRADIENT, True, kernels)
-        t1 = time.perf_counter()
-        ev, gv, _ = _vertex_terms(scene, inputs, x, y, x_prev, GRADIENT, True)
-        t2 = time.perf_counter()
-        grad = _scatter_grad(scene, ge) + gv.reshape(-1)
-        if fixed is not None:
-            grad[fixed] = 0.0  # Newton on the free DOFs
-        e_x = float(np.sum(ee)) + ev
+        e_x, grad = nt.gradient(x)
         gnorm = float(np.linalg.norm(grad))
         if not np.isfinite(gnorm):
             raise SimulationError(f"Newton met a non-finite residual at {where} (iteration {it}).")
         if scale is None:
             scale = max(gnorm + force_scale, 1e-300)
         residual = gnorm / scale
-        tm["elements"] += t1 - t0
-        tm["vertex"] += t2 - t1
         if residual <= rtol or gnorm == 0.0:
             history.append(residual)
             return x, {"iterations": it, "residual": residual, "history": history, "fallback": n_fallback}
         if it == max_iterations:
             break
-
-        def assemble(how):  # the Hessian's CSR data (how: "exact" | "projected" | "abs")
-            t0 = time.perf_counter()
-            proj = {"exact": False, "projected": True, "abs": "abs"}[how]
-            _, _, he = _elastic(scene, x, mu, lam, HESSIAN, proj, kernels)
-            t1 = time.perf_counter()
-            _, _, hv = _vertex_terms(scene, inputs, x, y, x_prev, HESSIAN, proj)
-            t2 = time.perf_counter()
-            data = _constrain(cache, cache.pattern.assemble(he, hv))
-            t3 = time.perf_counter()
-            tm["elements"] += t1 - t0
-            tm["vertex"] += t2 - t1
-            tm["assembly"] += t3 - t2
-            return data
-
-        def factor(data):
-            t0 = time.perf_counter()
-            try:
-                lin.factor(data)
-            finally:
-                tm["solve"] += time.perf_counter() - t0
-
-        used = mode
-        data = assemble(mode)
-        try:
-            factor(data)
-        except NotPositiveDefinite:
-            if hessian_mode == "exact":
-                lin = cache.solver("splu")
-                factor(data)
-            else:  # indefinite: this and the next steps with the projected Hessian
-                used = mode = fallback
-                factor(assemble(mode))
-        t3 = time.perf_counter()
-        dx = -lin.solve(grad)
-        tm["solve"] += time.perf_counter() - t3
-        if used == "exact" and hessian_mode == "auto" and lin.kind != "cholmod" and not float(grad @ dx) < 0.0:
-            # LU does not tell an indefinite matrix; a non-descent direction does: project from here on
-            used = mode = fallback
-            factor(assemble(mode))
-            t3 = time.perf_counter()
-            dx = -lin.solve(grad)
-            tm["solve"] += time.perf_counter() - t3
-        n_fallback += used != "exact" and hessian_mode == "auto"
+        dx, mode = direction(nt, x, grad, mode)
+        projected = mode != "exact"
+        n_fallback += projected and auto
         slope = float(grad @ dx)
         if slope >= 0.0:  # cannot happen for a positive definite H; guard against round-off
             dx, slope = -grad, -gnorm ** 2
         dx = dx.reshape(-1, 3)
-        tol_round = 1e-12 * (abs(e_x) + 1e-300)
-
-        def backtrack():  # Armijo on Φ: (alpha, x_new, Φ(x_new))
-            a = 1.0
-            while True:
-                z = x + a * dx
-                e = energy_at(z)
-                if (np.isfinite(e) and e <= e_x + 1e-4 * a * slope + tol_round) or a < 1e-10:
-                    return a, z, e
-                a *= 0.5
-
-        # near the solution the predicted decrease −slope/2 drowns in the round-off of Φ (a sum of
-        # element energies that cancel to strain² μV): there the full step is taken when it lowers ‖∇Φ‖
-        small = -slope <= 1e-9 * (abs(e_x) + 1e-300)
-        if small:
-            alpha, x_new = 1.0, x + dx
-            _, g_new, _ = _elastic(scene, x_new, mu, lam, GRADIENT, True, kernels)
-            _, gv_new, _ = _vertex_terms(scene, inputs, x_new, y, x_prev, GRADIENT, True)
-            g_new = _scatter_grad(scene, g_new) + gv_new.reshape(-1)
-            if fixed is not None:
-                g_new[fixed] = 0.0
-            small = float(np.linalg.norm(g_new)) < gnorm
-        if not small:
-            alpha, x_new, e_new = backtrack()
-        if alpha < 1e-10:  # no decrease measurable: near round-off, take the Newton step
-            alpha = 1.0
-            x_new = x + dx
-        elif alpha == 1.0 and not small and used != "exact" and hessian_mode == "auto":
-            # a full projected step that the energy accepts can be too short along the directions whose
-            # curvature the projection flipped: go on doubling it while the energy keeps falling
-            e_best = e_new
-            a2 = 2.0
-            while a2 <= 64.0:
-                e2 = energy_at(x + a2 * dx)
-                if not (np.isfinite(e2) and e2 < e_best):
-                    break
-                e_best, x_new = e2, x + a2 * dx
-                a2 *= 2.0
-        x = x_new
+        alpha, x = _line_search(nt, x, dx, e_x, slope, gnorm, expand=auto and projected, feasible=feasible)
         history.append(residual)
-        if hessian_mode == "auto" and used != "exact" and alpha == 1.0:
+        if auto and projected and alpha == 1.0:
             mode = "exact"  # a full projected step was taken: try the exact Hessian again (quadratic basin)
         if alpha == 1.0 and float(np.abs(dx).max()) <= xtol * size:
             # the full Newton step moved no vertex by more than xtol × the object size: x is resolved
@@ -621,8 +748,6 @@ def substep_scene(scene: Scene, substeps: int) -> Scene:
         return scene
     by_s = _SUBSTEP.setdefault(scene, {})
     if substeps not in by_s:
-        import dataclasses
-
         by_s[substeps] = dataclasses.replace(scene, dt=scene.dt / substeps)
     return by_s[substeps]
 

@@ -35,6 +35,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
+import cv2
 import numpy as np
 
 from stages.artefacts import KIND_FILES, Camera, CamerasArtefact, Provenance
@@ -278,8 +279,6 @@ def _board(cap: Capture, config: CalibrateConfig, reporter: Reporter, ws: Path
 
 def _diagnostics(folder: Path, board, images, dets, intr, ext) -> None:
     """WS/calibrate/CAM.png: up to four views, detected corners (green) and reprojections (red)."""
-    import cv2
-
     folder.mkdir(parents=True, exist_ok=True)
     for c, vs in images.items():
         obs = {o.view: o for o in ext.observations if o.camera == c}

@@ -30,12 +30,16 @@ from typing import Literal
 
 import numpy as np
 
-from stages.artefacts import KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, MeshArtefact, Provenance, _jsonable
+from stages.adapt_loss import ImageLoss
+from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, CamerasArtefact, GaussiansArtefact,
+                              MasksArtefact, MeshArtefact, Provenance, _jsonable, check_same_mesh)
 from stages.capture import load_capture, read_truth
 from stages.errors import RslError
-from stages.artefacts import check_same_mesh
+from stages.forces import FORCE_SUBSTEPS
+from stages.observations import render_backgrounds, target_image
 from stages.progress import Reporter, SilentReporter
 from stages.results import gaussian_anchor
+from stages.sweep import sweep
 from stages.workspace import write_text_atomic
 
 _QUAD = np.array([[2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])  # (3, 3) barycentrics
@@ -69,8 +73,8 @@ class EvaluateConfig:
     """Frames of the sweep, 'A:B' (B excluded); empty = the whole sequence."""
     sweep_substeps: int = 1
     """Implicit-Euler steps per frame in the sweep's simulation."""
-    force_substeps: int = 0
-    """Implicit-Euler steps per frame of the full-space replay the forces are computed on; 0 = adapt's --substeps."""
+    force_substeps: int = FORCE_SUBSTEPS
+    """Implicit-Euler steps per frame of the full-space replay the forces are computed on; 0 = adapt's --substeps (docs/results/forces.md)."""
 
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -84,7 +88,7 @@ def surface_samples(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray
 
 def point_surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Distance (P,) from each point to the triangle surface (vertices (n, 3), faces (F, 3))."""
-    import open3d as o3d
+    import open3d as o3d  # ~1 s to import: only when distances are measured
 
     scene = o3d.t.geometry.RaycastingScene()
     centre = vertices.mean(0)  # centre for float32 accuracy
@@ -202,7 +206,7 @@ def _adapt_errors(config, ws, capture, truth, adapt_path, mesh_path, reporter) -
 def _forces(config, capture, adapt, mesh, reporter) -> dict | None:
     """Force errors against truth/forces.csv (stages.forces.force_errors), None without the file or --forces."""
     from stages.capture import read_forces_csv
-    from stages.forces import adapted_forces, force_errors, force_table, replayable
+    from stages.forces import adapted_forces, force_errors, force_table, replay_substeps, replayable
     from stages.results import compute_stress, material_setting
     from stages.sim.scene import make_scene
 
@@ -215,10 +219,10 @@ def _forces(config, capture, adapt, mesh, reporter) -> dict | None:
     controls = capture.controls()
     model, dt, gravity = material_setting(capture, adapt)
     scene = make_scene(mesh, controls, model, dt, gravity)
-    substeps = config.force_substeps or int(adapt.extra.get("substeps", 1) or 1)
+    substeps = replay_substeps(config.force_substeps, adapt)
     if not (adapt.mode == "online" and replayable(adapt.frames)):
-        reporter.warn(f"adapt.h5 is not an online run from frame 0: forces from its recorded positions (frame-level "
-                      f"differences), not from a replay; see docs/capture.md.")
+        reporter.warn("adapt.h5 is not an online run from frame 0: forces from its recorded positions (frame-level "
+                      "differences), not from a replay; see docs/capture.md.")
     rows, _, source = adapted_forces(scene, controls, adapt, capture.start, substeps,
                                      lambda: compute_stress(adapt, mesh, model, reporter, sigma=False).forces,
                                      reporter=reporter)
@@ -255,8 +259,6 @@ def _sweep_frames(spec: str, capture) -> tuple[int, int] | None:
 def _sweep(config, ws, capture, truth, mesh, reporter) -> dict:
     """The loss over a grid of E (stages.sweep.sweep): every region's E scaled with region 0's, ν at the truth's
     (per region, at the first swept frame); the grid around E_ref = the truth's E of region 0 there."""
-    from stages.sweep import sweep
-
     frames = _sweep_frames(config.sweep_frames, capture)
     f0 = frames[0] if frames else 0
     if f0 >= len(truth.young):
@@ -321,9 +323,6 @@ def _psnr(config, ws, capture, adapt, mesh, reporter) -> tuple[list[float], list
     gpath, cpath = ws / KIND_FILES["gaussians"], ws / KIND_FILES["cameras"]
     if config.psnr_frames <= 0 or not gpath.exists() or not cpath.exists():
         return [], []
-    from stages.adapt_loss import ImageLoss
-    from stages.artefacts import CamerasArtefact, GaussiansArtefact, MasksArtefact
-
     cams = CamerasArtefact.load(cpath)
     names = [c.name for c in cams.cameras if c.name in capture.camera_names]
     if not names:
@@ -331,8 +330,7 @@ def _psnr(config, ws, capture, adapt, mesh, reporter) -> tuple[list[float], list
     masks_path = ws / KIND_FILES["masks"]
     masks = MasksArtefact.load(masks_path).masks if masks_path.exists() else None
     renderer = ImageLoss(GaussiansArtefact.load(gpath), mesh, [cams.by_name(c) for c in names])
-    plates = [None if masks is not None and c in masks else capture.background(c) for c in names]
-    renderer.set_backgrounds([None if p is None else p.astype(np.float32) / 255.0 for p in plates])
+    renderer.set_backgrounds(render_backgrounds(capture, names, masks))  # as rsl adapt composites them
     anchor = gaussian_anchor(renderer, adapt, gpath)  # the Gaussians follow the mesh as rsl adapt made them
     pick = np.unique(np.linspace(0, len(adapt.frames) - 1, min(config.psnr_frames, len(adapt.frames))).round()
                      .astype(int))
@@ -343,10 +341,7 @@ def _psnr(config, ws, capture, adapt, mesh, reporter) -> tuple[list[float], list
             imgs = renderer.render(adapt.positions[i] - anchor)
             mse = []
             for c, img in zip(names, imgs):
-                ref = capture.frame_source(c).read(t).astype(np.float32) / 255.0
-                if masks is not None and c in masks and t < len(masks[c]):
-                    m = masks[c][t][..., None].astype(np.float32)
-                    ref = ref * m + renderer.background[None, None, :] * (1 - m)
+                ref = target_image(capture.frame_source(c).read(t), masks, c, t, renderer.background)
                 mse.append(float(np.mean((img - ref) ** 2)))
             out.append(float(10 * np.log10(1.0 / max(np.mean(mse), 1e-12))))
             task.advance(1)

@@ -39,6 +39,7 @@ from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, MeshArte
                               read_provenance)
 from stages.capture import FORCE_HEADER, Capture, CaptureError, Controls, load_capture, load_controls
 from stages.errors import RslError
+from stages.forces import FORCE_SUBSTEPS
 from stages.artefacts import check_same_mesh
 from stages.progress import Reporter, SilentReporter
 from stages.results import StressField, material_setting, previous_states, recorded_capture
@@ -95,8 +96,8 @@ class ExportConfig:
     """Width and height of the orbit renders, px."""
     video_fps: float = 0.0
     """Frame rate of the MP4s; 0 = the capture's fps."""
-    force_substeps: int = 0
-    """Implicit-Euler steps per frame of the full-space replay the forces are computed on; 0 = adapt's --substeps."""
+    force_substeps: int = FORCE_SUBSTEPS
+    """Implicit-Euler steps per frame of the full-space replay the forces are computed on; 0 = adapt's --substeps (docs/results/forces.md)."""
 
 
 # =========================================================================== small file helpers
@@ -295,7 +296,7 @@ def compute_forces(seq: Sequence, field: StressField, config: ExportConfig, repo
     """Per frame, per handle and per obstacle: the internal-force sums over its vertices and the force it
     exerts (stages.forces.trajectory_forces, shared with rsl evaluate), with the controls the trajectory was
     made with; and the per-vertex force (T, n, 3) N that handles and obstacles apply."""
-    from stages.forces import adapted_forces, trajectory_forces
+    from stages.forces import adapted_forces, replay_substeps, trajectory_forces
     from stages.sim.scene import make_scene
 
     controls = seq.controls
@@ -307,7 +308,7 @@ def compute_forces(seq: Sequence, field: StressField, config: ExportConfig, repo
     if config.source in ("adapt", "partial"):
         # an online trajectory is spliced from windows (and reduced-space states): the forces of its θ(t)
         # replayed in the full space, as truth/forces.csv defines them (stages.forces module doc)
-        substeps = config.force_substeps or int(seq.adapt.extra.get("substeps", 1) or 1)
+        substeps = replay_substeps(config.force_substeps, seq.adapt)
         start = seq.capture.start if seq.capture is not None else None
         rows, applied, _ = adapted_forces(scene, controls, seq.adapt, start, substeps, lambda: field.forces,
                                           config.contact_distance, reporter)

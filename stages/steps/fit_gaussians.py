@@ -40,10 +40,12 @@ from stages.artefacts import KIND_FILES, CamerasArtefact, GaussiansArtefact, Mas
 from stages.capture import load_capture, write_image
 from stages.workspace import prepare_workspace
 from stages.errors import RslError
+from stages.occluders import has_occluders, ignore_mask
 from stages.progress import Reporter, SilentReporter
 from stages.render import gaussians as gauss
 from stages.render import loss as rloss
 from stages.render import projection as proj
+from stages.sim.quadrature import point_map
 
 
 @dataclass(frozen=True)
@@ -122,8 +124,6 @@ def rest_centres(mesh: MeshArtefact, host: np.ndarray, bary: np.ndarray, positio
     """Positions (g, 3) m of points of host elements (g,) at barycentric (corner) coordinates (g, 4) with the mesh
     at ``positions`` (n, 3) (default its rest shape X): Σ_a N_a(β) x_a (= Σ β_k x_k for linear tets; the
     quadratic map for quadratic ones)."""
-    from stages.sim.quadrature import point_map
-
     x = mesh.vertices if positions is None else np.asarray(positions, np.float64)
     N, _, _ = point_map(mesh.vertices, mesh.tets, host, bary)
     return np.einsum("gk,gkd->gd", N, x[mesh.tets[host]])
@@ -136,7 +136,7 @@ def fit_pose(cap, mesh: MeshArtefact, frame: int) -> tuple[np.ndarray, dict]:
     implicit-Euler step per frame (stages.sim.static.simulate_from_start), as rsl adapt simulates.  An object
     that nothing holds (no handle, no obstacle) has no static equilibrium: it is posed from its rest shape
     (description "start" = "rest", "declared_start" = "equilibrium")."""
-    from stages.sim.scene import SimulationError, frame_inputs, make_scene
+    from stages.sim.scene import SimulationError, frame_inputs, make_scene  # jax + numba: loaded on use
     from stages.sim.static import simulate_from_start, start_state
 
     controls = cap.controls()
@@ -296,8 +296,6 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
     positions = torch.as_tensor(x_fit, dtype=torch.float32)  # the Gaussians are rendered (and fitted) at x_f
 
     # occluders (controls.json visual, stages/occluders.py): their pixels at the fit frame weigh nothing
-    from stages.occluders import has_occluders, ignore_mask
-
     controls = cap.controls()
     ign_t = [torch.as_tensor(ignore_mask(controls, config.frame, c)) if has_occluders(controls) else None
              for c in cams]

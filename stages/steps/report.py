@@ -35,7 +35,7 @@ from stages.artefacts import (KIND_FILES, AdaptArtefact, ArtefactError, CamerasA
                               MeshArtefact, describe, read_provenance)
 from stages.capture import Capture, CaptureError, load_capture, read_forces_csv, read_material_csv
 from stages.errors import RslError
-from stages.forces import adapted_forces
+from stages.forces import FORCE_SUBSTEPS, adapted_forces, replay_substeps
 from stages.progress import Reporter, SilentReporter
 from stages.results import compute_stress, gaussian_anchor, material_setting, recorded_capture
 from stages.workspace import artefact_state, write_text_atomic
@@ -401,14 +401,14 @@ def _read_force_csv(path: Path) -> dict:
 
 def _compute_forces(ctx: Context) -> dict:
     """The same forces as ``rsl export --forces`` (stages.forces.adapted_forces) for every adapt.h5 frame."""
-    from stages.sim.scene import make_scene
+    from stages.sim.scene import make_scene  # numba kernels: loaded on use
 
     ad, mesh = ctx.adapt, ctx.mesh
     controls = ctx.capture.controls()
     if not controls.handles and not controls.obstacles:
         raise SectionMissing(f"{ctx.capture.controls_path}: no handle and no obstacle.")
     scene = make_scene(mesh, controls, ctx.model, ctx.dt, ctx.gravity)
-    substeps = int(ad.extra.get("substeps", 1) or 1)
+    substeps = replay_substeps(FORCE_SUBSTEPS, ad)  # rsl export --forces' default replay
     rows, _, _ = adapted_forces(scene, controls, ad, ctx.capture.start, substeps, ctx.internal_forces,
                                 ctx.config.contact_distance)
     out: dict = {}

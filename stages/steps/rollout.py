@@ -75,7 +75,7 @@ def material_schedule(adapt: AdaptArtefact, mode: str, frames: int) -> tuple[np.
 
 def run(config: RolloutConfig, reporter: Reporter = SilentReporter()) -> Path:
     """Simulate the new controls with the adapted material; writes WS/rollout.h5 and returns its path."""
-    from stages.sim.scene import frame_inputs, make_scene, simulate
+    from stages.sim.scene import frame_inputs, make_scene, simulate  # numba kernels: loaded on use
 
     ws = Path(config.workspace)
     if config.material not in MATERIALS:

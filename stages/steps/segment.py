@@ -7,7 +7,11 @@ Methods (stages/vision/segmentation.py):
 - ``grabcut``: GrabCut seeded in frame 0 by the object's frame-0 state projected with WS/cameras.h5
   (the tet mesh of WS/mesh.h5, or the capture's own mesh; in its static equilibrium under gravity and
   the frame-0 controls when capture.toml says ``start = "equilibrium"`` and a tet mesh is at hand, else
-  at rest), then by the previous frame's mask (propagation).
+  at rest), then by the previous frame's mask (propagation).  An equilibrium depends on capture.toml's guessed E,
+  and a seed of that one shape pulls the masks toward it (a silhouette fit of E then finds the guess back): the
+  frame-0 seed spans the equilibria for E from guess ÷ ``seed_range`` to × ``seed_range`` instead — sure
+  object where every one covers, sure background where none reaches, and between them each pixel starts on
+  the side whose colours (of the sure regions) it resembles.
 - ``sam2``: SAM 2 with a user-supplied checkpoint (optional ``sam2`` package), prompted like
   grabcut.
 - ``lab``: the lab's own masks CAPTURE/masks/CAM/000000.png … (object > 127), read as they are.
@@ -47,6 +51,7 @@ from stages.vision.sam2_model import build_predictor, check_state_dict, sam2_mas
 from stages.vision.segmentation import backdrop_uniformity, chroma_key, clean_mask, iou, mesh_silhouette
 
 METHODS = ("auto", "background", "chroma", "grabcut", "sam2", "lab")
+SPAN_STEPS = 8  # shapes projected between two consecutive equilibria of the GrabCut seed's span
 UNIFORM_SPREAD = 6.0
 """auto: a frame border whose (Cr, Cb) spread (95th percentile, 0–255 units) is below this is one colour."""
 CHROMA_AGREE = 0.6
@@ -92,6 +97,11 @@ class SegmentConfig:
     """Seed of OpenCV's random generator (GrabCut's GMM initialisation)."""
     occluder_margin_px: int = 2
     """Occluders (controls.json visual): grow the pixels they cover by this many pixels before leaving them out."""
+    seed_range: float = 3.0
+    """GrabCut seeded by a frame-0 equilibrium (which depends on capture.toml's guessed E): the seed spans the
+    equilibria for E from the guess ÷ this to × this — sure object only where all of them cover, sure background
+    only where none reaches, the colours decide in between — so that the masks do not inherit the guess; 1 = the
+    guess's shape alone."""
 
 
 def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
@@ -114,9 +124,12 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
     predictor = _sam2_predictor(config) if method == "sam2" else None
     prepare_workspace(ws)  # writable? (before the compute) and no stale temp files of a killed run
     inputs: list[Path] = cap.frame_inputs(backgrounds=True)  # every frame read (a hash per camera)
-    priors = None
+    priors, spans = None, {}
     if method in ("grabcut", "sam2"):
-        priors, inputs, seeded = _mesh_priors(cap, ws, reporter)
+        if config.seed_range < 1:
+            raise RslError(f"--seed-range must be 1 or more, found {config.seed_range}.")
+        priors, inputs, seeded, spans = _mesh_priors(cap, ws, reporter, config.seed_range if method == "grabcut"
+                                                     else 1.0)
         reporter.info(f"segment: {method} seeded by {seeded} projected with cameras.h5")
     key = _parse_color(config.key_color) if config.key_color else None
     occluding, cam_objs = _occluder_cameras(cap, ws, method, reporter)
@@ -169,6 +182,9 @@ def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
                                                   shadow_low=config.shadow_low, shadow_high=config.shadow_high)
                 elif method == "chroma":
                     m = seg.chroma_key(frame, key, config.threshold)
+                elif method == "grabcut" and i == 0 and spans.get(cam) is not None:
+                    inner, outer = spans[cam]
+                    m = _grabcut_span(frame, inner, outer, config.band_px, config.iterations, ign)
                 elif method == "grabcut":
                     # the mesh prior is exact up to calibration: a narrow reach; a propagated
                     # prior lags the motion by a frame: a wider one
@@ -280,7 +296,7 @@ def _resolve(method: str, cap: Capture, ws: Path) -> tuple[str, str]:
         if not has_cams:
             return "chroma", why
         # check the key against the projected object: a plain but not keyable backdrop falls through to GrabCut
-        priors, _, _ = _mesh_priors(cap, ws)
+        priors, _, _, _ = _mesh_priors(cap, ws)
         agree = min(iou(spreads[c][1], priors[c]) if priors[c].shape == spreads[c][2] else 0.0 for c in priors)
         if agree >= CHROMA_AGREE:
             return "chroma", why + f" and the key agrees with the projected object (IoU ≥ {agree:.2f})"
@@ -321,7 +337,7 @@ def _frame0_mesh(cap: Capture, ws: Path) -> tuple[object | None, np.ndarray, np.
     return None, v, f, [cap.mesh_path], f"the rest mesh {cap.mesh_path.name}"
 
 
-def _frame0_state(cap: Capture, mesh, reporter: Reporter) -> tuple[np.ndarray | None, str]:
+def _frame0_state(cap: Capture, mesh, reporter: Reporter, young_scale: float = 1.0) -> tuple[np.ndarray | None, str]:
     """Positions (n, 3) of frame 0 when the capture starts at equilibrium (capture.toml [capture] start): the static
     equilibrium under gravity and the frame-0 controls with capture.toml's initial E and ν; None (use the rest
     shape) when it starts at rest, nothing holds the object, there is no tet mesh, or the solve fails."""
@@ -335,32 +351,47 @@ def _frame0_state(cap: Capture, mesh, reporter: Reporter) -> tuple[np.ndarray | 
 
     try:
         scene = make_scene(mesh, controls, cap.material.model, cap.dt, cap.gravity)
-        young = np.array([cap.material.region_young(r) for r in scene.region_names])
+        young = young_scale * np.array([cap.material.region_young(r) for r in scene.region_names])
         poisson = np.array([cap.material.region_poisson(r) for r in scene.region_names])
         x0 = np.asarray(start_state(scene, frame_inputs(scene, controls, 0), young, poisson, "equilibrium"))
     except SimulationError as e:
+        if young_scale != 1.0:
+            return None, ""
         reporter.warn(f"segment: the frame-0 equilibrium did not solve ({e}); GrabCut is seeded by the rest shape.")
         return None, ""
     return x0[: len(mesh.vertices)], " in its frame-0 equilibrium (capture.toml's E and ν)"
 
 
-def _mesh_priors(cap: Capture, ws: Path, reporter: Reporter = SilentReporter()
-                 ) -> tuple[dict[str, np.ndarray], list[Path], str]:
-    """(silhouette per camera, inputs, what was projected): the frame-0 state of the object — the rest shape, or its
-    static equilibrium when capture.toml says the capture starts there — of mesh.h5, or of the capture's rest mesh
-    when mesh.h5 does not exist yet, projected with cameras.h5 (the first frame's GrabCut seed)."""
+def _mesh_priors(cap: Capture, ws: Path, reporter: Reporter = SilentReporter(), seed_range: float = 1.0
+                 ) -> tuple[dict[str, np.ndarray], list[Path], str, dict]:
+    """(silhouette per camera, inputs, what was projected, spans): the frame-0 state of the object — the rest shape,
+    or its static equilibrium when capture.toml says the capture starts there — of mesh.h5, or of the capture's rest
+    mesh when mesh.h5 does not exist yet, projected with cameras.h5 (the first frame's GrabCut seed).  spans: per
+    camera (inner, outer) (H, W) bool, the intersection and the union of the silhouettes of the equilibria for E ×
+    seed_range^(−1, −½, 0, ½, 1) (those that solve) and of SPAN_STEPS shapes linearly between consecutive ones,
+    when the frame-0 state is an equilibrium and seed_range > 1 (else empty)."""
     cams_path = ws / KIND_FILES["cameras"]
     if not cams_path.is_file():
         raise RslError(f"{cams_path}: file not found; mesh-seeded segmentation needs WS/cameras.h5 "
                        "(rsl calibrate) and WS/mesh.h5 (rsl tetrahedralize) or the capture's rest mesh.")
     mesh, verts, faces, paths, what = _frame0_mesh(cap, ws)
     x0, how = _frame0_state(cap, mesh, reporter)
+    shapes = []
     if x0 is not None:
         verts, what = x0, what + how
         paths.append(cap.controls_path)
+        if seed_range > 1:
+            shapes = [x0 if e == 0 else _frame0_state(cap, mesh, reporter, seed_range ** e)[0]
+                      for e in (-1.0, -0.5, 0.0, 0.5, 1.0)]
+            shapes = [x for x in shapes if x is not None]  # in the order of E (a softer one may not solve)
+            what += f", spanning E ÷{seed_range:g} to ×{seed_range:g} ({len(shapes)} equilibria)"
+            # the shapes between two equilibria (linear in between): the span has no gap where a thin object
+            # moves by more than its own width from one equilibrium to the next
+            shapes = [(1 - a) * p + a * q for p, q in zip(shapes[:-1], shapes[1:])
+                      for a in np.linspace(0.0, 1.0, SPAN_STEPS, endpoint=False)] + shapes[-1:]
     paths.append(cams_path)
     cams = CamerasArtefact.load(cams_path)
-    out = {}
+    out, spans = {}, {}
     for name in cap.camera_names:
         try:
             c = cams.by_name(name)
@@ -371,7 +402,68 @@ def _mesh_priors(cap: Capture, ws: Path, reporter: Reporter = SilentReporter()
             raise RslError(f"{cams_path}: camera '{name}' does not see the rest mesh (its projection misses "
                            "the image); check the calibration's world frame.")
         out[name] = sil
-    return out, paths, what
+        if len(shapes) > 1:
+            sils = [mesh_silhouette(x, faces, c.K, c.dist, c.R, c.t, c.width, c.height) for x in shapes]
+            spans[name] = (np.logical_and.reduce(sils), np.logical_or.reduce(sils))
+    return out, paths, what, spans
+
+
+def _grabcut_span(frame: np.ndarray, inner: np.ndarray, outer: np.ndarray, band_px: int, iterations: int,
+                  ignore: np.ndarray | None = None) -> np.ndarray:
+    """GrabCut on frame (H, W, 3) uint8 seeded by a span of plausible silhouettes (H, W) bool, inner ⊆ outer:
+    sure object = inner eroded by the band, sure background = beyond outer dilated by the band; every pixel
+    between starts as probable object or probable background by which of the two sure regions' colour
+    distributions (one Gaussian each, RGB) gives it the higher likelihood — no shape inside the span is
+    preferred.  band_px 0 = 6 % of the inner region's equivalent diameter (at least 2 px).  Returns (H, W) bool."""
+    import cv2
+
+    img = np.asarray(frame, np.uint8)
+    inner, outer = np.asarray(inner, bool), np.asarray(outer, bool) | np.asarray(inner, bool)
+    H, W = inner.shape
+    area = int(np.count_nonzero(inner)) or int(np.count_nonzero(outer))
+    if area == 0:
+        return np.zeros((H, W), bool)
+    band = band_px if band_px > 0 else max(2, int(round(0.06 * 2 * np.sqrt(area / np.pi))))
+    sure_fg = cv2.erode(inner.astype(np.uint8), seg.disc(band)).astype(bool)
+    if not sure_fg.any():
+        sure_fg = inner.copy()
+    near = cv2.dilate(outer.astype(np.uint8), seg.disc(band)).astype(bool)
+    if ignore is not None:
+        sure_fg &= ~ignore
+    ys, xs = np.nonzero(near)
+    pad = 2 * band + 2
+    y0, y1 = max(0, ys.min() - pad), min(H, ys.max() + pad + 1)
+    x0, x1 = max(0, xs.min() - pad), min(W, xs.max() + pad + 1)
+    crop = np.ascontiguousarray(img[y0:y1, x0:x1])
+    fg, bgr = sure_fg[y0:y1, x0:x1], ~near[y0:y1, x0:x1]
+    gc = np.full(fg.shape, cv2.GC_BGD, np.uint8)
+    between = ~fg & ~bgr
+    if fg.any() and bgr.sum() >= 4:
+        c = crop.reshape(-1, 3).astype(np.float64)
+
+        def loglik(sel):
+            s = c[sel.ravel()]
+            mu, cov = s.mean(0), np.cov(s.T) + 4.0 * np.eye(3)  # 2 grey levels of σ at least
+            d = c - mu
+            return -0.5 * np.einsum("pi,ij,pj->p", d, np.linalg.inv(cov), d) - 0.5 * np.linalg.slogdet(cov)[1]
+
+        obj = (loglik(fg) > loglik(bgr)).reshape(fg.shape)
+    else:
+        obj = np.asarray(inner[y0:y1, x0:x1])
+    gc[between & obj] = cv2.GC_PR_FGD
+    gc[between & ~obj] = cv2.GC_PR_BGD
+    gc[fg] = cv2.GC_FGD
+    if ignore is not None:
+        gc[ignore[y0:y1, x0:x1] & between] = cv2.GC_PR_BGD
+    if not np.any(gc == cv2.GC_BGD):  # GrabCut needs background samples
+        gc[0, :] = gc[-1, :] = gc[:, 0] = gc[:, -1] = cv2.GC_BGD
+    if not np.any((gc == cv2.GC_PR_FGD) | (gc == cv2.GC_FGD)):
+        return np.zeros((H, W), bool)
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    cv2.grabCut(np.ascontiguousarray(crop[..., ::-1]), gc, None, bgd, fgd, int(iterations), cv2.GC_INIT_WITH_MASK)
+    out = np.zeros((H, W), bool)
+    out[y0:y1, x0:x1] = (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
+    return out
 
 
 def _occluder_cameras(cap: Capture, ws: Path, method: str, reporter: Reporter) -> tuple[bool, dict]:

@@ -30,6 +30,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal
 
+import cv2
 import numpy as np
 
 from stages.artefacts import Camera, MeshArtefact
@@ -402,8 +403,6 @@ def _to_u8(img: np.ndarray) -> np.ndarray:
 
 def _write_png(path: Path, img: np.ndarray) -> None:
     """RGB (H, W, 3) or gray (H, W) uint8 as a maximally compressed PNG (captures are shipped)."""
-    import cv2
-
     path.parent.mkdir(parents=True, exist_ok=True)
     arr = cv2.cvtColor(img, cv2.COLOR_RGB2BGR) if img.ndim == 3 else img
     if not cv2.imwrite(str(path), arr, [cv2.IMWRITE_PNG_COMPRESSION, 9]):
@@ -496,7 +495,7 @@ def truth_forces(scene, ctl: Controls, X: np.ndarray, states: list, young: np.nd
     and its vertex count — what ``rsl export --forces`` computes, on the truth simulation (the same numbers as
     stages.forces.step_forces / replay_forces: the last substep's residual; tests/test_forces_truth.py).
     ``states``: per frame (x_{t−1}, x_{t−2}) of the last substep (stages.sim.static.simulate_from_start)."""
-    from stages.sim.scene import frame_inputs, handle_reactions, internal_forces
+    from stages.sim.scene import frame_inputs, handle_reactions, internal_forces  # jax + numba: loaded on use
     from stages.sim.stress import set_forces
 
     fine = scene if substeps == 1 else dataclasses.replace(scene, dt=scene.dt / substeps)
@@ -583,7 +582,7 @@ def _prepare_out(out: Path, overwrite: bool) -> Path:
 
 def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
     """Simulate and film a scenario; write the capture folder ``config.out`` and return its path."""
-    from stages.sim.scene import SimulationError, frame_inputs, make_scene
+    from stages.sim.scene import SimulationError, frame_inputs, make_scene  # jax + numba: loaded on use
     from stages.sim.static import simulate_from_start
     from stages.synth_views import background_plate, board_poses, camera_ring
 
@@ -708,7 +707,7 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, tmesh: SynthMesh
                    forces: list[list]) -> None:
     """Write the capture into ``root``: ``mesh`` is the shipped rest shape (object.obj), ``tmesh`` the truth
     mesh that X (T, n_truth, 3) moves (private: truth/object.mesh or .vtu)."""
-    from stages.render.mesh_raster import procedural_texture, render_mesh
+    from stages.render.mesh_raster import procedural_texture, render_mesh  # numba: loaded on use
     from stages.synth_views import first_corner_pose, render_board, visible_points
 
     cols, rows, square = board

@@ -1,0 +1,451 @@
+"""What ``rsl adapt`` compares the simulation with: motion-capture markers bound to the frame-0 surface, or images
+rendered from the Gaussians bound to the tets (the window loss L, Eq. 4 / Eq. 7, its residuals r and dL/dX), and the
+capture's frames, read per camera."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from stages.adapt_loss import MarkerBinding, bind_markers, marker_residuals
+from stages.artefacts import KIND_FILES, MeshArtefact
+from stages.capture import IMAGE_SUFFIXES, Capture, CaptureError, read_image
+from stages.errors import RslError
+
+
+class MarkerObservation:
+    """Marker observations (markers.csv) bound to the rest surface."""
+
+    kind = "markers"
+
+    def __init__(self, capture: Capture, vertices: np.ndarray, faces: np.ndarray, n_vertices: int):
+        self.capture, self.faces, self.n = capture, faces, n_vertices
+        self.P = self._read()
+        self.rebind(vertices)
+        far = float(self.binding.distance.max())
+        diag = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+        self.far = far / max(diag, 1e-12)
+        # the smallest marker noise σ the estimator assumes: 10⁻⁴ of the object's size (0.02 mm on a 0.2 m
+        # object; mocap is rarely better) — without a floor, noise-free synthetic markers give σ → 0 and the
+        # arrival cost becomes rigid against the slightest model or linearisation error
+        self.noise_floor = 1e-4 * diag
+
+    def rebind(self, x0: np.ndarray) -> None:
+        """Bind each marker to the triangle of the frame-0 surface x0 (n, 3) nearest its frame-0 position, at
+        the projection of that position on the triangle's plane (the nearest point itself when it projects
+        inside the triangle; unclamped at an edge, so that the binding is a smooth function of x0 for a given
+        triangle — the Gauss–Newton Jacobian differentiates it, :meth:`binding_jacobian`)."""
+        b = bind_markers(x0[:self.n], self.faces, self.P[0])
+        self.binding = b
+        self.binding = MarkerBinding(b.faces, self._plane_bary(x0[:self.n]), b.distance)
+
+    def _read(self) -> np.ndarray:
+        P = self.capture.markers()
+        if P is None:
+            raise CaptureError(f"{self.capture.markers_path}: file not found; --loss markers needs markers.csv.")
+        return P
+
+    def available(self) -> int:
+        """Frames observed so far (markers.csv is re-read: it may grow in --follow mode).  Since a marker may
+        be missing from a frame (a gap), a writer in --follow mode should add each frame's rows at once
+        (e.g. write a new file and rename it over markers.csv): the rows of a frame read while still being
+        written count as gaps."""
+        if self.capture.markers_path.exists():
+            try:
+                self.P = self._read()
+            except CaptureError:
+                pass  # a half-written line: keep what we had
+        return len(self.P)
+
+    def loss(self, frames: Sequence[int], X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per-frame losses (w,) and dL/dX (w, n, 3) for X on the mesh (n, 3) per frame; only the observed
+        markers count (a gap, NaN in markers.csv's array, adds nothing; a frame seeing none gives 0)."""
+        P = self.P[list(frames)]
+        r = marker_residuals(self.binding, X[:, :self.n], P)
+        grad = np.zeros_like(X)
+        grad[:, :self.n] = self.binding.scatter(2.0 * r, self.n)
+        return np.sum(r * r, axis=(1, 2)), grad
+
+    def _plane_bary(self, x0: np.ndarray) -> np.ndarray:
+        """Barycentric coordinates (M, 3) of each frame-0 marker projected on the plane of its bound triangle of
+        x0 — the binding as a smooth function of x0 (the same as the closest point while it lies inside)."""
+        tri = x0[self.binding.faces]  # (M, 3, 3)
+        a, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        d = self.P[0] - a
+        g = np.stack([np.stack([np.sum(e1 * e1, -1), np.sum(e1 * e2, -1)], -1),
+                      np.stack([np.sum(e1 * e2, -1), np.sum(e2 * e2, -1)], -1)], -2)
+        rhs = np.stack([np.sum(e1 * d, -1), np.sum(e2 * d, -1)], -1)
+        uv = np.linalg.solve(g, rhs[..., None])[..., 0]
+        return np.concatenate([1 - uv.sum(-1, keepdims=True), uv], -1)
+
+    def binding_jacobian(self, frames: Sequence[int], X: np.ndarray, x0: np.ndarray, dx0: np.ndarray
+                         ) -> list[np.ndarray]:
+        """Per frame, the part of ∂r_f/∂p (3·M_f, k) that comes from the binding's dependence on the anchor
+        configuration x0 (n, 3) moving by dx0 (k, n, 3): Σ_k (∂b_ik/∂p) x_f[f_ik], ∂b/∂p by central
+        differences of :meth:`_plane_bary` (smooth, cheap: M 2×2 solves)."""
+        x0 = x0[:self.n]
+        scale = float(np.linalg.norm(np.ptp(x0, axis=0)))
+        dB = []
+        for v in dx0[:, :self.n]:
+            vmax = float(np.abs(v).max())
+            if vmax == 0.0:
+                dB.append(np.zeros_like(self.binding.bary))
+                continue
+            h = 1e-6 * scale / vmax
+            dB.append((self._plane_bary(x0 + h * v) - self._plane_bary(x0 - h * v)) / (2 * h))
+        dB = np.stack(dB)  # (k, M, 3)
+        out = []
+        for t, x in zip(frames, X):
+            ok = np.all(np.isfinite(self.P[t]), axis=-1)
+            dm = np.einsum("kmj,mjd->kmd", dB, x[self.binding.faces])[:, ok]  # (k, M_f, 3)
+            out.append(dm.reshape(len(dB), -1).T)
+        return out
+
+    def residuals(self, frames: Sequence[int], X: np.ndarray) -> list[np.ndarray]:
+        """Per frame, r_f = m_i(x_f) − p_f^i over the observed markers, flattened (3·M_f,), m."""
+        out = []
+        for t, x in zip(frames, X):
+            P = self.P[t]
+            ok = np.all(np.isfinite(P), axis=-1)
+            out.append((self.binding.positions(x[:self.n])[ok] - P[ok]).reshape(-1))
+        return out
+
+    def jacobian(self, frames: Sequence[int], X: np.ndarray, dX: np.ndarray) -> list[np.ndarray]:
+        """Per frame, ∂r_f/∂p (3·M_f, k) for position sensitivities dX (k, w, n, 3) (markers are linear in x)."""
+        out = []
+        for i, t in enumerate(frames):
+            ok = np.all(np.isfinite(self.P[t]), axis=-1)
+            dm = self.binding.positions(dX[:, i, :self.n])[:, ok]  # (k, M_f, 3)
+            out.append(dm.reshape(len(dX), -1).T)
+        return out
+
+    def noise_scale(self, r: np.ndarray) -> float:
+        """σ of one residual from residuals r: their RMS (Gaussian marker noise), m."""
+        return float(np.sqrt(np.mean(r * r))) if len(r) else 0.0
+
+    huber = None  # marker noise is Gaussian: plain least squares
+
+
+class VisionObservation:
+    """Image observations: render the Gaussians bound to the mesh in each chosen camera (stages.render)."""
+
+    kind = "vision"
+
+    def __init__(self, capture: Capture, ws: Path, cam_spec: str, mesh: MeshArtefact, appearance: bool,
+                 anchor: str = "rebind"):
+        from stages.artefacts import CamerasArtefact, GaussiansArtefact, MasksArtefact
+        from stages.adapt_loss import ImageLoss
+
+        self.capture, self.n = capture, mesh.n_vertices
+        cams_art = CamerasArtefact.load(ws / KIND_FILES["cameras"])
+        gauss = GaussiansArtefact.load(ws / KIND_FILES["gaussians"])
+        masks_path = ws / KIND_FILES["masks"]
+        self.masks = MasksArtefact.load(masks_path).masks if masks_path.exists() else None
+        self.cameras = pick_cameras(cam_spec, [c.name for c in cams_art.cameras], ws / KIND_FILES["cameras"])
+        for name in self.cameras:
+            if name not in capture.camera_names:
+                raise CaptureError(f"{capture.toml_path}: camera '{name}' of cameras.h5 is not listed in "
+                                   f"[capture] cameras.")
+        self.sources = {c: capture.frame_source(c) for c in self.cameras}
+        self.loss_fn = ImageLoss(gauss, mesh, [cams_art.by_name(c) for c in self.cameras], appearance=appearance)
+        # Occluders (controls.json handle/obstacle ``visual``): the pixels they cover at frame t are left out
+        # of the loss (stages/occluders.py), whatever the frame and the mask hold there.
+        from stages.occluders import has_occluders
+
+        self.controls = capture.controls()
+        self.occluded = has_occluders(self.controls)
+        self._cams = [cams_art.by_name(c) for c in self.cameras]
+        self._ignore: dict[int, list[np.ndarray | None]] = {}
+        # Without masks the renders are composited over the capture's background plates (when there are
+        # any) and compared with the raw frames; with masks, the frames' backgrounds are replaced.
+        self.loss_fn.set_backgrounds(render_backgrounds(capture, self.cameras, self.masks))
+        self._cache: dict[int, list[np.ndarray]] = {}
+        # The Gaussians were fitted to frame ``fit_frame`` with the mesh at rest: they are anchored to the
+        # object's configuration at that frame, x_fit simulated with the current θ (re-anchored as θ
+        # changes, like the marker binding; the anchor is held fixed within one gradient).  "rebind":
+        # re-bound to the tets of x_fit (ImageLoss.rebind), rendered at x_t; "offset": rendered at
+        # x_t − (x_fit − rest) (first order in x_fit − rest).
+        from stages.artefacts import read_provenance
+
+        if anchor not in ("rebind", "offset"):
+            raise RslError(f"gaussian_anchor should be 'rebind' or 'offset', found '{anchor}'.")
+        self.anchor_kind = anchor
+
+        self.fit_frame = int(read_provenance(ws / KIND_FILES["gaussians"]).get("config", {}).get("frame", 0) or 0)
+        self.rest = self.loss_fn.fit_positions  # (n, 3) where the Gaussians were fitted (rest for older files)
+        self.anchor = np.zeros_like(mesh.vertices)  # (n, 3) x_fit(θ) − fit_positions
+
+    def rebind(self, x_fit: np.ndarray) -> None:
+        """Anchor the Gaussians at the simulated fit-frame positions x_fit (n, 3)."""
+        if self.anchor_kind == "rebind":
+            self.loss_fn.rebind(x_fit[:self.n])
+        else:
+            self.anchor = x_fit[:self.n] - self.rest
+
+    def count_checked(self) -> int:
+        """Outside --follow: every frame of every chosen camera (PNG/JPG files or a video, read as segment
+        reads them: capture.FrameSource) must decode, at the image size its camera in cameras.h5 was
+        calibrated for; an unreadable frame anywhere is an error naming the file.  The frame count."""
+        counts = {c: s.count for c, s in self.sources.items()}
+        if len(set(counts.values())) > 1:
+            detail = ", ".join(f"{c}: {k}" for c, k in counts.items())
+            raise CaptureError(f"{self.capture.root / 'frames'}: cameras hold unequal frame counts ({detail}).")
+        for cam, (c, src) in zip(self._cams, self.sources.items()):
+            for t in range(src.count if src.files is not None else min(src.count, 1)):
+                img = src.read(t)  # names the file (or the video) it cannot decode
+                if img.shape[:2] != (cam.height, cam.width):
+                    where = src.files[t] if src.files is not None else src.video
+                    raise CaptureError(f"{where}: the frame is {img.shape[1]}x{img.shape[0]} but camera '{c}' in "
+                                       f"cameras.h5 is calibrated for {cam.width}x{cam.height} images.")
+        return next(iter(counts.values()), 0)
+
+    def available(self) -> int:
+        """Frames whose images exist and decode in every chosen camera (counted on from the last call)."""
+        n = getattr(self, "_n_ready", 0)
+        while frame_ready(self.capture, self.cameras, n):
+            n += 1
+        self._n_ready = n
+        return n
+
+    def targets(self, t: int) -> list[np.ndarray]:
+        """Masked images Ĩ_t^c = I·m + bg·(1 − m) (raw I without masks), float32 (H, W, 3) in [0, 1]."""
+        if t not in self._cache:
+            out = []
+            for c in self.cameras:
+                src = self.sources[c]
+                img = src.read(t) if src.video is not None else read_frame(self.capture, c, t)
+                out.append(target_image(img, self.masks, c, t, self.loss_fn.background))
+            self._cache[t] = out
+            for old in [k for k in self._cache if k < t - 64]:
+                del self._cache[old]
+        return self._cache[t]
+
+    def ignore(self, t: int) -> list[np.ndarray | None]:
+        """Per chosen camera, the (H, W) pixels the occluders cover at frame t (None: no occluder)."""
+        if not self.occluded:
+            return [None] * len(self.cameras)
+        if t not in self._ignore:
+            from stages.occluders import ignore_mask
+
+            self._ignore[t] = [ignore_mask(self.controls, t, c) for c in self._cams]
+            for old in [k for k in self._ignore if k < t - 64]:
+                del self._ignore[old]
+        return self._ignore[t]
+
+    def loss(self, frames: Sequence[int], X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(per-frame L1 losses (w,), dL/dX (w, n, 3)); also sets ``anchor_grad`` (n, 3) = dL/dx_f, the derivative
+        with respect to the anchor configuration x_f(θ) of the last :meth:`rebind` (rebind: through
+        ImageLoss.anchored_geometry; offset: −Σ_t dL/dx_t), which a gradient in θ must carry too."""
+        losses, grad = np.zeros(len(frames)), np.zeros_like(X)
+        ga = np.zeros((self.n, 3))
+        for i, t in enumerate(frames):
+            li, gi, gai = self.loss_fn(X[i, :self.n] - self.anchor, self.targets(t), self.ignore(t), anchor_grad=True)
+            losses[i], grad[i, :self.n] = li, gi
+            ga += gai if self.anchor_kind == "rebind" else -gi
+        self.anchor_grad = ga
+        return losses, grad
+
+    # Gauss–Newton residuals: the pixel differences themselves (every camera, RGB), weighted by Huber IRLS
+    # (stages.estimator) — L2 near the solution, L1-like on outlying pixels, like the L1 loss of Adam.
+    huber = 1.345  # Huber δ in units of σ (95 % efficiency under Gaussian noise)
+    noise_floor = 1e-3  # of the [0, 1] intensity range (a quarter of one 8-bit grey level)
+
+    def _renders(self, x: np.ndarray) -> np.ndarray:
+        return np.concatenate([im.reshape(-1) for im in self.loss_fn.render(x[:self.n] - self.anchor)]
+                              ).astype(np.float64)
+
+    def _keep(self, t: int) -> np.ndarray | float:
+        """1 for the pixels that count at frame t, 0 under an occluder (flattened like the residuals), or 1.0."""
+        if not self.occluded:
+            return 1.0
+        return np.concatenate([np.repeat(~(np.zeros(c.height * c.width, bool) if m is None else m.reshape(-1)), 3)
+                               for c, m in zip(self._cams, self.ignore(t))]).astype(np.float64)
+
+    def residuals(self, frames: Sequence[int], X: np.ndarray) -> list[np.ndarray]:
+        """Per frame, r_f = R(G(x_f), c) − Ĩ_f^c over every pixel, channel and camera, flattened (0 under an
+        occluder)."""
+        return [(self._renders(x) - np.concatenate([im.reshape(-1) for im in self.targets(t)]).astype(np.float64))
+                * self._keep(t) for t, x in zip(frames, X)]
+
+    def jacobian(self, frames: Sequence[int], X: np.ndarray, dX: np.ndarray, rel_step: float = 1e-2,
+                 skip: Sequence[int] = ()) -> list[np.ndarray]:
+        """Per frame, ∂r_f/∂p (pixels, k) approximately: the renderer's directional derivative along each
+        position sensitivity dX[j, f] by central differences, (R(x + ε v) − R(x − ε v)) / 2ε with ε·max|v| =
+        ``rel_step`` × the object's size (the rasterizer has no forward mode; 2k renders per frame).  3DGS
+        rasterization is only piecewise smooth (the α < 1/255 cut-off) and renders in float32, so these
+        columns carry errors of several % (tests); Gauss–Newton therefore takes its gradient from
+        :meth:`exact_jtwr` and uses J only for the normal matrix (step shape and σ).  (One-sided differences
+        reusing the residual's render, k renders, measured too inexact: Jᵀ W r 2.6× the exact value at this ε,
+        1.3× at ε/10, docs/results/estimator.md.)  Columns ``skip`` are returned as zeros without rendering (those
+        :meth:`binding_jacobian` differences jointly anyway)."""
+        self._dXa = None  # the anchor's sensitivity, set by binding_jacobian for exact_jtwr of this evaluation
+        size = float(np.linalg.norm(np.ptp(self.rest, axis=0)))
+        out = []
+        for i, x in enumerate(X):
+            cols = []
+            for j in range(len(dX)):
+                v = dX[j, i]
+                vmax = float(np.abs(v[:self.n]).max())
+                if vmax == 0.0 or j in skip:
+                    cols.append(np.zeros(0))
+                    continue
+                eps = rel_step * size / vmax
+                cols.append((self._renders(x + eps * v) - self._renders(x - eps * v)) / (2 * eps) * self._keep(frames[i]))
+            m = sum(c.height * c.width * 3 for c in self._cams)
+            out.append(np.stack([c if len(c) else np.zeros(m) for c in cols], axis=1))
+        self._last_jac = (dX, out)  # binding_jacobian replaces these columns by joint differences
+        return out
+
+    def binding_jacobian(self, frames: Sequence[int], X: np.ndarray, x_anchor: np.ndarray, dXa: np.ndarray
+                         ) -> list[np.ndarray]:
+        """Per frame, the part of ∂r_f/∂p (pixels, k) that comes from the anchor x_f(θ) moving by dXa (k, n, 3).
+        On a sagging capture the two parts nearly cancel (the anchor moves the Gaussians back where they were
+        fitted), so each column is differenced jointly — positions along dX[j] (of the :meth:`jacobian` call of
+        this evaluation) and the anchor along dXa[j] together: rebind, (R(x + εv; x_a + εv_a) − R(x − εv;
+        x_a − εv_a)) / 2ε with the Gaussians kept in their elements (ImageLoss.anchored_geometry, smooth in x_a);
+        offset, the renders at x − (x_a − x_fit) along v − v_a — and this returns the joint columns minus those
+        :meth:`jacobian` returned (GN adds the two).  :meth:`exact_jtwr` then adds the anchor's exact part."""
+        torch = self.loss_fn.torch
+        self._dXa = dXa
+        dX, J_pos = self._last_jac
+        size = float(np.linalg.norm(np.ptp(self.rest, axis=0)))
+        xa = np.asarray(x_anchor, np.float64)[:self.n]
+
+        def renders(x, a):
+            with torch.no_grad():
+                ims = self.loss_fn.images(torch.tensor(np.asarray(x[:self.n], np.float64)), torch.tensor(a))
+            return np.concatenate([im.numpy().reshape(-1) for im in ims]).astype(np.float64)
+
+        out = []
+        for i, x in enumerate(X):
+            cols = []
+            for j in range(len(dXa)):
+                v, va = dX[j, i, :self.n], dXa[j, :self.n]
+                vmax = max(float(np.abs(v).max()), float(np.abs(va).max()))
+                if vmax == 0.0 or not np.any(va):  # (the anchor does not move along p_j: jacobian's column holds)
+                    cols.append(J_pos[i][:, j])
+                    continue
+                eps = 1e-2 * size / vmax
+                if self.anchor_kind == "rebind":
+                    col = (renders(x[:self.n] + eps * v, xa + eps * va) - renders(x[:self.n] - eps * v, xa - eps * va))
+                else:
+                    col = self._renders(x[:self.n] + eps * (v - va)) - self._renders(x[:self.n] - eps * (v - va))
+                cols.append(col / (2 * eps) * self._keep(frames[i]))
+            out.append(np.stack(cols, axis=1) - J_pos[i])
+        return out
+
+    def exact_jtwr(self, frames: Sequence[int], X: np.ndarray, dX: np.ndarray, rs: list, Ws: list) -> np.ndarray:
+        """Jᵀ W r (k,) exactly: per frame, dℓ/dx of ℓ = ½ Σ W (R(x) − Ĩ)² by torch autograd through the
+        rasterizer, projected on the sensitivities dX (k, w, n, 3) — plus, after :meth:`binding_jacobian` in the
+        same evaluation, dℓ/dx_a (ImageLoss.anchored_geometry; offset: −dℓ/dx) projected on the anchor's
+        sensitivities."""
+        torch = self.loss_fn.torch
+        g = np.zeros(len(dX))
+        dXa = getattr(self, "_dXa", None)
+        for i, t in enumerate(frames):
+            xt = torch.tensor(np.asarray(X[i, :self.n] - self.anchor, np.float64), requires_grad=True)
+            xa = None
+            if dXa is not None and self.anchor_kind == "rebind" and self.loss_fn._anchor_x is not None:
+                xa = torch.tensor(self.loss_fn._anchor_x, requires_grad=True)
+            imgs = self.loss_fn.images(xt, xa)
+            tg = torch.cat([torch.as_tensor(a, dtype=torch.float64).reshape(-1) for a in self.targets(t)])
+            rend = torch.cat([im.reshape(-1) for im in imgs]).double()
+            w = torch.as_tensor(np.asarray(Ws[i], np.float64) * self._keep(t))  # occluded pixels weigh 0
+            (0.5 * (w * (rend - tg) ** 2).sum()).backward()
+            g += np.einsum("ni,kni->k", xt.grad.numpy(), dX[:, i, :self.n])
+            if dXa is not None and (xa is not None or self.anchor_kind == "offset"):
+                ga = xa.grad.numpy() if xa is not None else -xt.grad.numpy()
+                g += np.einsum("ni,kni->k", ga, dXa[:, :self.n])
+        return g
+
+    block_px = 8  # side of the pixel blocks whose errors are taken as correlated (:meth:`clusters`)
+
+    def clusters(self, frames: Sequence[int]) -> np.ndarray:
+        """Cluster id (m,) of each residual of :meth:`residuals` over ``frames``: its camera's block of
+        ``block_px`` × ``block_px`` pixels (every channel, every window frame: the misfit of a shape error is
+        correlated over neighbouring pixels, the colour channels and consecutive frames), for the estimator's
+        cluster-robust σ (stages.estimator.cluster_scale2)."""
+        b, ids, base = self.block_px, [], 0
+        for c in self._cams:
+            yy, xx = np.divmod(np.arange(c.height * c.width), c.width)
+            nbx = -(-c.width // b)
+            ids.append(np.repeat(base + (yy // b) * nbx + xx // b, 3))
+            base += nbx * -(-c.height // b)
+        one = np.concatenate(ids)
+        return np.tile(one, len(frames))
+
+    def noise_scale(self, r: np.ndarray) -> float:
+        """σ of one pixel residual: 1.4826 × the median |r| over the pixels that differ (robust; the
+        background pixels that match exactly are left out)."""
+        a = np.abs(r[np.abs(r) > 1e-6])
+        return float(1.4826 * np.median(a)) if len(a) else 0.0
+
+
+def render_backgrounds(capture: Capture, cameras: Sequence[str], masks: dict | None) -> list[np.ndarray | None]:
+    """Per camera, what the renders are composited over (ImageLoss.set_backgrounds): None — the Gaussians'
+    background colour — for a camera with masks (its frames' backgrounds are replaced by that colour,
+    :func:`target_image`), else the capture's background plate (H, W, 3) float32 in [0, 1] (None without one)."""
+    plates = [None if masks is not None and c in masks else capture.background(c) for c in cameras]
+    return [None if p is None else p.astype(np.float32) / 255.0 for p in plates]
+
+
+def target_image(image: np.ndarray, masks: dict | None, camera: str, t: int, background: np.ndarray) -> np.ndarray:
+    """What a render of camera ``camera`` at frame t is compared with: Ĩ = I·m + bg·(1 − m), float32 (H, W, 3) in
+    [0, 1], for the frame I (H, W, 3) uint8, its mask m (H, W) in masks.h5 and the Gaussians' background colour
+    bg (3,); I/255 where the camera has no mask at frame t."""
+    img = image.astype(np.float32) / 255.0
+    if masks is not None and camera in masks and t < len(masks[camera]):
+        m = masks[camera][t][..., None].astype(np.float32)
+        img = img * m + background[None, None, :] * (1 - m)
+    return img
+
+
+def pick_cameras(spec: str, names: list[str], path: Path) -> list[str]:
+    if not spec.strip():
+        return list(names)
+    out = []
+    for tok in (s.strip() for s in spec.split(",") if s.strip()):
+        if tok.isdigit():
+            k = int(tok)
+            if k >= len(names):
+                raise RslError(f"{path}: --cameras asks for camera {k} but it holds {len(names)} cameras.")
+            out.append(names[k])
+        elif tok in names:
+            out.append(tok)
+        else:
+            raise RslError(f"{path}: --cameras names '{tok}', which is not one of {', '.join(names)}.")
+    return list(dict.fromkeys(out))
+
+
+def frame_file(capture: Capture, cam: str, t: int) -> Path | None:
+    folder = capture.root / "frames" / cam
+    for stem in (f"{t:06d}", str(t)):
+        for suf in IMAGE_SUFFIXES:
+            p = folder / f"{stem}{suf}"
+            if p.is_file():
+                return p
+    return None
+
+
+def read_frame(capture: Capture, cam: str, t: int) -> np.ndarray:
+    p = frame_file(capture, cam, t)
+    if p is None:
+        return capture.frame_source(cam).read(t)
+    return read_image(p)
+
+
+def frame_ready(capture: Capture, cams: Sequence[str], t: int) -> bool:
+    """Frame t counts when every camera's image for it exists and decodes completely."""
+    import cv2
+
+    for c in cams:
+        p = frame_file(capture, c, t)
+        if p is None:
+            return False
+        data = np.fromfile(p, dtype=np.uint8)
+        if p.suffix.lower() == ".png" and not data[-12:].tobytes().endswith(b"IEND\xaeB`\x82"):
+            return False  # still being written
+        if data.size == 0 or cv2.imdecode(data, cv2.IMREAD_COLOR) is None:
+            return False
+    return True

@@ -1,0 +1,275 @@
+"""The silhouette observation of ``rsl adapt`` (issue 15): the soft coverage of the simulated surface per pixel
+against the segmentation masks (masks.h5) — geometry only, so it still depends on E on a static capture,
+where the Gaussians (fitted to that very frame and re-bound to x_0(θ)) render the same image for every θ.
+
+Soft coverage of camera c (a differentiable rasteriser of the surface triangles, SoftRas-like):
+
+    d_f(p)  = signed distance (pixels) of pixel centre p to the projected triangle f (> 0 inside: the
+              smallest distance to its three edge lines; < 0 outside: minus the distance to its boundary)
+    A_c(p)  = 1 − exp(−Σ_f softplus((d_f(p) − δ)/τ))     (= 1 − Π_f (1 − σ((d_f − δ)/τ)), a union of soft
+              triangles)
+
+τ = 0.25 px gives an edge about the slope of a one-pixel box filter.  The outline of a closed surface is the
+shared edge of a front and a back face, two soft edges on the same side: δ = −τ log(√2 − 1) = 0.881 τ puts
+A = ½ exactly on it (without δ, A = ¾ there and the silhouette grows by ~½ px all round, which on a sagging bar
+7 px thick biased E by −4.5 %).  Residual per pixel:
+
+    r_c(p) = (A_c(p; x_t) − m_t^c(p)) · keep_t^c(p)      (keep = 0 under an occluder, controls.json visuals)
+
+Loss Σ r²; J = ∂r/∂x · dX by forward-mode autodiff (jax.jvp), dL/dx by reverse mode (exact, FD-checked in
+tests/test_static_identification.py).  Pixels are evaluated only inside the projected object's bounding box
+grown by a margin where every triangle's term is below e⁻⁴⁰ (outside it A = 0 to double precision).
+"""
+from __future__ import annotations
+
+from functools import partial
+from pathlib import Path
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from stages.artefacts import KIND_FILES, CamerasArtefact, MasksArtefact
+from stages.capture import Capture, CaptureError
+from stages.errors import RslError
+
+jax.config.update("jax_enable_x64", True)
+
+TAU_PX = 0.25  # soft edge width τ, pixels
+SHIFT_TAU = -float(np.log(np.sqrt(2.0) - 1.0))  # δ/τ: two faces meeting on the outline make A = ½ there
+_MARGIN_TAU = 40.0  # bounding-box margin in units of τ (softplus(−40) ≈ 4e-18)
+_CHUNK = 64  # triangles per scan step (memory: pixels × chunk)
+_ROUND = 32  # the pixel box is rounded up to this many pixels (fewer re-compilations)
+
+
+def _project(x, K, R, t, dist):
+    """Pixels (n, 2) and depth (n,) of world points x (n, 3) — stages.render.mesh_raster.project_points in jax."""
+    pc = x @ R.T + t
+    z = pc[:, 2]
+    zs = jnp.where(jnp.abs(z) < 1e-12, 1e-12, z)
+    a, b = pc[:, 0] / zs, pc[:, 1] / zs
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    r2 = a * a + b * b
+    radial = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+    a, b = (a * radial + 2 * p1 * a * b + p2 * (r2 + 2 * a * a),
+            b * radial + p1 * (r2 + 2 * b * b) + 2 * p2 * a * b)
+    u = K[0, 0] * a + K[0, 1] * b + K[0, 2]
+    v = K[1, 1] * b + K[1, 2]
+    return jnp.stack([u, v], axis=1), z
+
+
+def _signed_distance(pix, tri):
+    """Signed distance (P, B) of pixel centres pix (P, 2) to triangles tri (B, 3, 2): inside > 0 (the smallest
+    distance to the edge lines), outside < 0 (minus the distance to the nearest edge segment); either
+    orientation."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    area2 = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    s = jnp.where(area2 >= 0, 1.0, -1.0)
+    lines, segs = [], []
+    for p, q in ((a, b), (b, c), (c, a)):
+        e = q - p  # (B, 2)
+        L2 = jnp.sum(e * e, axis=1) + 1e-24
+        w = pix[:, None, :] - p[None]  # (P, B, 2)
+        cross = e[None, :, 0] * w[..., 1] - e[None, :, 1] * w[..., 0]
+        lines.append(s[None] * cross / jnp.sqrt(L2)[None])
+        u = jnp.clip(jnp.sum(w * e[None], axis=-1) / L2[None], 0.0, 1.0)
+        dv = w - u[..., None] * e[None]
+        d2 = jnp.sum(dv * dv, axis=-1)
+        segs.append(d2)
+    inner = jnp.minimum(jnp.minimum(lines[0], lines[1]), lines[2])
+    d2 = jnp.minimum(jnp.minimum(segs[0], segs[1]), segs[2])
+    outer = -jnp.sqrt(jnp.where(d2 > 0, d2, 1.0)) * (d2 > 0)
+    return jnp.where(inner >= 0, inner, outer)
+
+
+@partial(jax.jit, static_argnames=("tau",))
+def _coverage(x, faces, valid, pix, K, R, t, dist, tau):
+    """Soft coverage (P,) at pixel centres pix (P, 2) of the triangles faces (F, 3) of x (n, 3); faces padded to
+    a multiple of _CHUNK rows, ``valid`` (F,) 0 for the padding."""
+    uv, z = _project(x, K, R, t, dist)
+    tri = uv[faces]  # (F, 3, 2)
+    ok = valid * jnp.all(z[faces] > 1e-3, axis=1)
+    nch = faces.shape[0] // _CHUNK
+
+    def step(S, k):
+        sl = jax.lax.dynamic_slice_in_dim(tri, k * _CHUNK, _CHUNK)
+        w = jax.lax.dynamic_slice_in_dim(ok, k * _CHUNK, _CHUNK)
+        d = _signed_distance(pix, sl)
+        return S + jnp.sum(w[None] * jax.nn.softplus(d / tau - SHIFT_TAU), axis=1), None
+
+    S, _ = jax.lax.scan(step, jnp.zeros(pix.shape[0], x.dtype), jnp.arange(nch))
+    return 1.0 - jnp.exp(-S)
+
+
+class SoftSilhouette:
+    """Soft coverage A (H, W) of a surface (faces (F, 3), vertex ids) in one camera, with its forward- and
+    reverse-mode derivatives in the vertex positions."""
+
+    def __init__(self, faces: np.ndarray, camera, tau_px: float = TAU_PX):
+        faces = np.asarray(faces, np.int64)[:, :3]
+        F = len(faces)
+        pad = (-F) % _CHUNK
+        self.faces = jnp.asarray(np.vstack([faces, np.zeros((pad, 3), np.int64)]))
+        self.valid = jnp.asarray(np.r_[np.ones(F), np.zeros(pad)])
+        self.H, self.W = int(camera.height), int(camera.width)
+        dist = np.zeros(5)
+        d = np.asarray(camera.dist, np.float64).reshape(-1)[:5]
+        dist[:len(d)] = d
+        self.cam = tuple(jnp.asarray(np.asarray(a, np.float64)) for a in
+                         (camera.K, camera.R, np.asarray(camera.t, np.float64).reshape(3), dist))
+        self._used = np.unique(faces)
+        self._camera = camera
+        self.tau = float(tau_px)
+
+    def box(self, x: np.ndarray) -> tuple[int, int, int, int]:
+        """(y0, y1, x0, x1): the pixels where A may be non-zero at positions x (n, 3)."""
+        from stages.render.mesh_raster import project_points
+
+        c = self._camera
+        uv, z = project_points(np.asarray(x)[self._used], c.K, c.R, c.t, c.dist)
+        uv = uv[z > 1e-3]
+        if not len(uv):
+            return 0, 0, 0, 0
+        m = _MARGIN_TAU * self.tau + 1.0
+        x0 = int(np.clip(np.floor(uv[:, 0].min() - m), 0, self.W))
+        y0 = int(np.clip(np.floor(uv[:, 1].min() - m), 0, self.H))
+        x1 = int(np.clip(np.ceil(uv[:, 0].max() + m) + 1, 0, self.W))
+        y1 = int(np.clip(np.ceil(uv[:, 1].max() + m) + 1, 0, self.H))
+        # round up (fewer shapes to compile), staying inside the image
+        w, h = -(-(x1 - x0) // _ROUND) * _ROUND, -(-(y1 - y0) // _ROUND) * _ROUND
+        x1, y1 = min(self.W, x0 + w), min(self.H, y0 + h)
+        x0, y0 = max(0, x1 - w), max(0, y1 - h)
+        return y0, y1, x0, x1
+
+    def _pix(self, box):
+        y0, y1, x0, x1 = box
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        return jnp.asarray(np.stack([xx.ravel(), yy.ravel()], axis=1).astype(np.float64))
+
+    def _f(self, box):
+        pix = self._pix(box)
+        return lambda x: _coverage(x, self.faces, self.valid, pix, *self.cam, tau=self.tau)
+
+    def coverage(self, x: np.ndarray, box=None) -> np.ndarray:
+        """A (H, W) at positions x (n, 3)."""
+        box = box or self.box(x)
+        out = np.zeros((self.H, self.W))
+        y0, y1, x0, x1 = box
+        if y1 > y0 and x1 > x0:
+            out[y0:y1, x0:x1] = np.asarray(self._f(box)(jnp.asarray(x, jnp.float64))).reshape(y1 - y0, x1 - x0)
+        return out
+
+    def jvp(self, x: np.ndarray, V: np.ndarray, box=None) -> np.ndarray:
+        """dA/dx · V (k, H, W) for position directions V (k, n, 3)."""
+        box = box or self.box(x)
+        y0, y1, x0, x1 = box
+        out = np.zeros((len(V), self.H, self.W))
+        if y1 > y0 and x1 > x0:
+            f, xj = self._f(box), jnp.asarray(x, jnp.float64)
+            for j, v in enumerate(V):
+                out[j, y0:y1, x0:x1] = np.asarray(jax.jvp(f, (xj,), (jnp.asarray(v, jnp.float64),))[1]
+                                                  ).reshape(y1 - y0, x1 - x0)
+        return out
+
+    def vjp(self, x: np.ndarray, g: np.ndarray, box=None) -> np.ndarray:
+        """(dA/dx)ᵀ g (n, 3) for a pixel cotangent g (H, W)."""
+        box = box or self.box(x)
+        y0, y1, x0, x1 = box
+        if not (y1 > y0 and x1 > x0):
+            return np.zeros_like(np.asarray(x, np.float64))
+        _, back = jax.vjp(self._f(box), jnp.asarray(x, jnp.float64))
+        return np.asarray(back(jnp.asarray(np.asarray(g, np.float64)[y0:y1, x0:x1].ravel()))[0])
+
+
+class SilhouetteObservation:
+    """Masks (masks.h5) against the soft coverage of the simulated surface in each chosen camera (module doc):
+    for static captures with images, where the Gaussian image loss is flat in θ."""
+
+    kind = "silhouette"
+    huber = None  # plain least squares: residuals are bounded in [−1, 1]
+    noise_floor = 1e-3  # of a pixel's coverage
+
+    def __init__(self, capture: Capture, ws: Path, cam_spec: str, mesh, tau_px: float = TAU_PX):
+        from stages.observations import pick_cameras
+        from stages.occluders import has_occluders
+
+        self.capture, self.n = capture, mesh.n_vertices
+        cams_path, masks_path = ws / KIND_FILES["cameras"], ws / KIND_FILES["masks"]
+        if not masks_path.exists():
+            raise RslError(f"{masks_path}: file not found; the silhouette loss compares the simulated surface with "
+                           f"the masks of `rsl segment`.")
+        cams_art = CamerasArtefact.load(cams_path)
+        self.masks = MasksArtefact.load(masks_path).masks
+        names = pick_cameras(cam_spec, [c.name for c in cams_art.cameras], cams_path)
+        self.cameras = [c for c in names if c in self.masks]
+        if not self.cameras:
+            raise RslError(f"{masks_path}: holds no mask of the cameras {', '.join(names)} of cameras.h5.")
+        self._cams = [cams_art.by_name(c) for c in self.cameras]
+        for c, cam in zip(self.cameras, self._cams):
+            if self.masks[c].shape[1:] != (cam.height, cam.width):
+                raise RslError(f"{masks_path}: the masks of camera '{c}' are {self.masks[c].shape[2]}x"
+                               f"{self.masks[c].shape[1]} but cameras.h5 calibrates it for {cam.width}x{cam.height}.")
+        faces = np.asarray(mesh.surface_faces)[:, :3]
+        self.soft = [SoftSilhouette(faces, cam, tau_px) for cam in self._cams]
+        self.controls = capture.controls()
+        self.occluded = has_occluders(self.controls)
+        self._ignore: dict[int, list] = {}
+        self.sources = {}  # the frames are not read: masks.h5 holds what is compared
+
+    def rebind(self, x_anchor: np.ndarray) -> None:
+        """Nothing is bound to the surface: the coverage is of x_t itself."""
+
+    def available(self) -> int:
+        """Frames with a mask in every chosen camera."""
+        return min(len(self.masks[c]) for c in self.cameras)
+
+    def count_checked(self) -> int:
+        return self.available()
+
+    def keep(self, t: int) -> list[np.ndarray]:
+        """Per camera, (H, W) 1.0 where the pixel counts at frame t, 0 under an occluder."""
+        if t not in self._ignore:
+            from stages.occluders import ignore_mask
+
+            self._ignore[t] = [(~ignore_mask(self.controls, t, c)).astype(np.float64) if self.occluded
+                               else np.ones((c.height, c.width)) for c in self._cams]
+        return self._ignore[t]
+
+    def _check(self, t: int) -> None:
+        if t >= self.available():
+            raise CaptureError(f"masks.h5 holds no mask of frame {t} (rerun rsl segment).")
+
+    def residual_images(self, t: int, x: np.ndarray) -> list[np.ndarray]:
+        """Per camera, r (H, W) = (A(x) − m_t)·keep_t."""
+        self._check(t)
+        return [(s.coverage(x[:self.n]) - self.masks[c][t].astype(np.float64)) * k
+                for s, c, k in zip(self.soft, self.cameras, self.keep(t))]
+
+    def residuals(self, frames: Sequence[int], X: np.ndarray) -> list[np.ndarray]:
+        """Per frame, r_f over every pixel of every chosen camera, flattened."""
+        return [np.concatenate([r.ravel() for r in self.residual_images(t, x)]) for t, x in zip(frames, X)]
+
+    def loss(self, frames: Sequence[int], X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(per-frame Σ r² (w,), dL/dX (w, n, 3)) — the gradient exact by reverse mode."""
+        losses, grad = np.zeros(len(frames)), np.zeros_like(np.asarray(X, np.float64))
+        for i, (t, x) in enumerate(zip(frames, X)):
+            for s, r, k in zip(self.soft, self.residual_images(t, x), self.keep(t)):
+                losses[i] += float(np.sum(r * r))
+                grad[i, :self.n] += s.vjp(x[:self.n], 2.0 * r * k)
+        return losses, grad
+
+    def jacobian(self, frames: Sequence[int], X: np.ndarray, dX: np.ndarray) -> list[np.ndarray]:
+        """Per frame, ∂r_f/∂p (pixels, k) = keep · (∂A/∂x) dX[:, f] by forward mode (exact)."""
+        out = []
+        for i, (t, x) in enumerate(zip(frames, X)):
+            cols = [(s.jvp(x[:self.n], dX[:, i, :self.n]) * k[None]).reshape(len(dX), -1)
+                    for s, k in zip(self.soft, self.keep(t))]
+            out.append(np.concatenate(cols, axis=1).T)
+        return out
+
+    def noise_scale(self, r: np.ndarray) -> float:
+        """σ of one pixel residual: the RMS over the pixels that differ (> 10⁻³; the pixels far from every edge,
+        which match to rounding, are left out)."""
+        a = r[np.abs(r) > 1e-3]
+        return float(np.sqrt(np.mean(a * a))) if len(a) else 0.0

@@ -1,0 +1,389 @@
+"""Windows of ``rsl adapt`` under the capture's start convention (docs/capture.md): ``StartWindow`` simulates frames
+from x_0(θ); ``StaticWindow`` solves the static equilibria alone; ``WindowObjective`` gives the window loss and
+dL/dp by the adjoint; ``GNWindow`` gives residuals and their Jacobian for Gauss–Newton (stages.estimator)."""
+from __future__ import annotations
+
+import time
+from typing import Callable, Sequence
+
+import numpy as np
+
+from stages.errors import RslError
+from stages.parameters import chain_params, theta_from_params
+from stages.window_model import Observation, Window, WindowBackend
+
+
+# =========================================================================== the start convention
+class StartWindow:
+    """A window simulated under the capture's start convention (docs/capture.md): frame 0 is x_0(θ) — the rest
+    shape, or the static equilibrium under the frame-0 controls solved with θ — with x_{−1} = x_{−2} = x_0;
+    frame t ≥ 1 is an implicit-Euler step from (x_{t−1}, x_{t−2}).  A window that holds frame 0 differentiates
+    through the static solve (stages.sim.static); other windows start from their two stored states.
+    θ = (E (R,), ν (R,)) is shared by the window frames."""
+
+    def __init__(self, backend: WindowBackend, kind: str = "rest"):
+        if kind not in ("rest", "equilibrium"):
+            raise RslError(f"the start state should be 'rest' or 'equilibrium', found '{kind}'.")
+        self.backend, self.kind = backend, kind
+        self._x0 = None  # the last x_0: the warm start of the next static solve
+
+    @staticmethod
+    def _tile(a, k):
+        return np.tile(np.asarray(a, float), (k, 1))
+
+    def forward(self, frames: Sequence[int], E, nu, before) -> np.ndarray:
+        """States (w, …) of ``frames``; ``before`` = [state t0−2, state t0−1] (unused when frames[0] = 0)."""
+        b, w = self.backend, len(frames)
+        if frames[0] != 0:
+            return b.forward(list(frames), self._tile(E, w), self._tile(nu, w), before)
+        x0 = b.start(E, nu, self.kind, self._x0)
+        self._x0 = x0
+        if w == 1:
+            return x0[None]
+        rest = b.forward(list(frames[1:]), self._tile(E, w - 1), self._tile(nu, w - 1), np.stack([x0, x0]))
+        return np.concatenate([x0[None], rest])
+
+    def backward(self, frames, E, nu, states, before, dL_dX) -> tuple[np.ndarray, np.ndarray]:
+        """(dL/dE, dL/dν) (R,) of a loss of the window's positions, dL_dX (w, n, 3)."""
+        b, w = self.backend, len(frames)
+        if frames[0] != 0:
+            dE, dn = b.backward(list(frames), self._tile(E, w), self._tile(nu, w), states, before, dL_dX)
+            return dE.sum(0), dn.sum(0)
+        x0 = states[0]
+        g0 = b.state_grad(x0, dL_dX[0])
+        gE, gN = np.zeros(len(E)), np.zeros(len(E))
+        if w > 1:
+            dE, dn, gb = b.backward_before(list(frames[1:]), self._tile(E, w - 1), self._tile(nu, w - 1), states[1:],
+                                           np.stack([x0, x0]), dL_dX[1:])
+            gE, gN, g0 = dE.sum(0), dn.sum(0), g0 + gb[0] + gb[1]
+        a, c = b.start_adjoint(E, nu, self.kind, x0, g0)
+        return gE + a, gN + c
+
+    def sensitivity(self, frames, E, nu, states, before, d_young, d_poisson, d_before=None) -> np.ndarray:
+        """dX/dp (k, w, n, 3) along k directions (θ shared by the window; d_before on the stored states)."""
+        b, w = self.backend, len(frames)
+        if frames[0] != 0:
+            S = b.state_sensitivity(list(frames), self._tile(E, w), self._tile(nu, w), states, before, d_young,
+                                    d_poisson, d_before)
+        else:
+            x0 = states[0]
+            S0 = b.start_sensitivity(E, nu, self.kind, x0, d_young, d_poisson)[:, None]  # (k, 1, state)
+            S = S0
+            if w > 1:
+                Sd = b.state_sensitivity(list(frames[1:]), self._tile(E, w - 1), self._tile(nu, w - 1), states[1:],
+                                         np.stack([x0, x0]), d_young, d_poisson, np.concatenate([S0, S0], axis=1))
+                S = np.concatenate([S0, Sd], axis=1)
+        self.last_state_sensitivity = S  # (k, w, state): dstates/dp
+        return b.decode_sensitivity(states, S)
+
+
+class StaticWindow:
+    """Static identification (``--mode static``): every frame's state is the static equilibrium under that
+    frame's controls, solved with θ (stages.sim.static) — no dynamics, no state carried between frames; the
+    adjoint and the sensitivities pass through each static solve.  Same interface as :class:`StartWindow`."""
+
+    kind = "equilibrium"
+
+    def __init__(self, backend: WindowBackend):
+        self.backend = backend
+        self._last: dict[int, np.ndarray] = {}  # frame -> last equilibrium (warm start)
+
+    def forward(self, frames, E, nu, before=None) -> np.ndarray:
+        out = []
+        for t in frames:
+            x = self.backend.start(E, nu, "equilibrium", self._last.get(t), frame=t)
+            self._last[t] = x
+            out.append(x)
+        return np.stack(out)
+
+    def backward(self, frames, E, nu, states, before, dL_dX) -> tuple[np.ndarray, np.ndarray]:
+        b = self.backend
+        gE, gN = np.zeros(len(E)), np.zeros(len(E))
+        for i, t in enumerate(frames):
+            a, c = b.start_adjoint(E, nu, "equilibrium", states[i], b.state_grad(states[i], dL_dX[i]), frame=t)
+            gE, gN = gE + a, gN + c
+        return gE, gN
+
+    def sensitivity(self, frames, E, nu, states, before, d_young, d_poisson, d_before=None) -> np.ndarray:
+        b = self.backend
+        S = np.stack([b.start_sensitivity(E, nu, "equilibrium", states[i], d_young, d_poisson, frame=t)
+                      for i, t in enumerate(frames)], axis=1)  # (k, w, state)
+        self.last_state_sensitivity = S
+        return b.decode_sensitivity(states, S)
+
+
+def controls_static(inputs: Callable[[int], object], frames: Sequence[int]) -> bool:
+    """Whether no control moves over ``frames``: handle targets, loads and obstacle poses all equal frame 0's."""
+    a = inputs(frames[0])
+    for t in frames[1:]:
+        b = inputs(t)
+        if not (all(np.array_equal(p, q) for p, q in zip(a.handle_targets, b.handle_targets))
+                and np.array_equal(a.load_forces, b.load_forces) and np.array_equal(a.obstacle_poses, b.obstacle_poses)):
+            return False
+    return True
+
+
+# =========================================================================== the window objective
+class WindowObjective:
+    """L(p) over a window of frames and dL/dp, p = (log E (R,), s (R,)), θ shared by the window:
+
+        X = sim(θ; x_{t0−2}, x_{t0−1}),  L = Σ_t loss_t(X_t),
+        dL/dθ = Σ_t (adjoint over the window of dL/dX)_t,  dL/dp by the chain rule of the transforms.
+
+    The observation is first re-anchored with θ: markers are bound to the frame-0 surface simulated with
+    θ, Gaussians anchored at their fit frame simulated with θ.  Markers: the binding is held fixed within the
+    gradient; images: dL/dθ also carries the anchor's part, (dL/dx_f)(dx_f/dθ) through the fit frame's simulation
+    (without it frame f's loss, constant in θ, would still pull θ: docs/results/vision_bias.md).  With
+    ``anchor_p`` set (the fit frame's material after a change, AdaptConfig.vision_anchor) the anchor is simulated
+    with θ(p_a) instead, dL/dp has no anchor part and dL/dp_a = (dL/dx_f)(dx_f/dp_a) goes to ``last_anchor_g``.
+    """
+
+    def __init__(self, backend: WindowBackend, obs: Observation, n_regions: int, poisson_range: tuple[float, float],
+                 start: str = "rest"):
+        self.backend, self.obs, self.R, self.prange = backend, obs, n_regions, poisson_range
+        self.win: Window = StartWindow(backend, start)  # StaticWindow for --mode static
+        self.rebind = True
+        self.anchor_frame = int(getattr(obs, "fit_frame", 0))
+        # The material of the anchor frame, p_a = (log E, s) (2R,): None while it is the window's own θ (no change
+        # of material since the anchor frame); set, the anchor x_f(θ(p_a)) is held at it (no anchor part in dL/dp)
+        # and, when ``want_anchor_grad``, dL/dp_a of that held anchor is left in ``last_anchor_g``.
+        self.anchor_p: np.ndarray | None = None
+        self.anchor_own = False  # the online loop estimates p_a (AdaptConfig.vision_anchor "estimated")
+        self.want_anchor_grad = False
+        self.last_anchor_g: np.ndarray | None = None
+        self._held: tuple[np.ndarray, np.ndarray] | None = None  # (p_a, x_f(θ(p_a))) of the last held anchor
+
+    def anchor_positions(self, E: np.ndarray, nu: np.ndarray) -> np.ndarray:
+        """The anchor frame (0 for markers, the Gaussians' fit frame for images) simulated with θ under the start
+        convention (frame 0 = x_0(θ)), positions (n, 3)."""
+        k = self.anchor_frame + 1
+        X = self.win.forward(list(range(k)), E, nu, None)
+        self._anchor_states = (np.array(E, float), np.array(nu, float), X)  # reused by the anchor's adjoint
+        return self.backend.decode(X[-1:])[0]
+
+    def _anchor_adjoint(self, E: np.ndarray, nu: np.ndarray, ga: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(dL/dE, dL/dν) (R,) through the anchor x_f(θ): dL/dx_f = ``ga`` (n, 3) back through the simulation of
+        frames 0..f under the start convention."""
+        k = self.anchor_frame + 1
+        aE0, anu0, sa = getattr(self, "_anchor_states", (None, None, None))
+        if sa is None or not (np.array_equal(aE0, E) and np.array_equal(anu0, nu)):
+            sa = self.win.forward(list(range(k)), E, nu, None)
+        dXa = np.zeros((k,) + self.backend.decode(sa[-1:]).shape[1:])
+        dXa[-1, :len(ga)] = ga
+        return self.win.backward(list(range(k)), E, nu, sa, None, dXa)
+
+    def __call__(self, frames: Sequence[int], p: np.ndarray, before: np.ndarray, need_grad: bool = True):
+        """(states (w, …), per-frame losses (w,), dL/dp (2R,) or None, (forward_s, backward_s, loss_s))."""
+        R, backend = self.R, self.backend
+        E, nu = theta_from_params(p[:R], p[R:], self.prange)
+        w = len(frames)
+        Ew, nuw = np.tile(E, (w, 1)), np.tile(nu, (w, 1))
+        t0 = time.perf_counter()
+        rebind = self.rebind
+        held = None  # θ of a held anchor (anchor_p)
+        self.last_anchor_g = None
+        if rebind and self.anchor_p is not None:
+            pa = np.asarray(self.anchor_p, float)
+            held = theta_from_params(pa[:R], pa[R:], self.prange)
+            if self._held is None or not np.array_equal(self._held[0], pa):
+                self._held = (pa.copy(), self.anchor_positions(*held))
+            self.obs.rebind(self._held[1])
+            rebind = False  # the anchor moves with p_a, not with the window's θ
+        elif rebind:
+            self.obs.rebind(self.anchor_positions(E, nu))
+        states = self.win.forward(list(frames), E, nu, before)
+        X = backend.decode(states)
+        t1 = time.perf_counter()
+        losses, dX = self.obs.loss(frames, X)
+        t2 = time.perf_counter()
+        g = None
+        if need_grad:
+            dE, dnu = self.win.backward(list(frames), E, nu, states, before, dX)
+            ga = getattr(self.obs, "anchor_grad", None)  # images: the anchor x_f(θ) moves the Gaussians too
+            if rebind and ga is not None and np.any(ga):
+                aE, anu = self._anchor_adjoint(E, nu, ga)
+                dE, dnu = dE + aE, dnu + anu
+                if self.want_anchor_grad:  # the anchor's part alone, dL/dp_a at p_a = p
+                    self.last_anchor_g = np.concatenate(chain_params(aE, anu, E, p[R:], self.prange))
+            if held is not None and self.want_anchor_grad and ga is not None:
+                self.last_anchor_g = np.concatenate(chain_params(*self._anchor_adjoint(*held, ga), held[0],
+                                                                 np.asarray(self.anchor_p, float)[R:], self.prange))
+            g = np.concatenate(chain_params(dE, dnu, E, p[R:], self.prange))
+        t3 = time.perf_counter()
+        return states, losses, g, (t1 - t0, t3 - t2, t2 - t1)
+
+
+# =========================================================================== Gauss–Newton window
+class GNWindow:
+    """Residuals and their Jacobian over a window for the Gauss–Newton estimator (stages.estimator).
+
+    Unknowns p = (log E (R), s (R) when ν is fitted, c (k_c) when the starting states are corrected): θ as
+    for Adam (ν = ν_lo + (ν_hi − ν_lo)·sigmoid(s)) and the coefficients of a correction of the two states
+    before the window, before + Σ_j c_j D_j (D (k_c, 2, …), the reduced space's unit vectors).
+    r(p) = the observations' residuals of every window frame (markers or pixels);
+    ∂r/∂p = (∂r/∂X)(dX/dp) with dX/dp the forward sensitivities of the window (stages.sim.sensitivity,
+    stages.subspace.sensitivity): ∂X/∂log E = E ∂X/∂E, ∂X/∂s = ν'(s) ∂X/∂ν.
+    """
+
+    def __init__(self, objective: "WindowObjective", fit_poisson: bool, s_fixed: np.ndarray):
+        self.obj, self.fit_poisson, self.s_fixed = objective, fit_poisson, s_fixed
+        self.young_range: tuple[float, float] | None = None  # bounds of E (Pa), [material] young_range
+        self.rebind_anchor = True  # re-anchor the observations at x_anchor(θ) (until a material change)
+        self.rebind_next = True  # re-anchor at the next linearisation
+        # images: jacobian() leaves the θ columns, which binding_jacobian() differences jointly, unrendered (False:
+        # render them too, as binding_jacobian's subtrahend — the slow twin the tests hold this to)
+        self.skip_joint = True
+        self.R = objective.R
+        self.k_theta = self.R * (2 if fit_poisson else 1)
+        self.times = [0.0, 0.0, 0.0]  # forward, sensitivity, residuals/render
+        self.last_states = None
+        self.last_frames: list[np.ndarray] = []  # per frame residuals of the last evaluation
+        self.last_jac: list[np.ndarray] = []
+
+    def theta(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(E, ν, s) from the unknowns."""
+        R = self.R
+        s = p[R:2 * R] if self.fit_poisson else self.s_fixed
+        E, nu = theta_from_params(p[:R], s, self.obj.prange)
+        return E, nu, s
+
+    def evaluate(self, frames: Sequence[int], p: np.ndarray, before: np.ndarray, D: np.ndarray | None,
+                 need_jac: bool, rebind: bool = True):
+        """(r (m,), J (m, k) or None); the window's states are kept in ``last_states``."""
+        obj, R = self.obj, self.R
+        backend = obj.backend
+        E, nu, s = self.theta(p)
+        c = p[self.k_theta:]
+        b = before if D is None or not len(c) else before + np.tensordot(c, D, axes=1)
+        t0 = time.perf_counter()
+        anchored = rebind and obj.rebind and self.rebind_anchor
+        smooth = getattr(obj.obs, "binding_jacobian", None) is not None  # markers: d binding/dθ goes into J
+        x_anchor = None
+        if anchored and (smooth or (need_jac and self.rebind_next)):
+            # markers: re-anchored at every evaluation (r(p) is one smooth function of p, its J includes the
+            # binding's derivative); images: once per solve, at its first linearisation (J leaves it out)
+            self.rebind_next = False
+            x_anchor = obj.anchor_positions(E, nu)
+            obj.obs.rebind(x_anchor)
+        states = obj.win.forward(list(frames), E, nu, b)
+        X = backend.decode(states)
+        t1 = time.perf_counter()
+        rs = obj.obs.residuals(frames, X)
+        t2 = time.perf_counter()
+        self.times[0] += t1 - t0
+        self.times[2] += t2 - t1
+        self.last_states, self.last_before, self.last_p, self.last_rs = states, b, p.copy(), rs
+        if not need_jac:
+            return np.concatenate(rs), None
+        k = len(p)
+        de, dn = np.zeros((k, R)), np.zeros((k, R))
+        de[np.arange(R), np.arange(R)] = E  # ∂E/∂log E
+        if self.fit_poisson:
+            lo, hi = self.obj.prange
+            sig = 1.0 / (1.0 + np.exp(-s))
+            dn[R + np.arange(R), np.arange(R)] = (np.asarray(hi) - np.asarray(lo)) * sig * (1 - sig)
+        db = None
+        if D is not None and len(c):
+            db = np.zeros((k,) + np.shape(before))
+            db[self.k_theta:] = D
+        dX = obj.win.sensitivity(list(frames), E, nu, states, b, de, dn, db)
+        t3 = time.perf_counter()
+        self.last_state_sens = obj.win.last_state_sensitivity  # (k, w, …) of the window's states
+        if x_anchor is not None and smooth and obj.obs.kind == "vision" and self.skip_joint:
+            # binding_jacobian differences the θ columns jointly (positions and anchor): jacobian skips them
+            Js = obj.obs.jacobian(frames, X, dX, skip=range(self.k_theta))
+        else:
+            Js = obj.obs.jacobian(frames, X, dX)
+        if x_anchor is not None and smooth:
+            # the anchor frame's own sensitivity (frame 0 = x_0(θ), or the fit frame simulated from it)
+            ka = obj.anchor_frame + 1
+            sa = obj.win.forward(list(range(ka)), E, nu, None)
+            dXa = obj.win.sensitivity(list(range(ka)), E, nu, sa, None, de, dn)[:, -1]
+            Js = [J + Jb for J, Jb in zip(Js, obj.obs.binding_jacobian(frames, X, x_anchor, dXa))]
+        t4 = time.perf_counter()
+        self.times[1] += t3 - t2
+        self.times[2] += t4 - t3
+        self.last_frames, self.last_jac = rs, Js
+        exact = getattr(obj.obs, "exact_jtwr", None)
+        if exact is None:
+            return np.concatenate(rs), np.concatenate(Js, axis=0)
+        sizes = np.cumsum([len(x) for x in rs])[:-1]
+
+        def jtw(W):  # Jᵀ W r exactly (autograd through the renderer), J only approximate
+            t5 = time.perf_counter()
+            g = exact(frames, X, dX, rs, np.split(W, sizes))
+            self.times[2] += time.perf_counter() - t5
+            return g
+        return np.concatenate(rs), np.concatenate(Js, axis=0), jtw
+
+
+def sigma_from_cov(gn: GNWindow, p: np.ndarray, cov: np.ndarray, model_error: float = 0.0,
+                    model_error_poisson: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """σ of E and of ν per region from the covariance of p (k, k):
+
+        σ_E = E √(σ²_logE + e²),   σ_ν = √((ν'(s) σ_s)² + e_ν²)  (0 when ν is held),
+
+    e = ``model_error``, e_ν = ``model_error_poisson`` (the error of E, relative, and of ν that the discretisation
+    itself makes, added in quadrature: it does not average out over frames).  A parameter held at a bound of its range ([material] young_range, poisson_range)
+    reports at least the σ of a uniform prior over the range (stages.estimator.bounded_sigma): there the data
+    do not locate it (and the sigmoid's slope ν'(s) → 0 would shrink σ_ν to nothing)."""
+    from stages.estimator import bounded_sigma
+
+    R = gn.R
+    E, nu, s = gn.theta(p)
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    s_log = np.sqrt(sd[:R] ** 2 + float(model_error) ** 2)
+    if gn.young_range is not None:
+        s_log = bounded_sigma(np.log(E), s_log, np.log(gn.young_range[0]), np.log(gn.young_range[1]))
+    sE = E * s_log
+    if gn.fit_poisson:
+        lo, hi = gn.obj.prange
+        sig = 1.0 / (1.0 + np.exp(-s))
+        sN = np.hypot((np.asarray(hi) - np.asarray(lo)) * sig * (1 - sig) * sd[R:2 * R], float(model_error_poisson))
+        sN = bounded_sigma(nu, sN, lo, hi)
+    else:
+        sN = np.zeros(R)
+    return sE, np.broadcast_to(sN, (R,)).astype(float)
+
+
+STATE_PRIOR_SCALE = 0.5
+"""--state-correction states: prior σ of each correction coordinate, as a fraction of that coordinate's RMS
+excursion over the stored frames (0.5 kept a constant-E cable segment within ±1 %, 0.05 let it drift by 2 % and
+lagged after a step of E: measured on a P2-truth capture, docs/results/estimator.md)."""
+
+
+def state_directions(backend, stored: dict, t0: int, first: int, scale: float, theta=None
+                      ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Correction directions of the two states before a window starting at t0 and the prior σ of each
+    coefficient.  Reduced space: unit vectors of z_{t0−2} and z_{t0−1}, (2r, 2, r); full space: the lowest
+    vibration modes φ_i (K φ = λ M φ at the start state) of each, (2m, 2, n, 3).  σ = ``scale`` × the RMS of that
+    coordinate's excursion over the stored frames (its typical motion).  None when a state before the window is
+    not a stored frame (frames before t = 1: the start state is known)."""
+    if t0 < 1 or any(max(t, 0) not in stored for t in (t0 - 2, t0 - 1)):
+        return None
+    past = np.stack([stored[t] for t in sorted(stored) if t < t0])
+    if backend.space == "reduced":
+        basis = np.eye(backend.dim).reshape(backend.dim, backend.dim)  # (m, r)
+    else:
+        basis = backend.modes(stored[0], *theta)  # (m, n, 3), mass-orthonormal
+    m = len(basis)
+    B = basis.reshape(m, -1)
+    coords = (past - stored[0]).reshape(len(past), -1) @ (B.T if backend.space == "reduced" else
+                                                            (B * backend.mass_diag[None]).T)
+    rms = np.sqrt(np.mean(coords * coords, axis=0))
+    rms = np.maximum(rms, 1e-3 * rms.max() + 1e-300)
+    D = np.zeros((2 * m, 2) + basis.shape[1:])
+    for i in range(2):
+        D[i * m:(i + 1) * m, i] = basis
+    return D, scale * np.concatenate([rms, rms])
+
+
+def past_directions(sens: dict, t0: int, k_theta: int, sigma: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Correction directions of the two states before a window starting at t0 along their sensitivities to θ
+    (``sens``: frame → d state/dp (k_θ, …), propagated through every window since frame 0): a correction
+    c (k_θ,) moves them by Σ_j c_j ∂x/∂p_j — to first order, the past re-simulated with p + c.  Returns
+    (D (k_θ, 2, …), prior σ (k_θ,)), or None when those sensitivities are not known (frames before the range)."""
+    a, b = max(t0 - 2, 0), max(t0 - 1, 0)
+    if t0 < 1 or a not in sens or b not in sens:
+        return None
+    return np.stack([sens[a], sens[b]], axis=1), np.full(k_theta, float(sigma))
