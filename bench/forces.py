@@ -171,7 +171,7 @@ def summary(rows: list[dict]) -> list[str]:
     return out
 
 
-def write(rows: list[dict], out: Path, plan: dict) -> None:
+def write(rows: list[dict], out: Path, plan: dict, name: str = "forces") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -181,7 +181,7 @@ def write(rows: list[dict], out: Path, plan: dict) -> None:
     data = {"machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs, {platform.python_version()}",
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "load_average_end": os.getloadavg()[0], "plan": plan, "cases": rows}
-    (out / "forces.json").write_text(json.dumps(data, indent=1))
+    (out / f"{name}.json").write_text(json.dumps(data, indent=1))
     table = "\n".join([HEAD] + [_row(r) for r in rows])
     md = (f"# Forces of the full-space replay against the truth, per substeps\n\n"
           f"Captures as bench/accuracy.py makes them (`rsl synth --truth-order 2 --substeps {plan.get('truth_substeps', 3)} --handles hard`, "
@@ -191,7 +191,7 @@ def write(rows: list[dict], out: Path, plan: dict) -> None:
           f"the capture's start state with S implicit-Euler steps per frame (stages/forces.py replay_forces, "
           f"`--force-substeps S`) and compared with truth/forces.csv as `rsl evaluate` does (median relative "
           f"error of the applied force over handles/obstacles and frames).  'Change vs the finest S': the same "
-          f"median against this run's replay with S = {max(plan['substeps'])} (no truth needed).  CPU: "
+          f"median against the replay with the most substeps of the same capture and θ(t) (no truth needed).  CPU: "
           f"time.process_time of the replay; ratios against S = 1 of the same capture and θ(t), this run.\n\n"
           f"{table}\n\n" + "\n".join(summary(rows)) + "\n\n"
           + (f"Rows merged from {len(plan['merged_from'])} runs (split by capture), ended "
@@ -199,8 +199,8 @@ def write(rows: list[dict], out: Path, plan: dict) -> None:
              + f"; machine {data['machine']}. " if plan.get("merged_from") else
              f"Machine: {data['machine']}, load average {data['load_average_end']:.1f} at the end; date "
              f"{data['date']}. ")
-          + "Produced by `bench/forces.py`.\n\n![force error over substeps](forces.png)\n")
-    (out / "forces.md").write_text(md)
+          + f"Produced by `bench/forces.py`.\n\n![force error over substeps]({name}.png)\n")
+    (out / f"{name}.md").write_text(md)
     fig, (a0, a1) = plt.subplots(1, 2, figsize=(10, 3.8))
     for c, case in enumerate(dict.fromkeys(r["case"] for r in rows)):
         for theta, ls in (("true E", "-"), ("adapted", "--")):
@@ -218,7 +218,7 @@ def write(rows: list[dict], out: Path, plan: dict) -> None:
     a1.set_xlabel("substeps S of the replay")
     a1.set_ylabel("replay CPU (s)")
     fig.tight_layout()
-    fig.savefig(out / "forces.png", dpi=110)
+    fig.savefig(out / f"{name}.png", dpi=110)
     plt.close(fig)
 
 
@@ -230,6 +230,7 @@ def main() -> None:
     ap.add_argument("--substeps", default="1,2,3,4,6", help="replay substeps S, comma-separated (include 1)")
     ap.add_argument("--truth-substeps", type=int, default=3,
                     help="implicit substeps per frame of the truth (synth --substeps); many = converged in time")
+    ap.add_argument("--name", default="forces", help="file stem of the report in --out (NAME.md/.json/.png)")
     ap.add_argument("--true-only", action="store_true", help="only the true-E rows (no rsl adapt)")
     ap.add_argument("--merge", nargs="+", type=Path, default=None,
                     help="only write the report from the rows of these forces.json files (runs split by case)")
@@ -239,7 +240,14 @@ def main() -> None:
         plan = {**runs[0]["plan"], "cases": [c for run in runs for c in run["plan"]["cases"]],
                 "merged_from": [{"file": str(f), "date": run["date"], "load_average_end": run["load_average_end"]}
                                 for f, run in zip(a.merge, runs)]}
-        write([r for run in runs for r in run["cases"]], a.out, plan)
+        rows = [r for run in runs for r in run["cases"]]
+        truth_steps = sorted({r.get("truth_substeps", 3) for r in rows})
+        plan["truth_substeps"] = " / ".join(map(str, truth_steps))
+        plan["substeps"] = sorted({r["substeps"] for r in rows if "substeps" in r})
+        if len(truth_steps) > 1:  # the same capture simulated at several truth steps: tell them apart
+            for r in rows:
+                r["case"] = f"{r['case']}, truth S = {r.get('truth_substeps', 3)}"
+        write(rows, a.out, plan, a.name)
         return
     substeps = sorted({int(s) for s in a.substeps.split(",")})
     cases = a.cases.split(",")
@@ -253,7 +261,7 @@ def main() -> None:
     rows: list[dict] = []
     for case in cases:
         rows += run_case(a.work, case, substeps, a.truth_substeps, a.true_only)
-        write(rows, a.out, plan)  # after every case: a stopped run keeps what it measured
+        write(rows, a.out, plan, a.name)  # after every case: a stopped run keeps what it measured
     print("\n".join(summary(rows)))
 
 

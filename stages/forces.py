@@ -24,13 +24,16 @@ truth/forces.csv): the force at frame t is the residual of the LAST implicit-Eul
   the replay of the true E 12.8 % (S = 1) / 1.3 % (S = 3).
 
 The time step of the replay: the model has no material damping, so the dynamic part of a handle's reaction (the
-inertia of the oscillating body) carries implicit Euler's numerical damping, which depends on Δt / S.  Against
-truths simulated with 3 substeps per frame (docs/results/forces.md, bench/forces.py; true E on rsl's own mesh)
-the replay's error is lowest at S = 3 and grows on both sides on the dynamic captures (bar released at rest:
-27 % at S = 1, 12 % at S = 2 and 4, 1.2 % at S = 3): it matches the truth's integrator rather than converging.
-:data:`FORCE_SUBSTEPS` = 3 is therefore the step of the captures the issue specifies (`rsl synth --substeps 3`);
-on a capture made otherwise, the spread of the forces over S is the uncertainty of their dynamic part.  With an
-adapted θ(t) the replay also carries the estimate's start transient (docs/results/forces_notes.md).
+inertia of the oscillating body) carries implicit Euler's numerical damping, which shrinks with Δt / S only at
+first order.  Against truths simulated finer in time (docs/results/forces_converged.md; bar pulled by a cable, true
+E on rsl's own mesh) the replay's error falls as S grows — truth with 24 substeps: 41 % at S = 1, 34.5 % at S = 3,
+24 % at S = 6, 12.8 % at S = 12 — and the truths themselves still differ by ~13 % between 12 and 24 substeps: the
+dynamic forces are not converged at any step measured.  Against a truth made with 3 substeps, S = 3 errs 1.3 %
+only because it copies that truth's integrator (docs/results/forces.md).  :data:`FORCE_SUBSTEPS` = 3 is a cost
+compromise (2.1× the CPU of S = 1, the error 15–30 % lower); ``--force-substeps 12`` costs 6.4× and halves it
+again.  A less dissipative integrator (BDF2, or Richardson extrapolation over S and 2S) is what converged
+dynamic forces need.  With an adapted θ(t) the replay also carries the estimate's start transient
+(docs/results/forces_notes.md).
 
 The error against a truth (rows of forces.csv, stages.capture.FORCE_HEADER): per handle / obstacle and frame,
 e_t = ‖F_t − F_t^true‖ / ‖F_t^true‖ on the applied force (N), over the frames where ‖F_t^true‖ is at least
@@ -47,7 +50,7 @@ from stages.results import previous_states
 from stages.sim import stress as st
 
 APPLIED = ("applied_fx_N", "applied_fy_N", "applied_fz_N")
-FORCE_SUBSTEPS = 3  # default implicit-Euler steps per frame of the replay (module doc; docs/results/forces.md)
+FORCE_SUBSTEPS = 3  # default implicit-Euler steps per frame of the replay (module doc; docs/results/forces_converged.md)
 
 
 def replay_substeps(requested: int, adapt) -> int:

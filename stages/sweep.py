@@ -203,7 +203,7 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
 def _vision(capture, workspace, cameras, mesh, X_of, grid, frames) -> np.ndarray:
     from stages.adapt_loss import ImageLoss
     from stages.artefacts import KIND_FILES, CamerasArtefact, GaussiansArtefact, MasksArtefact, read_provenance
-    from stages.capture import read_image
+    from stages.observations import read_frame, render_backgrounds, target_image
 
     ws = Path(workspace)
     cams_art = CamerasArtefact.load(ws / KIND_FILES["cameras"])
@@ -212,22 +212,13 @@ def _vision(capture, workspace, cameras, mesh, X_of, grid, frames) -> np.ndarray
     masks_path = ws / KIND_FILES["masks"]
     masks = MasksArtefact.load(masks_path).masks if masks_path.exists() else None
     il = ImageLoss(gauss, mesh, [cams_art.by_name(c) for c in names])
-    plates = [None if masks is not None and c in masks else capture.background(c) for c in names]
-    il.set_backgrounds([None if p is None else p.astype(np.float32) / 255.0 for p in plates])
+    il.set_backgrounds(render_backgrounds(capture, names, masks))  # the compositing adapt's image loss uses
     fit_frame = int(read_provenance(ws / KIND_FILES["gaussians"]).get("config", {}).get("frame", 0) or 0)
     cache: dict[int, list] = {}
 
     def targets(t: int) -> list:
         if t not in cache:
-            out = []
-            for c in names:
-                src = capture.frame_source(c)
-                img = (src.read(t) if src.video is not None else read_image(src.files[t])).astype(np.float32) / 255.
-                if masks is not None and c in masks and t < len(masks[c]):
-                    m = masks[c][t][..., None].astype(np.float32)
-                    img = img * m + il.background[None, None, :] * (1 - m)
-                out.append(img)
-            cache[t] = out
+            cache[t] = [target_image(read_frame(capture, c, t), masks, c, t, il.background) for c in names]
         return cache[t]
 
     return vision_loss_curve(X_of, il, targets, grid, frames, fit_frame)

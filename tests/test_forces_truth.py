@@ -114,14 +114,16 @@ def test_forces_from_recorded_positions_need_one_simulation_and_a_replay_is_one(
 
 # ---------------------------------------------------------------------------------------------- the default step
 CABLE_FRAMES = 10
+TRUTH_SUBSTEPS = 12
 
 
 @pytest.fixture(scope="module")
 def foreign_cable():
     """A capture rsl did not make, as bench/forces.py's: a bar 0.2 × 0.04 × 0.04 m (8 × 2 × 2 cells) held hard at
     x = 0 and pulled up and sideways at its free end by a cable (synth's 'cable' profile, up to 0.8 × its weight),
-    start = equilibrium; truth on P2 tets of the once-refined mesh with 3 substeps per frame (rsl synth
-    --truth-order 2 --truth-refine 1 --substeps 3 --handles hard), rsl's model on P2 tets of the unrefined mesh.
+    start = equilibrium; truth on P2 tets of the once-refined mesh with 12 substeps per frame, finer in time than
+    any replay tested (rsl synth --truth-order 2 --truth-refine 1 --substeps 12 --handles hard), rsl's model on P2
+    tets of the unrefined mesh.
     Returns (rsl's scene, controls, E (T, 1), ν (T, 1), truth/forces.csv rows)."""
     from stages.artefacts import mesh_artefact
     from stages.domain.controls import Controls, Handle, Load, Selection, Track
@@ -145,18 +147,21 @@ def foreign_cable():
     truth_scene = make_scene(fine, ctl, "stable_neohookean", 1.0 / FPS, (0.0, 0.0, -9.81))
     states: list = []
     X = simulate_from_start(truth_scene, lambda f: frame_inputs(truth_scene, ctl, f), young, poisson, CABLE_FRAMES,
-                            "equilibrium", 3, states=states)
+                            "equilibrium", TRUTH_SUBSTEPS, states=states)
     keys = ["frame", "time_s", "name", "kind", "fx_N", "fy_N", "fz_N", "magnitude_sum_N", "applied_fx_N",
             "applied_fy_N", "applied_fz_N", "n_vertices"]
-    rows = [dict(zip(keys, r)) for r in truth_forces(truth_scene, ctl, X, states, young, poisson, 3, FPS)]
+    rows = [dict(zip(keys, r)) for r in truth_forces(truth_scene, ctl, X, states, young, poisson, TRUTH_SUBSTEPS,
+                                                     FPS)]
     scene = make_scene(coarse, ctl, "stable_neohookean", 1.0 / FPS, (0.0, 0.0, -9.81))
     return scene, ctl, young, poisson, rows
 
 
-def test_replay_of_the_true_young_at_the_default_substeps_is_within_ten_percent(foreign_cable):
-    """Issue 12's force target on a capture rsl did not make (another mesh, 3 substeps per frame): replaying the
-    true E with `--force-substeps`' default gives the truth's handle force within 10 % (median over frames);
-    with one step per frame — the old default — the dynamic part of the reaction does not follow (> 10 %)."""
+def test_replay_of_the_true_young_converges_in_time_toward_a_finer_truth(foreign_cable):
+    """The replay's handle force with the true E approaches a truth simulated finer in time (12 substeps per frame)
+    as the replay's substeps grow — implicit Euler's numerical damping shrinks with the step — and the stages'
+    default (`--force-substeps`) is one of the steps measured here.  The truth is deliberately not simulated at the
+    default's step: a match there would only show the replay copying the truth's integrator
+    (docs/results/forces.md)."""
     import dataclasses
 
     from stages.forces import FORCE_SUBSTEPS, force_errors, force_table, replay_forces
@@ -164,13 +169,13 @@ def test_replay_of_the_true_young_at_the_default_substeps_is_within_ten_percent(
     from stages.steps.export import ExportConfig
 
     scene, ctl, young, poisson, truth = foreign_cable
-    for config in (EvaluateConfig, ExportConfig):  # the stages' default is the one measured here
+    for config in (EvaluateConfig, ExportConfig):  # the stages' default is one of the steps measured here
         assert {f.name: f.default for f in dataclasses.fields(config)}["force_substeps"] == FORCE_SUBSTEPS
+    steps = sorted({1, FORCE_SUBSTEPS, 2 * FORCE_SUBSTEPS})
+    assert TRUTH_SUBSTEPS > max(steps)
     err = {}
-    for S in (1, FORCE_SUBSTEPS):
+    for S in steps:
         rows, _, _ = replay_forces(scene, ctl, young, poisson, "equilibrium", S)
-        err[S] = force_errors(force_table(rows, 1.0 / FPS), truth)["base"]
-        assert len(err[S]["frames"]) >= CABLE_FRAMES - 2, err[S]
-    print({S: e["median_relative_error"] for S, e in err.items()})
-    assert err[FORCE_SUBSTEPS]["median_relative_error"] < 0.10, err[FORCE_SUBSTEPS]
-    assert err[1]["median_relative_error"] > 0.10, err[1]
+        err[S] = force_errors(force_table(rows, 1.0 / FPS), truth)["base"]["median_relative_error"]
+    print(err)
+    assert all(err[a] > err[b] for a, b in zip(steps, steps[1:])), err
