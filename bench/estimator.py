@@ -343,6 +343,7 @@ def write(cases: list, args) -> None:
                   f"- σ calibration: the truth lies inside E ± 2σ on {tot_in}/{tot_n} = {tot_in / tot_n:.1%} of the "
                   f"settled frames over {len(scenes)} scenes × {len(seeds)} seeds.",
                   f"- E steps: within 5 % of the new value in ≤ w + 5 = {W + 5} frames after {ok}/{len(after)} steps.",
+                  "- Constant-E runs: none in this run." if not const else
                   f"- Constant-E runs: {np.mean([r['within_3pct_settled'] for r in const]):.0%} of the settled "
                   f"frames within ±3 % (worst {np.max([r['max_abs_err_settled'] for r in const]):.2%}); change points "
                   f"declared on them: {sum(len(r['changes_detected']) for r in const)}; the change test's CUSUM "
