@@ -444,7 +444,7 @@ def test_online_reduced_space_writes_z_and_decoded_positions(beam_reduced):
     "known regression of --vision-anchor estimated (the default since 2026-11-24): converging from 4x too soft, E "
     "rises by more than --anchor-change within a few frames, which the anchor rule takes for a change of material; "
     "the anchor separates at frame 10 and E settles at 0.88 E_true (0.94 with --vision-anchor simulated). The "
-    "rule cannot yet tell convergence from a change (docs/results/vision_bias.md)"))
+    "rule cannot yet tell convergence from a change (docs/results/accuracy_notes.md)"))
 def test_online_vision_reduced_space_recovers_young_from_4x_off(tmp_path, rsl):
     """The paper's configuration: images of 2 cameras, Gaussians fitted by fit-gaussians, a subspace from
     generate-data + train-subspace, online in the reduced space, starting 4x too soft."""
