@@ -38,7 +38,6 @@ import json
 import os
 import platform
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -46,22 +45,14 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+sys.path[:0] = [str(ROOT), str(Path(__file__).resolve().parent)]
 os.environ.setdefault("JAX_ENABLE_X64", "1")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
+import _pipeline as pl  # noqa: E402
+
 E_TRUE = 1.0e5
 POISSON = 0.45
-RSL = [sys.executable, "-m", "rsl_cli.app"]
-
-
-def rsl(*args) -> float:
-    env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
-    t0 = time.perf_counter()
-    p = subprocess.run([*RSL, *map(str, args)], capture_output=True, text=True, env=env, cwd=ROOT)
-    if p.returncode != 0:
-        raise SystemExit(f"rsl {' '.join(map(str, args))} failed:\n{p.stderr[-3000:]}")
-    return time.perf_counter() - t0
 
 
 def prepare(work: Path, frames: int, resolution: int, max_tets: int, reuse: bool) -> tuple[Path, dict]:
@@ -73,18 +64,18 @@ def prepare(work: Path, frames: int, resolution: int, max_tets: int, reuse: bool
         shutil.rmtree(d, ignore_errors=True)
     t = {}
     if not (reuse and (cap / "capture.toml").is_file()):
-        t["synth_s"] = rsl("synth", ROOT / "sample_data/bar/object.mesh", cap, "--scenario", "cable", "--cameras", 3,
+        t["synth_s"] = pl.rsl("synth", ROOT / "sample_data/bar/object.mesh", cap, "--scenario", "cable", "--cameras", 3,
                            "--frames", frames, "--resolution", resolution, "--markers", 40, "--calib-views", 0,
                            "--young", E_TRUE, "--poisson", POISSON, "--start", "equilibrium", "--truth-order", 2,
                            "--substeps", 2, "--handles", "hard", "--size", 0.25, "--seed", 0, "--overwrite")
-    t["calibrate_s"] = rsl("calibrate", cap, "-w", ws, "--from-json", cap / "cameras.json")
-    t["tetrahedralize_s"] = rsl("tetrahedralize", cap, "-w", ws, "--order", 2, "--max-tets", max_tets)
-    t["segment_s"] = rsl("segment", cap, "-w", ws, "--method", "background")
-    t["fit_s"] = rsl("fit-gaussians", cap, "-w", ws, "--frame", 0)
+    t["calibrate_s"] = pl.rsl("calibrate", cap, "-w", ws, "--from-json", cap / "cameras.json")
+    t["tetrahedralize_s"] = pl.rsl("tetrahedralize", cap, "-w", ws, "--order", 2, "--max-tets", max_tets)
+    t["segment_s"] = pl.rsl("segment", cap, "-w", ws, "--method", "background")
+    t["fit_s"] = pl.rsl("fit-gaussians", cap, "-w", ws, "--frame", 0)
     ws_rest.mkdir(parents=True)
     for f in ("mesh.h5", "cameras.h5", "masks.h5"):
         shutil.copy(ws / f, ws_rest / f)
-    t["fit_rest_s"] = rsl("fit-gaussians", cap, "-w", ws_rest, "--frame", 0, "--pose", "rest")
+    t["fit_rest_s"] = pl.rsl("fit-gaussians", cap, "-w", ws_rest, "--frame", 0, "--pose", "rest")
     return cap, t
 
 
@@ -237,9 +228,9 @@ def online(cap: Path, ws: Path, work: Path, estimator: str, young_init: float, w
         t0 = time.perf_counter()
         try:
             est, _, sub = estimator.partition("+s")  # "adam+s2": adam with --substeps 2
-            seconds = rsl("adapt", cap, "-w", wd, "--space", "full", "--loss", "vision", "--estimator", est,
+            seconds = pl.rsl("adapt", cap, "-w", wd, "--space", "full", "--loss", "vision", "--estimator", est,
                           "--young-init", young_init, "--window", window, "--substeps", sub or 1)
-        except SystemExit as e:  # a failed run (e.g. a collapse): what it kept, and its message
+        except pl.RslFailed as e:  # a failed run (e.g. a collapse): what it kept, and its message
             seconds = time.perf_counter() - t0
             failed = [ln for ln in str(e).splitlines() if ln.startswith("error:")][-1:] or [str(e)[-300:]]
             failed = failed[0]
@@ -353,9 +344,6 @@ STEP_FRAMES = 36  # bench/accuracy.py's bar: E0 → 2E0 at frame 12 → 4E0 at f
 def _step_case(work: Path) -> tuple[Path, Path]:
     """bench/accuracy.py's vision bar (through bench/_pipeline.py): truth P2, 3 substeps, hard handles, start =
     equilibrium, E steps ×2 and ×4; rsl's P2 mesh (--max-tets 1500), Gaussians fitted at frame 0, subspace r = 30."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    import _pipeline as pl
-
     n = STEP_FRAMES
     cap = pl.foreign_capture(work / "bar_equilibrium", pl.bar_cable(
         schedule=f"{E_TRUE:g}@0,{2 * E_TRUE:g}@{n // 3},{4 * E_TRUE:g}@{2 * n // 3}"), start="equilibrium", frames=n,
@@ -403,9 +391,6 @@ def anchor_run(case: str, space: str, anchor: str, work: Path, window: int = 3) 
         failed = "stopped early (adapt.partial.h5)" if done[0].name == PARTIAL_ADAPT else None
     else:
         if space == "reduced" and not (ws / "subspace.h5").is_file():
-            sys.path.insert(0, str(Path(__file__).resolve().parent))
-            import _pipeline as pl
-
             pl.subspace(cap, ws, frames=load_capture(cap).frame_count(), dim=30)
         shutil.rmtree(wd, ignore_errors=True)
         wd.mkdir(parents=True)
@@ -415,10 +400,10 @@ def anchor_run(case: str, space: str, anchor: str, work: Path, window: int = 3) 
         t0 = time.perf_counter()
         rule, _, change = anchor.partition("@")  # "estimated@0": --anchor-change 0
         try:
-            seconds = rsl("adapt", cap, "-w", wd, "--space", space, "--loss", "vision", "--estimator", "adam",
+            seconds = pl.rsl("adapt", cap, "-w", wd, "--space", space, "--loss", "vision", "--estimator", "adam",
                           "--young-init", young_init, "--window", window, "--vision-anchor", rule,
                           *(["--anchor-change", change] if change else []))
-        except SystemExit as e:
+        except pl.RslFailed as e:
             seconds, failed = time.perf_counter() - t0, str(e).splitlines()[-1][-300:]
             done = [wd / PARTIAL_ADAPT] if (wd / PARTIAL_ADAPT).is_file() else []
             if not done:
