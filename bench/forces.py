@@ -39,17 +39,15 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 import _pipeline as pl  # noqa: E402
 
-E0 = 1.0e5
-POISSON = 0.45
+import accuracy as acc  # noqa: E402  (the accuracy captures: the same scenes, constants and adapt mesh)
+
+E0, POISSON, MAX_TETS, WINDOW = acc.E0, acc.POISSON, acc.MAX_TETS, acc.WINDOW
 FRAMES = 36
-MAX_TETS = 1500
-WINDOW = 3
-STEPS = f"{E0:g}@0,{2 * E0:g}@{FRAMES // 3},{4 * E0:g}@{2 * FRAMES // 3}"  # E0 → 2E0 → 4E0, as bench/accuracy.py
-CASES = {  # name -> (scene, start): the accuracy captures
-    "bar_equilibrium": (lambda: pl.bar_cable(schedule=STEPS), "equilibrium"),
-    "bar_rest": (lambda: pl.bar_cable(schedule=STEPS), "rest"),
-    "beam_equilibrium": (lambda: pl.bar_cable(young=E0, region=f"stiff={3 * E0:g}@x>0.5"), "equilibrium"),
-    "dino_equilibrium": (lambda: pl.dino_push(E0), "equilibrium"),
+CASES = {  # name -> (scene, start): the accuracy captures (bench/accuracy.py scene_args)
+    "bar_equilibrium": (lambda: acc.scene_args("bar", FRAMES), "equilibrium"),
+    "bar_rest": (lambda: acc.scene_args("bar", FRAMES), "rest"),
+    "beam_equilibrium": (lambda: acc.scene_args("beam", FRAMES), "equilibrium"),
+    "dino_equilibrium": (lambda: acc.scene_args("dino", FRAMES), "equilibrium"),
 }
 
 
