@@ -55,6 +55,19 @@ def _random_gaussians(mesh: MeshArtefact, n: int, seed: int = 0) -> GaussiansArt
         sh=rng.normal(0, 1.0, (n, 1, 3)), background=np.zeros(3))
 
 
+def _image_workspace(ws: Path, out: Path, n: int = 30) -> Path:
+    """A copy of ws's mesh and cameras in ``out`` with ``n`` random Gaussians of 1.5 % of the object's size bound
+    to the tets (gaussians.h5): a small image-loss workspace for gradient checks; returns out."""
+    out.mkdir()
+    for f in ("mesh.h5", "cameras.h5"):
+        shutil.copy(ws / f, out / f)
+    mesh = MeshArtefact.load(out / "mesh.h5")
+    gauss = _random_gaussians(mesh, n)
+    gauss.log_scales[:] = np.log(0.015 * np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    gauss.save(out / "gaussians.h5")
+    return out
+
+
 # =========================================================================== end to end
 def test_online_markers_full_space_recovers_young_from_4x_off(beam, rsl):
     cap, ws = beam
@@ -220,20 +233,13 @@ def test_image_loss_gradient_through_render_and_adjoint_matches_finite_differenc
     quadratic fit over ±0.5–2 %), loose because 3DGS rasterization is only piecewise smooth (the
     α < 1/255 cut-off and the depth order switch Gaussians on and off)."""
     cap, ws = beam
-    ws2 = tmp_path / "ws"
-    ws2.mkdir()
-    for f in ("mesh.h5", "cameras.h5"):
-        shutil.copy(ws / f, ws2 / f)
-    mesh = MeshArtefact.load(ws2 / "mesh.h5")
-    gauss = _random_gaussians(mesh, 30)
-    gauss.log_scales[:] = np.log(0.015 * np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
-    gauss.save(ws2 / "gaussians.h5")
+    ws2 = _image_workspace(ws, tmp_path / "ws")
     obj, backend = _objective(cap, ws2, "vision")
     obj.rebind = False  # the Gaussians' anchor is held fixed in the gradient (it is refreshed between steps)
     frames, before, p = _window(backend, 20)
     # the Gaussians re-bound to the fit frame (0) simulated with θ0, as rsl adapt does between steps
     obj.obs.rebind(obj.anchor_positions(*theta_from_params(p[:1], p[1:], (0.3, 0.49))))
-    assert not np.array_equal(obj.obs.loss_fn.host_tet, gauss.host_tet)
+    assert not np.array_equal(obj.obs.loss_fn.host_tet, GaussiansArtefact.load(ws2 / "gaussians.h5").host_tet)
     _, losses, g, _ = obj(frames, p, before)
     X0 = backend.forward(frames, *_theta_w(p, 3), before)
     _, dX = obj.obs.loss(frames, X0)

@@ -484,17 +484,10 @@ def test_image_residual_jacobian_and_exact_gradient(beam, tmp_path):
     """Images: Jᵀ W r from autograd through the rasterizer (exact_jtwr) against the slope of the squared image
     loss ½ Σ W r(p)² along p (a quadratic fit over ±0.5–2 %: rasterization is only piecewise smooth), and the
     central-difference Jacobian columns (used for the normal matrix only) within 15 % of it."""
-    from test_adapt_e2e import _random_gaussians, _window
+    from test_adapt_e2e import _image_workspace, _window
 
     cap, ws = beam
-    ws2 = tmp_path / "ws"
-    ws2.mkdir()
-    for f in ("mesh.h5", "cameras.h5"):
-        shutil.copy(ws / f, ws2 / f)
-    mesh = MeshArtefact.load(ws2 / "mesh.h5")
-    gauss = _random_gaussians(mesh, 30)
-    gauss.log_scales[:] = np.log(0.015 * np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
-    gauss.save(ws2 / "gaussians.h5")
+    ws2 = _image_workspace(ws, tmp_path / "ws")
     gn, obj, backend = _gn_window(cap, ws2, "vision")
     frames, before, p = _window(backend, 20, w=2)
     # the Gaussians stay bound where they are (rebind=False, here and along p below): r(p) is then the smooth
@@ -518,17 +511,10 @@ def test_image_jacobian_with_the_anchor_renders_each_column_once(beam, tmp_path)
     """Images with the Gaussians re-anchored at x_0(θ): jacobian() leaves the θ columns to binding_jacobian()'s
     joint differences (GNWindow.skip_joint) — the same J as rendering them in both and subtracting (the slow
     twin), with half the renders for those columns."""
-    from test_adapt_e2e import _random_gaussians, _window
+    from test_adapt_e2e import _image_workspace, _window
 
     cap, ws = beam
-    ws2 = tmp_path / "ws"
-    ws2.mkdir()
-    for f in ("mesh.h5", "cameras.h5"):
-        shutil.copy(ws / f, ws2 / f)
-    mesh = MeshArtefact.load(ws2 / "mesh.h5")
-    gauss = _random_gaussians(mesh, 30)
-    gauss.log_scales[:] = np.log(0.015 * np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
-    gauss.save(ws2 / "gaussians.h5")
+    ws2 = _image_workspace(ws, tmp_path / "ws")
     gn, obj, backend = _gn_window(cap, ws2, "vision")
     frames, before, p = _window(backend, 20, w=2)
     calls = []
@@ -558,17 +544,10 @@ def test_adapt_gn_with_images_runs_and_reports_finite_sigma(beam, tmp_path, rsl)
     """The Huber (image) path of the online Gauss–Newton loop: its residual scale (estimator.residual_scale2 with
     Huber) and σ with the model-error floors stay finite, σ_E ≥ E × --model-error, and ν's σ is not tiny."""
     from stages.artefacts import AdaptArtefact
-    from test_adapt_e2e import _random_gaussians
+    from test_adapt_e2e import _image_workspace
 
     cap, ws = beam
-    ws2 = tmp_path / "ws"
-    ws2.mkdir()
-    for f in ("mesh.h5", "cameras.h5"):
-        shutil.copy(ws / f, ws2 / f)
-    mesh = MeshArtefact.load(ws2 / "mesh.h5")
-    gauss = _random_gaussians(mesh, 30)
-    gauss.log_scales[:] = np.log(0.015 * np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
-    gauss.save(ws2 / "gaussians.h5")
+    ws2 = _image_workspace(ws, tmp_path / "ws")
     proc = rsl("adapt", cap, "-w", ws2, "--space", "full", "--loss", "vision", "--window", "2", "--frames", "0:3",
                "--estimator", "gn", "--iters-per-frame", "1", "--model-error", "0.03")
     assert proc.returncode == 0, proc.stderr
