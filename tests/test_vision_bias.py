@@ -181,17 +181,8 @@ def test_window_gradient_carries_the_anchor_through_its_simulation(capture):
     obj, backend = _objective(cap, ws)
     p = np.concatenate(params_from_theta(np.array([0.7 * E_TRUE]), np.array([0.42]), (0.3, 0.49)))
     frames = [0, 1, 2]
-    _, _, g, _ = obj(frames, p, None)
-    E, nu = theta_from_params(p[:1], p[1:], (0.3, 0.49))
-    obj.obs.rebind(obj.anchor_positions(E, nu))
-    X = backend.decode(obj.win.forward(frames, E, nu, None))
-    _, dX = obj.obs.loss(frames, X)
-    ga = obj.obs.anchor_grad
-    assert np.abs(ga).max() > 0
-    for i, h in ((0, 1e-5), (1, 1e-4)):
-        dXdp, dxadp = _central_differences(obj, backend, frames, p, None, i, h)
-        chain = np.sum(dX * dXdp) + np.sum(ga * dxadp)
-        held = np.sum(dX * dXdp)
+    for i, (g, held, anchor_part) in enumerate(_adjoint_and_chain_rule(obj, backend, frames, p, None)):
+        chain = held + anchor_part
         assert g[i] == pytest.approx(chain, rel=1e-3, abs=1e-6 * abs(held)), (i, g, chain, held)
 
 
@@ -204,6 +195,21 @@ def _central_differences(obj, backend, frames, p, before, i: int, h: float):
         sims.append((backend.decode(obj.win.forward(frames, Eq, nq, before)), obj.anchor_positions(Eq, nq)))
     return (sims[0][0] - sims[1][0]) / (2 * h), (sims[0][1] - sims[1][1]) / (2 * h)
 
+
+def _adjoint_and_chain_rule(obj, backend, frames, p, before) -> list[tuple]:
+    """Per parameter i (h = 1e-5 for log E, 1e-4 for s): (the adjoint's dL/dp, the positions' part
+    Σ dL/dX · dX/dp_i and the anchor's part dL/dx_a · dx_a/dp_i of the chain rule, both by central differences)."""
+    _, _, g, _ = obj(frames, p, before)
+    E, nu = theta_from_params(p[:1], p[1:], (0.3, 0.49))
+    obj.obs.rebind(obj.anchor_positions(E, nu))
+    _, dX = obj.obs.loss(frames, backend.decode(obj.win.forward(frames, E, nu, before)))
+    ga = obj.obs.anchor_grad
+    assert np.abs(ga).max() > 0
+    out = []
+    for i, h in ((0, 1e-5), (1, 1e-4)):
+        dXdp, dxadp = _central_differences(obj, backend, frames, p, before, i, h)
+        out.append((g, float(np.sum(dX * dXdp)), float(np.sum(ga * dxadp))))
+    return out
 
 def _reduced_objective(cap: Path, ws: Path):
     """WindowObjective in a 6-dim PCA subspace trained on full-space runs of the capture's own controls."""
@@ -242,16 +248,7 @@ def test_reduced_window_gradient_carries_the_anchor_through_its_simulation(captu
     if frames[0] > 0:
         Z = obj.win.forward(list(range(frames[0])), E, nu, None)
         before = np.stack([Z[-2], Z[-1]])
-    _, _, g, _ = obj(frames, p, before)
-    obj.obs.rebind(obj.anchor_positions(E, nu))
-    X = backend.decode(obj.win.forward(frames, E, nu, before))
-    _, dX = obj.obs.loss(frames, X)
-    ga = obj.obs.anchor_grad
-    assert np.abs(ga).max() > 0
-    for i, h in ((0, 1e-5), (1, 1e-4)):
-        dXdp, dxadp = _central_differences(obj, backend, frames, p, before, i, h)
-        held = np.sum(dX * dXdp)
-        anchor_part = np.sum(ga * dxadp)
+    for i, (g, held, anchor_part) in enumerate(_adjoint_and_chain_rule(obj, backend, frames, p, before)):
         assert abs(anchor_part) > 1e-3 * abs(held)  # the anchor's part is there to be checked
         assert g[i] == pytest.approx(held + anchor_part, rel=1e-3, abs=1e-6 * abs(held)), (i, g, held, anchor_part)
 
