@@ -9,20 +9,13 @@ import pytest
 from stages.artefacts import Provenance, SnapshotsArtefact, SubspaceArtefact, mesh_artefact
 from stages.progress import SilentReporter
 from stages.sim.meshgen import box_tets
-from stages.sim.scene import HandleSpec, Scene, simulate
+from stages.sim.scene import simulate
 from stages.steps.train_subspace import TrainSubspaceConfig, run
 from stages.subspace import ReducedModel
 from test_subspace_reduced import sequence_inputs
+from test_train_subspace_cli import _scene  # the clamped cantilever scene of the stage's tests
 
 YOUNG, POISSON = np.array([4e4]), np.array([0.45])
-
-
-def _scene(mesh) -> Scene:
-    return Scene(rest=mesh.vertices, tets=mesh.tets, dm_inv=mesh.dm_inv, volumes=mesh.rest_volumes,
-                 masses=mesh.vertex_masses, tet_region=mesh.tet_region, n_regions=1, region_names=("body",),
-                 material="stable_neohookean", dt=1 / 30, gravity=np.array([0, 0, -9.81]),
-                 handles=(HandleSpec("clamp", np.nonzero(mesh.vertices[:, 0] < 1e-9)[0], 1e3),), loads=(),
-                 obstacles=(), friction=0.0, contact_stiffness=1e3)
 
 
 @pytest.mark.slow
