@@ -442,14 +442,13 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
         if config.loss == "markers":  # the markers bind to the frame-0 equilibrium
             obs.rebind(backend.decode(objective.win.forward([0], young0, poisson0)[0][None])[0])
 
-    loop = _Loop(config, obs, backend, objective, stored, rec, prange, mat.young_range, first, last, reporter)
     # Ctrl-C raises KeyboardInterrupt at once as usual, but is also counted (stages/interrupt.py): one that
     # compiled code lost ends the loop when the frame is recorded (the progress step), and none can abort the save
     ctrl_c = CtrlC()
-    loop_reporter = CheckedReporter(reporter, ctrl_c)
+    loop = _Loop(config, obs, backend, objective, stored, rec, prange, mat.young_range, first, last,
+                 CheckedReporter(reporter, ctrl_c))
     try:
         ctrl_c.install()
-        loop.reporter = loop_reporter
         if config.mode != "online" and last is None:
             raise RslError(f"{capture.toml_path}: --mode {config.mode} needs a finite frame range (not --follow "
                            f"without --frames).")
