@@ -425,7 +425,7 @@ def loss_sweep(cap: Path, ws: Path, loss: str, factors: list[float], ends=(10, 2
 
 
 def case_markers_vs_vision_rebind(work: Path, quick: bool) -> list[dict]:
-    """Experiment 2 after the fix of the Gaussians' anchor (stages.adapt_loss.ImageLoss.rebind): the same
+    """Experiment 2 after the fix of the Gaussians' anchor (stages.render.image_loss.ImageLoss.rebind): the same
     captures as markers_vs_vision_noisy, markers (0 / 2 / 5 mm noise) and vision rerun in one run; vision with
     the re-bound Gaussians (default) and with the first-order offset anchor of before, with and without
     appearance refinement; and L(E) sweeps showing where each loss has its minimum."""

@@ -43,10 +43,10 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 import table1  # noqa: E402
-from stages import adapt_loss  # noqa: E402
 from stages.artefacts import AdaptArtefact  # noqa: E402
 from stages.progress import SilentReporter  # noqa: E402
 from stages.render import gaussians as render_gaussians  # noqa: E402
+from stages.render import image_loss  # noqa: E402
 from stages.steps import adapt  # noqa: E402
 
 RESULTS = ROOT / "docs" / "results"
@@ -78,15 +78,15 @@ class _CpuClock(SilentReporter):
 @contextlib.contextmanager
 def variant(name: str):
     """Switch the fixes off for ``before`` (both) and ``threads`` (the rebind hint)."""
-    saved_threads, saved_locate = render_gaussians.one_torch_thread, adapt_loss.locate_in_elements
+    saved_threads, saved_locate = render_gaussians.one_torch_thread, image_loss.locate_in_elements
     if name == "before":
         render_gaussians.one_torch_thread = contextlib.nullcontext
     if name in ("before", "threads"):
-        adapt_loss.locate_in_elements = lambda *a, hint=None, **k: saved_locate(*a, **k)
+        image_loss.locate_in_elements = lambda *a, hint=None, **k: saved_locate(*a, **k)
     try:
         yield
     finally:
-        render_gaussians.one_torch_thread, adapt_loss.locate_in_elements = saved_threads, saved_locate
+        render_gaussians.one_torch_thread, image_loss.locate_in_elements = saved_threads, saved_locate
 
 
 def run_once(cap: Path, ws: Path, out: Path, estimator: str, w: int, n_frames: int, name: str) -> dict:

@@ -98,7 +98,7 @@ def measure(name, make, capture, mesh, scene, ctl, at, grid, X_full, E_true, nu)
     X = X_of(E_true)
     dev = max(float(np.max(np.linalg.norm(X[t] - apply_hard_targets(scene, at(t), X[t]), axis=1)))
               for t in range(T))
-    from stages.adapt_loss import bind_markers, marker_residuals
+    from stages.sim.markers import bind_markers, marker_residuals
 
     r = marker_residuals(bind_markers(X[0], faces, P[0]), X, P)
     row = {"backend": name, "E_min_ratio": float(np.exp(e_min)) / E_true, "interior": bool(interior),

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from stages import mocap
@@ -263,7 +264,7 @@ def parse_visual(obj: dict, where: str, path: Path) -> Visual | None:
         v.fail(f"{w}.mesh", f"names '{val}', which is not an obj, ply, stl or off file.")
     if not file.is_file():
         v.fail(f"{w}.mesh", f"names '{val}', but {file} does not exist.")
-    import trimesh
+    import trimesh  # ~1 s to import: only when a surface mesh is read
 
     try:
         m = trimesh.load(str(file), force="mesh", process=False)
@@ -564,8 +565,6 @@ def check_toml_keys(raw: dict, path: Path) -> None:
 # =========================================================================== images and frames
 def read_image(path: str | Path) -> np.ndarray:
     """An image file as RGB uint8 (H, W, 3)."""
-    import cv2
-
     path = Path(path)
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
@@ -575,8 +574,6 @@ def read_image(path: str | Path) -> np.ndarray:
 
 def write_image(path: str | Path, rgb: np.ndarray) -> None:
     """Write RGB uint8 (H, W, 3) or gray (H, W) as PNG/JPG."""
-    import cv2
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     img = np.asarray(rgb)
@@ -615,8 +612,6 @@ class FrameSource:
         for suf in (".mp4", ".avi", ".mov", ".mkv"):
             video = frames_dir / f"{cam}{suf}"
             if video.is_file():
-                import cv2
-
                 cap = cv2.VideoCapture(str(video))
                 if not cap.isOpened():
                     raise CaptureError(f"{video}: cannot open video.")
@@ -632,8 +627,6 @@ class FrameSource:
             raise CaptureError(f"camera '{self.cam}': frame {i} out of range 0..{self.count - 1}.")
         if self.files is not None:
             return read_image(self.files[i])
-        import cv2
-
         cap = cv2.VideoCapture(str(self.video))
         cap.set(cv2.CAP_PROP_POS_FRAMES, i)
         ok, img = cap.read()
@@ -646,8 +639,6 @@ class FrameSource:
         """Every frame, (T, H, W, 3) uint8."""
         if self.files is not None:
             return np.stack([read_image(p) for p in self.files])
-        import cv2
-
         cap = cv2.VideoCapture(str(self.video))
         frames = []
         while True:

@@ -6,12 +6,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Sequence
 
+import cv2
 import numpy as np
 
-from stages.adapt_loss import MarkerBinding, bind_markers, marker_residuals
-from stages.artefacts import KIND_FILES, MeshArtefact
+from stages.artefacts import (KIND_FILES, CamerasArtefact, GaussiansArtefact, MasksArtefact, MeshArtefact,
+                              read_provenance)
 from stages.capture import IMAGE_SUFFIXES, Capture, CaptureError, read_image
 from stages.errors import RslError
+from stages.occluders import has_occluders, ignore_mask
+from stages.sim.markers import MarkerBinding, bind_markers, marker_residuals
 
 
 class MarkerObservation:
@@ -134,8 +137,7 @@ class VisionObservation:
 
     def __init__(self, capture: Capture, ws: Path, cam_spec: str, mesh: MeshArtefact, appearance: bool,
                  anchor: str = "rebind"):
-        from stages.artefacts import CamerasArtefact, GaussiansArtefact, MasksArtefact
-        from stages.adapt_loss import ImageLoss
+        from stages.render.image_loss import ImageLoss  # loads scipy.spatial: rsl adapt --help stays light
 
         self.capture, self.n = capture, mesh.n_vertices
         cams_art = CamerasArtefact.load(ws / KIND_FILES["cameras"])
@@ -151,8 +153,6 @@ class VisionObservation:
         self.loss_fn = ImageLoss(gauss, mesh, [cams_art.by_name(c) for c in self.cameras], appearance=appearance)
         # Occluders (controls.json handle/obstacle ``visual``): the pixels they cover at frame t are left out
         # of the loss (stages/occluders.py), whatever the frame and the mask hold there.
-        from stages.occluders import has_occluders
-
         self.controls = capture.controls()
         self.occluded = has_occluders(self.controls)
         self._cams = [cams_art.by_name(c) for c in self.cameras]
@@ -166,8 +166,6 @@ class VisionObservation:
         # changes, like the marker binding; the anchor is held fixed within one gradient).  "rebind":
         # re-bound to the tets of x_fit (ImageLoss.rebind), rendered at x_t; "offset": rendered at
         # x_t − (x_fit − rest) (first order in x_fit − rest).
-        from stages.artefacts import read_provenance
-
         if anchor not in ("rebind", "offset"):
             raise RslError(f"gaussian_anchor should be 'rebind' or 'offset', found '{anchor}'.")
         self.anchor_kind = anchor
@@ -226,8 +224,6 @@ class VisionObservation:
         if not self.occluded:
             return [None] * len(self.cameras)
         if t not in self._ignore:
-            from stages.occluders import ignore_mask
-
             self._ignore[t] = [ignore_mask(self.controls, t, c) for c in self._cams]
             for old in [k for k in self._ignore if k < t - 64]:
                 del self._ignore[old]
@@ -437,8 +433,6 @@ def read_frame(capture: Capture, cam: str, t: int) -> np.ndarray:
 
 def frame_ready(capture: Capture, cams: Sequence[str], t: int) -> bool:
     """Frame t counts when every camera's image for it exists and decodes completely."""
-    import cv2
-
     for c in cams:
         p = frame_file(capture, c, t)
         if p is None:

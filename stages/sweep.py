@@ -8,7 +8,7 @@ anchored to the simulated frame-0 state as ``rsl adapt`` anchors them (markers b
 the frame-0 surface; Gaussians re-bound to the frame-0 tets), and the loss is summed over the frames:
 
     markers     L(E) = Σ_t Σ_i ‖m_i(x_t(E)) − p_t^i‖²  (m²)
-    vision      L(E) = Σ_t Σ_c |R(G(x_t(E)), c) − Ĩ_t^c|₁  (stages.adapt_loss.ImageLoss)
+    vision      L(E) = Σ_t Σ_c |R(G(x_t(E)), c) − Ĩ_t^c|₁  (stages.render.image_loss.ImageLoss)
     silhouette  L(E) = Σ_t Σ_c Σ_px (A_c(x_t(E)) − m_t^c)²  over the pixels no occluder covers, A the
                 coverage of the mesh's surface (rasterized at 4× supersampling), m the masks of masks.h5
 
@@ -21,12 +21,21 @@ Not a stage: it writes nothing; ``bench/loss_sweep.py`` and ``rsl evaluate --swe
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+
+from stages.artefacts import KIND_FILES, CamerasArtefact, GaussiansArtefact, MasksArtefact, read_provenance
+from stages.observations import read_frame, render_backgrounds, target_image
+from stages.occluders import has_occluders, ignore_mask
+from stages.render.image_loss import ImageLoss
+from stages.sim.markers import bind_markers, marker_residuals
+from stages.sim.mesh import rest_quantities
+from stages.sim.meshgen import refine_tets, surface_faces
 
 
 @dataclass
@@ -62,7 +71,7 @@ def parabolic_minimum(x: np.ndarray, y: np.ndarray) -> tuple[float, int, bool]:
 def simulate_fixed(scene, controls, young: np.ndarray, poisson: np.ndarray, frames: int, start: str,
                    substeps: int = 1, **step_kw) -> np.ndarray:
     """Positions (T, n, 3) for constant per-region young (R,) Pa / poisson (R,) from the declared start."""
-    from stages.sim.scene import frame_inputs
+    from stages.sim.scene import frame_inputs  # JAX and numba physics: loaded on use (rsl evaluate --help)
     from stages.sim.static import simulate_from_start
 
     return simulate_from_start(scene, lambda f: frame_inputs(scene, controls, f), young, poisson, frames, start,
@@ -73,8 +82,6 @@ def marker_loss_curve(X_of: Callable[[float], np.ndarray], faces: np.ndarray, ma
                       grid: Sequence[float], frames: Sequence[int]) -> np.ndarray:
     """Per grid value: the per-frame marker loss (K, T) with markers bound to the simulated frame-0 surface
     (as rsl adapt binds them).  X_of(E) -> positions (T_all, n, 3) from frame 0."""
-    from stages.adapt_loss import bind_markers, marker_residuals
-
     out = np.zeros((len(grid), len(frames)))
     for k, e in enumerate(grid):
         X = X_of(e)
@@ -86,7 +93,7 @@ def marker_loss_curve(X_of: Callable[[float], np.ndarray], faces: np.ndarray, ma
 
 def vision_loss_curve(X_of: Callable[[float], np.ndarray], image_loss, targets: Callable[[int], list],
                       grid: Sequence[float], frames: Sequence[int], fit_frame: int = 0) -> np.ndarray:
-    """Per grid value, the per-frame L1 image loss (K, T) of stages.adapt_loss.ImageLoss with the Gaussians
+    """Per grid value, the per-frame L1 image loss (K, T) of stages.render.image_loss.ImageLoss with the Gaussians
     re-bound to the simulated fit frame (adapt's ``rebind`` anchor)."""
     out = np.zeros((len(grid), len(frames)))
     for k, e in enumerate(grid):
@@ -100,7 +107,7 @@ def vision_loss_curve(X_of: Callable[[float], np.ndarray], image_loss, targets: 
 def silhouette_coverage(x: np.ndarray, faces: np.ndarray, camera, supersample: int = 4) -> np.ndarray:
     """Fraction (H, W) of each pixel covered by the triangles faces (F, 3) at positions x (n, 3), from a
     z-buffer at ``supersample``× the camera's resolution (stages.render.mesh_raster)."""
-    from stages.render.mesh_raster import project_points, rasterize, supersampled_K
+    from stages.render.mesh_raster import project_points, rasterize, supersampled_K  # numba: loaded on use
 
     S = int(supersample)
     uv, z = project_points(x, supersampled_K(camera.K, S), camera.R, camera.t, camera.dist)
@@ -134,11 +141,7 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
     capture.toml's), frames
     [a, b) (default all), start (default capture.start).  loss "vision" needs ``workspace`` with cameras.h5
     and gaussians.h5 (masks.h5 when there); "silhouette" cameras.h5 and masks.h5."""
-    import dataclasses
-
-    from stages.sim.mesh import rest_quantities
-    from stages.sim.meshgen import refine_tets
-    from stages.sim.scene import make_scene
+    from stages.sim.scene import make_scene  # JAX and numba physics: loaded on use
 
     start = start or getattr(capture, "start", "equilibrium")
     ctl = capture.controls()
@@ -147,8 +150,6 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
         for _ in range(refine):
             v, t, reg = refine_tets(v, t, reg)
         vol, dmi, masses = rest_quantities(v, t, mesh.density)
-        from stages.sim.meshgen import surface_faces
-
         mesh = dataclasses.replace(mesh, vertices=v, tets=t, tet_region=reg, rest_volumes=vol, dm_inv=dmi,
                                    vertex_masses=masses, surface_faces=surface_faces(t), handles={})
     scene = make_scene(mesh, ctl, capture.material.model, capture.dt, capture.gravity)
@@ -201,10 +202,6 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
 
 
 def _vision(capture, workspace, cameras, mesh, X_of, grid, frames) -> np.ndarray:
-    from stages.adapt_loss import ImageLoss
-    from stages.artefacts import KIND_FILES, CamerasArtefact, GaussiansArtefact, MasksArtefact, read_provenance
-    from stages.observations import read_frame, render_backgrounds, target_image
-
     ws = Path(workspace)
     cams_art = CamerasArtefact.load(ws / KIND_FILES["cameras"])
     gauss = GaussiansArtefact.load(ws / KIND_FILES["gaussians"])
@@ -225,9 +222,6 @@ def _vision(capture, workspace, cameras, mesh, X_of, grid, frames) -> np.ndarray
 
 
 def _silhouette(capture, workspace, cameras, mesh, X_of, grid, frames) -> np.ndarray:
-    from stages.artefacts import KIND_FILES, CamerasArtefact, MasksArtefact
-    from stages.occluders import has_occluders, ignore_mask
-
     ws = Path(workspace)
     cams_art = CamerasArtefact.load(ws / KIND_FILES["cameras"])
     masks_path = ws / KIND_FILES["masks"]

@@ -3,6 +3,7 @@ functions, importlib.import_module("...")) parsed with ast; rotation code only i
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from pathlib import Path
 
@@ -111,6 +112,84 @@ def test_known_exceptions_still_exist() -> None:
     assert KNOWN_EXCEPTIONS <= edges
 
 
+# The observation models and the geometry they rest on, and the layer each must stay in (docs/architecture.md,
+# "One image formation"): adapt, evaluate, export, report and the sweeps all reach them from layer 2 or 3.
+OBSERVATION_MODEL = {
+    "stages.render.image_loss": 1,  # ImageLoss: images (paper Eq. 7)
+    "stages.sim.markers": 1,  # MarkerBinding, marker_loss: markers (paper Eq. 4)
+    "stages.sim.locate": 1,  # point location in (P1 / P2) tets, used by ImageLoss.rebind
+    "stages.parameters": 2,  # θ = (E, ν) ↔ p and Adam (optax)
+    "stages.observations": 2,  # adapt's observations: frames, masks, background plates
+}
+
+
+def test_the_observation_model_lives_in_its_layers() -> None:
+    assert {n: layer(n) for n in OBSERVATION_MODEL if n in MODULES} == OBSERVATION_MODEL
+    assert "stages.adapt_loss" not in MODULES  # split into the modules above, no re-export shim
+
+
+@functools.lru_cache(maxsize=None)
+def _top_level_names(path: Path) -> set[str]:
+    """Names a module binds at its top level (defs, classes, assignments, imports; inside if/try too)."""
+    names: set[str] = set()
+
+    def visit(body) -> None:
+        for n in body:
+            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                names.add(n.name)
+            elif isinstance(n, (ast.Assign, ast.AnnAssign, ast.AugAssign)):
+                for t in n.targets if isinstance(n, ast.Assign) else [n.target]:
+                    names.update(e.id for e in ast.walk(t) if isinstance(e, ast.Name))
+            elif isinstance(n, (ast.Import, ast.ImportFrom)):
+                names.update((a.asname or a.name).split(".")[0] for a in n.names)
+            elif isinstance(n, (ast.If, ast.Try, ast.With)):
+                visit(n.body)
+                visit(getattr(n, "orelse", []))
+                for h in getattr(n, "handlers", []):
+                    visit(h.body)
+                visit(getattr(n, "finalbody", []))
+
+    visit(ast.parse(path.read_text(encoding="utf-8")).body)
+    return names
+
+
+def _unresolved(path: Path, name: str) -> list[str]:
+    """Imports of stages / rsl_cli in ``path`` that name no module of the tree, or a name the module lacks."""
+    bad = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom) and node.level:
+            package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+            base = package.split(".")[: len(package.split(".")) - node.level + 1]
+            mod, aliases = ".".join(base + ([node.module] if node.module else [])), node.names
+        elif isinstance(node, ast.ImportFrom):
+            mod, aliases = node.module or "", node.names
+        elif isinstance(node, ast.Import):
+            mod, aliases = None, node.names
+        else:
+            continue
+        if mod is None:
+            bad += [a.name for a in aliases if a.name.split(".")[0] in ("stages", "rsl_cli") and a.name not in MODULES]
+            continue
+        if mod.split(".")[0] not in ("stages", "rsl_cli"):
+            continue
+        if mod not in MODULES:
+            bad.append(mod)
+            continue
+        defined = _top_level_names(MODULES[mod])
+        bad += [f"{mod}.{a.name}" for a in aliases
+                if a.name != "*" and f"{mod}.{a.name}" not in MODULES and a.name not in defined]
+    return bad
+
+
+def test_every_import_of_the_tree_resolves() -> None:
+    """Every import of stages / rsl_cli in the library, the CLI, the tests and the benchmarks names a module that
+    exists and a name it defines (a module moved or split leaves no stale import behind, even a function-local
+    one that only a slow test or a benchmark would run)."""
+    files = {**{p: n for n, p in MODULES.items()},
+             **{p: p.stem for d in ("tests", "bench") for p in sorted((ROOT / d).rglob("*.py"))}}
+    assert [f"{p.relative_to(ROOT)}: {b}" for p, n in files.items() for b in _unresolved(p, n)] == []
+
+
 def test_the_checker_sees_violations(tmp_path: Path) -> None:
     """The checker itself: a function-local upward import and an import_module string are seen."""
     p = tmp_path / "x.py"
@@ -119,6 +198,9 @@ def test_the_checker_sees_violations(tmp_path: Path) -> None:
     assert ("stages.steps.adapt", 2) in got and ("stages.capture", 4) in got
     assert layer("stages.sim.x") == 1 and layer("stages.steps.adapt") == 3 and layer("stages.domain.controls") == 0
     assert layer("stages.capture") == 2 and layer("rsl_cli.app") == 4
+    p.write_text("from stages.adapt_loss import ImageLoss\nfrom stages.sim.markers import bind_markers, nope\n"
+                 "def f():\n    import stages.sim.gone\n    from stages.sim import markers, locate\n")
+    assert _unresolved(p, "x") == ["stages.adapt_loss", "stages.sim.markers.nope", "stages.sim.gone"]
 
 
 # --------------------------------------------------------------------------- rotations in one place

@@ -193,7 +193,7 @@ def _targets(fits) -> list[np.ndarray]:
 def test_rebound_gaussians_at_x_fit_render_as_fitted(fits):
     """ImageLoss anchors the Gaussians where they were fitted: rebind(x_fit(θ_init)) keeps the render exactly
     (and its PSNR is the recorded fit PSNR); the old rest anchor would move them."""
-    from stages.adapt_loss import ImageLoss
+    from stages.render.image_loss import ImageLoss
     from stages.render import loss as rloss
 
     art = GaussiansArtefact.load(fits["ws"] / "gaussians.h5")
@@ -219,7 +219,7 @@ def test_rebound_gaussians_at_x_fit_render_as_fitted(fits):
 def test_gaussians_h5_without_fit_positions_still_loads(fits, tmp_path):
     """A gaussians.h5 written before ``fit_positions`` existed: loads with fit_positions None and is anchored
     at rest (ImageLoss.fit_positions = the rest shape)."""
-    from stages.adapt_loss import ImageLoss
+    from stages.render.image_loss import ImageLoss
 
     path = tmp_path / "gaussians.h5"
     shutil.copy(fits["ws_rest"] / "gaussians.h5", path)
@@ -252,7 +252,7 @@ def test_an_object_nothing_holds_is_posed_at_rest(fits, tmp_path):
 def test_rebind_at_the_fit_positions_is_exact_for_linear_and_quadratic_tets(order):
     """Gaussians with fit_positions x_fit (a bent beam, not the rest shape): re-bound to x_fit they render exactly
     as the binding as fitted renders at x_fit (centre Σ N_a x_a and F Σ₀ Fᵀ at the Gaussian, P1 and P2)."""
-    from stages.adapt_loss import ImageLoss
+    from stages.render.image_loss import ImageLoss
     from stages.steps.fit_gaussians import seed_gaussians
     from stages.render.gaussians import color_to_sh0
     from stages.artefacts import mesh_artefact

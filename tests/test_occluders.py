@@ -114,7 +114,7 @@ def test_box_visual_covers_the_convex_hull_of_its_projected_corners_and_moves_wi
 @pytest.fixture(scope="module")
 def scene():
     """A 6×3×3-cell bar with random Gaussians in view of one camera, and a box occluder over one end."""
-    from stages.adapt_loss import ImageLoss
+    from stages.render.image_loss import ImageLoss
 
     v, tets = box_tets((6, 3, 3), (0.12, 0.04, 0.04), origin=(-0.01, 0.0, 0.0))
     mesh = mesh_artefact(v, tets, 1000.0)

@@ -491,7 +491,7 @@ def test_p2_binding_gradcheck_reference_and_fused():
 
 
 def test_p2_point_location_inverts_the_curved_element_map():
-    from stages.adapt_loss import locate_in_elements
+    from stages.sim.locate import locate_in_elements
 
     mesh = p2_box_mesh(bow=0.01)
     rng = np.random.default_rng(8)
@@ -512,7 +512,7 @@ def test_p2_point_location_inverts_the_curved_element_map():
 def test_p2_image_loss_matches_bound_gaussians_and_rebinds_exactly():
     import torch
 
-    from stages.adapt_loss import ImageLoss
+    from stages.render.image_loss import ImageLoss
     from stages.render.gaussians import BoundGaussians
     from test_fit_gaussians import look_at
 
@@ -538,7 +538,7 @@ def test_p2_image_loss_matches_bound_gaussians_and_rebinds_exactly():
 
 
 def test_markers_bind_to_the_p2_surface():
-    from stages.adapt_loss import bind_markers
+    from stages.sim.markers import bind_markers
 
     mesh = p2_box_mesh()
     faces = mesh.surface_faces

@@ -100,7 +100,7 @@ def test_bind_project_is_project_bound_on_the_fitted_binding(order):
 @pytest.mark.parametrize("order", [1, 2])
 def test_image_loss_fused_equals_its_torch_twin_after_a_rebind(order):
     """ImageLoss on the fused kernel and on the torch twin (forced): the loss, dL/dx and the anchor's dL/dx_a."""
-    from stages.adapt_loss import ImageLoss
+    from stages.render.image_loss import ImageLoss
 
     mesh, art = _mesh_and_gaussians(order, 300)
     art.opacity_logit = np.full(300, 2.0)

@@ -20,7 +20,7 @@ def _moved_box(order: int, seed: int):
 
 
 def test_locate_with_a_host_hint_equals_the_search_without_one():
-    from stages.adapt_loss import locate_in_elements
+    from stages.sim.locate import locate_in_elements
 
     for order in (1, 2):
         v, t, x_fit, x_new, rng = _moved_box(order, 3)

@@ -148,59 +148,6 @@ def test_single_view_sag_of_the_beam_from_markers_and_from_the_silhouette(tmp_pa
     assert ev["young_rel_error_final"] == pytest.approx(err, rel=1e-9)
 
 
-def _sil_camera(size: int = 48):
-    from stages.artefacts import Camera
-
-    c = (size - 1) / 2
-    return Camera("c", np.array([[90.0, 0, c], [0, 90.0, c], [0, 0, 1]]), np.array([0.02, -0.01, 1e-3, -1e-3, 0.0]),
-                  np.eye(3), np.array([-0.1, -0.02, 0.5]), size, size)
-
-
-def test_soft_silhouette_derivatives_match_finite_differences():
-    """stages.silhouette.SoftSilhouette: forward mode (the Gauss–Newton Jacobian) and reverse mode (Adam's
-    gradient) against central differences of the coverage itself, and ⟨vjp(g), v⟩ = ⟨g, jvp(v)⟩."""
-    from stages.silhouette import SoftSilhouette
-    from stages.sim.meshgen import box_tets, surface_faces
-
-    v, t = box_tets((6, 2, 2), (0.2, 0.04, 0.04))
-    rng = np.random.default_rng(0)
-    x = v + 0.002 * rng.standard_normal(v.shape)
-    s = SoftSilhouette(surface_faces(t), _sil_camera())
-    A = s.coverage(x)
-    assert A.shape == (48, 48) and 0.0 <= A.min() and A.max() <= 1.0 and A.max() > 0.99
-    V = 1e-3 * rng.standard_normal((2,) + x.shape)
-    J = s.jvp(x, V)
-    g = rng.standard_normal(A.shape)
-    G = s.vjp(x, g)
-    for j in range(2):
-        h = 1e-3  # V is 1 mm per unit: a 1 µm step (≈ 2e-4 px)
-        fd = (s.coverage(x + h * V[j]) - s.coverage(x - h * V[j])) / (2 * h)
-        assert np.abs(fd - J[j]).max() < 1e-4 * np.abs(J[j]).max()
-        assert np.sum(G * V[j]) == pytest.approx(np.sum(g * J[j]), rel=1e-9)
-
-
-def test_soft_silhouette_is_the_hard_silhouette_blurred_by_a_pixel():
-    """The soft coverage of a closed surface differs from the exact (supersampled) coverage only along the
-    outline: by less than ~2/3 of a pixel per outline pixel summed, its area within ¼ pixel per outline pixel
-    (stages.silhouette.SHIFT_TAU: the front and back faces meeting on the outline make A = ½ there).  Inside, a
-    pixel stays above ¾ even where the inner edges of the front and the back layer coincide (four soft edges
-    through its centre: this structured box seen square-on is the worst case)."""
-    from stages.silhouette import SoftSilhouette
-    from stages.sim.meshgen import box_tets, surface_faces
-    from stages.sweep import silhouette_coverage
-
-    v, t = box_tets((6, 2, 2), (0.2, 0.04, 0.04))
-    cam = _sil_camera(64)
-    f = surface_faces(t)
-    soft, hard = SoftSilhouette(f, cam).coverage(v), silhouette_coverage(v, f, cam, supersample=8)
-    inside = hard == 1.0
-    assert np.all(soft[inside] > 0.74)
-    outline = np.count_nonzero((hard > 0) & (hard < 1))
-    assert np.abs(soft - hard).sum() < 0.67 * outline + 0.1 * np.count_nonzero(inside) ** 0.5
-    print(f"soft area {soft.sum():.1f} px², exact {hard.sum():.1f} px², outline {outline} px")
-    assert abs(soft.sum() - hard.sum()) < 0.25 * outline
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("guess", [0.4, 1.0])
 def test_adapt_identifies_young_from_the_silhouette_of_a_single_view_without_a_plate(tmp_path, shared_data, rsl, guess):

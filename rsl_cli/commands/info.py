@@ -117,7 +117,7 @@ def register_docs(app: typer.Typer) -> None:
 
     @app.command("help-markdown", hidden=True, help="Print the reference of every command as Markdown.")
     def _docs() -> None:
-        import click
+        import click  # typer vendors its own click: this one loads only for help-markdown
 
         root = typer.main.get_command(app)
         ctx = click.Context(root, info_name="rsl")

@@ -22,7 +22,7 @@ def rest_quantities(vertices: np.ndarray, tets: np.ndarray, density: float
     of the corner tet, HRZ lumped masses (stages.sim.quadrature)."""
     tets = np.asarray(tets)
     if tets.shape[-1] == 10:
-        from .quadrature import build_quadrature, element_volumes, lumped_masses
+        from .quadrature import build_quadrature, element_volumes, lumped_masses  # it imports this module
 
         vol = element_volumes(build_quadrature(vertices, tets), len(tets))
         dm_inv = np.linalg.inv(shape_matrices(vertices, tets[:, :4]))

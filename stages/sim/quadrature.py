@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .mesh import boundary_faces, shape_matrices
+
 P2_EDGES = np.array([(0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)])
 NODES_PER_ORDER = {1: 4, 2: 10}
 _DL_DXI = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # ∂L_a/∂ξ_j
@@ -121,8 +123,6 @@ def build_quadrature(vertices: np.ndarray, tets: np.ndarray) -> Quadrature:
     tets = np.asarray(tets, np.int64)
     order = element_order(tets)
     if order == 1:
-        from .mesh import shape_matrices
-
         dm = shape_matrices(np.asarray(vertices, np.float64), tets)
         vol = np.linalg.det(dm) / 6.0
         if np.any(vol <= 0):
@@ -171,8 +171,6 @@ def quadratic_tets(vertices: np.ndarray, tets: np.ndarray, project=None) -> tupl
     """P2 mesh from a P1 mesh: (vertices (n + e, 3), tets (m, 10)); the first n vertices are the
     corners as given, then one node per unique edge at its midpoint.  ``project`` (optional) maps the
     midpoints of boundary edges (b, 3) onto the curved input surface, e.g. a closest-point query."""
-    from .mesh import boundary_faces
-
     tets = np.asarray(tets, np.int64)
     vertices = np.asarray(vertices, np.float64)
     edges, per_tet = edge_midpoints(tets)
@@ -195,8 +193,6 @@ def jacobian_ratio(vertices: np.ndarray, tets10: np.ndarray) -> np.ndarray:
                    np.full((1, 4), 0.25), RULES[2][0]])  # (15, 4) sample points
     m, S = len(tets10), len(L)
     _, _, detJ = point_map(vertices, tets10, np.repeat(np.arange(m), S), np.tile(L, (m, 1)))
-    from .mesh import shape_matrices
-
     straight = np.linalg.det(shape_matrices(np.asarray(vertices, np.float64), tets10[:, :4]))
     return (detJ.reshape(m, S) / straight[:, None]).min(axis=1)
 
@@ -223,8 +219,6 @@ def quadratic_surface(tets10: np.ndarray) -> np.ndarray:
     """Outward boundary triangles (4k, 3) of a P2 mesh over all its nodes: each quadratic face
     (a, b, c) with mid-edge nodes m_ab, m_bc, m_ca is split into (a, m_ab, m_ca), (m_ab, b, m_bc),
     (m_ca, m_bc, c), (m_ab, m_bc, m_ca)."""
-    from .mesh import boundary_faces
-
     tets10 = np.asarray(tets10, np.int64)
     corner = boundary_faces(tets10[:, :4])
     n = int(tets10.max()) + 1

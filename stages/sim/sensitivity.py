@@ -21,14 +21,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .linsolve import NotPositiveDefinite
+from .scene import _cache, _constrain, _data_for, _per_frame, _residual, hessian
 
 
 @jax.jit
 def _residual_jvp(x, x_prev, x_prev2, young, poisson, s, inputs, t_xp, t_xpp, t_e, t_nu):
     """(∂r/∂x_prev) t_xp + (∂r/∂x_prev2) t_xpp + (∂r/∂E) t_e + (∂r/∂ν) t_nu, batched over the leading axis
     of the tangents (k, …)."""
-    from .scene import _residual
-
     def one(a, b, c, d):
         return jax.jvp(lambda xp, xpp, E, nu: _residual(x, xp, xpp, E, nu, s, inputs),
                        (x_prev, x_prev2, young, poisson), (a, b, c, d))[1]
@@ -56,8 +55,6 @@ def window_sensitivity(scene, inputs: Sequence, young, poisson, X, x_before, d_y
     (the same for every window frame); d_before (k, 2, n, 3) or None: the change of the states before
     the window along each direction (0 when None).
     """
-    from .scene import _cache, _data_for, _per_frame, hessian
-
     X = np.asarray(X, np.float64)
     w = X.shape[0]
     R = scene.n_regions
@@ -88,8 +85,6 @@ def window_sensitivity(scene, inputs: Sequence, young, poisson, X, x_before, d_y
 def _solve_many(cache, solver: str, H, B: np.ndarray) -> np.ndarray:
     """H⁻¹ b for each row b of B (k, 3n), one factorisation (Cholesky when positive definite, else LU); on the
     DOFs of hard handles (inputs: x_t there is the target) the solution is 0 (scene.solve_free)."""
-    from .scene import _constrain
-
     data = np.array(H.data, np.float64)
     mask = cache.fixed()[0]
     if mask is not None:

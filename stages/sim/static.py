@@ -232,10 +232,22 @@ def reduced_equilibrium_sensitivity(model, inputs, young, poisson, z) -> np.ndar
     E, nu = _theta(sm.scene, young, poisson)
     args = sm._args(z, z, z, E, nu, rin)
     h = np.asarray(sm._H(*args))
-    grad = jax.grad(sm.energy_jax, argnums=0)
-    jE, jnu = jax.jacfwd(lambda a, b: grad(args[0], args[1], args[2], a, b, rin), argnums=(0, 1))(E, nu)
+    jE, jnu = _dgrad_dtheta(sm)(args[0], args[1], args[2], E, nu, rin)
     J = np.concatenate([np.asarray(jE), np.asarray(jnu)], axis=1)  # (r, 2R)
     return -np.linalg.solve(0.5 * (h + h.T), J).T
+
+
+_DGRAD_DTHETA: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _dgrad_dtheta(sm):
+    """∂h/∂(E, ν) of the static model's gradient h(z; θ), jitted once per model (an eager jacfwd re-traced the
+    energy at every call: half of a reduced gn window's time while frame 0 anchors the markers)."""
+    f = _DGRAD_DTHETA.get(sm)
+    if f is None:
+        grad = jax.grad(sm.energy_jax, argnums=0)
+        f = _DGRAD_DTHETA[sm] = jax.jit(jax.jacfwd(grad, argnums=(3, 4)))
+    return f
 
 
 # =========================================================================== a sequence from a declared start

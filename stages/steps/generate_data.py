@@ -166,7 +166,7 @@ def plan_sequences(config: GenerateDataConfig, controls: Controls, young_range, 
 def simulate_sequence(mesh: MeshArtefact, plan: SequencePlan, model: str, dt: float, gravity: np.ndarray,
                       newton_iterations: int) -> tuple[int, np.ndarray | None, str]:
     """(index, positions (T, n, 3) or None, error message) of one planned sequence."""
-    from stages.sim.scene import SimulationError, frame_inputs, make_scene, simulate
+    from stages.sim.scene import SimulationError, frame_inputs, make_scene, simulate  # JAX + numba: loaded on use
 
     try:
         ctl = parse_controls(plan.controls, Path(f"sequence {plan.index}"))

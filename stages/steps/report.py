@@ -5,7 +5,7 @@ Sections (each made from the artefacts present; one that cannot be made says why
 * material   E(t) and ν(t) per region from adapt.h5, with the band E ± σ where adapt.h5 holds
              ``young_sigma`` (Pa) and the truth of truth/material.csv when the capture has one;
 * renders    for a few frames: the capture's photo, the adapted Gaussians rendered from the same
-             camera (stages.adapt_loss.ImageLoss, as ``rsl evaluate`` renders them) and the same
+             camera (stages.render.image_loss.ImageLoss, as ``rsl evaluate`` renders them) and the same
              Gaussians coloured by von Mises stress (turbo map, 0 … 99th percentile);
 * stress     max / 99th percentile / median von Mises per frame (stages.sim.stress, as ``rsl export``);
 * forces     per handle and obstacle over time, ‖Σ f_int‖ and ‖applied‖ (stages.sim.stress.set_forces,
@@ -30,13 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.adapt_loss import ImageLoss
 from stages.artefacts import (KIND_FILES, AdaptArtefact, ArtefactError, CamerasArtefact, GaussiansArtefact,
                               MeshArtefact, describe, read_provenance)
 from stages.capture import Capture, CaptureError, load_capture, read_forces_csv, read_material_csv
 from stages.errors import RslError
 from stages.forces import FORCE_SUBSTEPS, adapted_forces, replay_substeps
 from stages.progress import Reporter, SilentReporter
+from stages.render.image_loss import ImageLoss
 from stages.results import compute_stress, gaussian_anchor, material_setting, recorded_capture
 from stages.workspace import artefact_state, write_text_atomic
 

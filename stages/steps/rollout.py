@@ -127,7 +127,7 @@ def run(config: RolloutConfig, reporter: Reporter = SilentReporter()) -> Path:
                          callback=lambda t: task.advance(1))
             Z = np.zeros((T, 0))
         else:
-            from stages.subspace import ReducedModel
+            from stages.subspace import ReducedModel  # equinox: only for a reduced-space rollout
 
             if not sub_path.exists():
                 raise RolloutError(f"{sub_path}: file not found; --space reduced needs `rsl train-subspace`.")

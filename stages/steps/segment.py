@@ -36,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+import cv2
 import numpy as np
 
 from stages.artefacts import (KIND_FILES, CamerasArtefact, MasksArtefact, MeshArtefact, Provenance,
@@ -106,8 +107,6 @@ class SegmentConfig:
 
 def run(config: SegmentConfig, reporter: Reporter = SilentReporter()) -> Path:
     """Segment every frame of every camera and write WS/masks.h5."""
-    import cv2
-
     cap = load_capture(config.capture)
     ws = Path(config.workspace)
     out = ws / KIND_FILES["masks"]
@@ -243,8 +242,6 @@ def _iter_frames(src, n: int):
         for i in range(n):
             yield src.read(i)
         return
-    import cv2
-
     vc = cv2.VideoCapture(str(src.video))
     try:
         for i in range(n):
@@ -346,7 +343,7 @@ def _frame0_state(cap: Capture, mesh, reporter: Reporter, young_scale: float = 1
     controls = cap.controls()
     if not controls.handles:
         return None, ""
-    from stages.sim.scene import SimulationError, frame_inputs, make_scene
+    from stages.sim.scene import SimulationError, frame_inputs, make_scene  # JAX + numba: loaded on use
     from stages.sim.static import start_state
 
     try:
@@ -415,8 +412,6 @@ def _grabcut_span(frame: np.ndarray, inner: np.ndarray, outer: np.ndarray, band_
     between starts as probable object or probable background by which of the two sure regions' colour
     distributions (one Gaussian each, RGB) gives it the higher likelihood — no shape inside the span is
     preferred.  band_px 0 = 6 % of the inner region's equivalent diameter (at least 2 px).  Returns (H, W) bool."""
-    import cv2
-
     img = np.asarray(frame, np.uint8)
     inner, outer = np.asarray(inner, bool), np.asarray(outer, bool) | np.asarray(inner, bool)
     H, W = inner.shape

@@ -101,7 +101,7 @@ def _material_model(config: TrainSubspaceConfig, snap_path: Path) -> str:
 
 def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> Path:
     """Train the subspace and its cubature; write WS/subspace.h5."""
-    import jax.numpy as jnp
+    import jax.numpy as jnp  # JAX, equinox and optax load in run: rsl train-subspace --help stays light
 
     from stages.sim.materials import MODELS, lame
     from stages.subspace.cubature import ReducedForceSampler, cubature_error, fit_cubature, mesh_quadrature

@@ -1,258 +1,27 @@
-"""Window losses of ``rsl adapt`` and their gradients with respect to vertex positions.
+"""The image observation model of ``rsl adapt``, ``rsl evaluate`` and ``rsl report`` (paper Eq. 7) and its
+gradient with respect to vertex positions.
 
-Two observation models, each a pure function of simulated positions X (w, n, 3):
+L = Σ_t Σ_c |R(G(x_t), c) − Ĩ_t^c|, the L1 distance between the render of the Gaussians bound to the mesh and
+the masked image Ĩ = I·m + bg·(1 − m) (what a render is compared with: stages/observations.py);
+dL/dx_t comes from torch autograd through the rasterizer.  The Gaussians were fitted to the images of one
+frame with the mesh posed at x_fit (gaussians.h5 ``fit_positions``: that frame's state under the capture's
+start convention with the initial θ; the rest shape for older files); :meth:`ImageLoss.rebind` re-binds them
+to the tets of that frame's configuration simulated with the current θ (so that rendered there they are exactly
+the fitted ones), see :func:`stages.sim.locate.locate_in_elements`; dL/dx_f (that configuration's part of
+dL/dθ) comes from :meth:`ImageLoss.anchored_geometry`.
 
-* markers (paper Eq. 4, windowed): L = Σ_t Σ_i ‖m_i(x_t) − p_t^i‖² over the observed (t, i) only (a
-  motion-capture gap, NaN in p, adds nothing), with each marker bound to the surface point nearest its
-  frame-0 position, m_i(x) = Σ_k b_ik x[f_ik] (barycentric on the nearest surface triangle), so
-  dL/dx_t = Σ_{i observed at t} 2 (m_i − p^i) ⊗ b_i.
-* vision (paper Eq. 7): L = Σ_t Σ_c |R(G(x_t), c) − Ĩ_t^c|, the L1 distance between the
-  render of the Gaussians bound to the mesh and the masked image Ĩ = I·m + bg·(1 − m);
-  dL/dx_t comes from torch autograd through the rasterizer (stages/render).  The Gaussians were
-  fitted to the images of one frame with the mesh posed at x_fit (gaussians.h5 ``fit_positions``: that
-  frame's state under the capture's start convention with the initial θ; the rest shape for older files);
-  :meth:`ImageLoss.rebind` re-binds them to the tets of that frame's configuration simulated with the
-  current θ (so that rendered there they are exactly the fitted ones), see :func:`locate_in_tets`;
-  dL/dx_f (that configuration's part of dL/dθ) comes from :meth:`ImageLoss.anchored_geometry`.
-
-Nothing here reads files or prints.
+torch and the numba kernels are imported when an ImageLoss is built, not with this module: the stage modules
+that import it (evaluate, report) keep ``rsl STAGE --help`` free of torch.  Nothing here reads files or prints.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
-from scipy.spatial import cKDTree
 
-from stages.sim.mesh import deformation_gradients, shape_matrices
-from stages.sim.quadrature import point_map, shape_reference_gradients, shape_values
-
-
-# =========================================================================== markers
-@dataclass(frozen=True)
-class MarkerBinding:
-    """Markers bound to surface triangles: m_i(x) = Σ_k bary[i, k] · x[faces[i, k]]."""
-
-    faces: np.ndarray  # (M, 3) vertex ids of each marker's triangle
-    bary: np.ndarray  # (M, 3) barycentric weights, rows sum to 1
-    distance: np.ndarray  # (M,) m, distance from the frame-0 marker to the surface
-
-    def positions(self, x: np.ndarray) -> np.ndarray:
-        """Marker positions (…, M, 3) of vertex positions x (…, n, 3)."""
-        return np.einsum("...mkd,mk->...md", x[..., self.faces, :], self.bary)
-
-    def scatter(self, g: np.ndarray, n_vertices: int) -> np.ndarray:
-        """Adjoint of :meth:`positions`: per-marker gradients (…, M, 3) -> per-vertex (…, n, 3)."""
-        lead = g.shape[:-2]
-        out = np.zeros(lead + (n_vertices, 3))
-        contrib = g[..., :, None, :] * self.bary[:, :, None]  # (…, M, 3, 3)
-        flat_out = out.reshape(-1, n_vertices, 3)
-        flat_c = contrib.reshape(-1, *contrib.shape[-3:])
-        for b in range(flat_out.shape[0]):
-            np.add.at(flat_out[b], self.faces.reshape(-1), flat_c[b].reshape(-1, 3))
-        return flat_out.reshape(out.shape)
+from stages.sim.locate import locate_in_elements
+from stages.sim.mesh import deformation_gradients
+from stages.sim.quadrature import point_map
 
 
-def closest_points_on_triangles(points: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Closest point on each triangle to each point (Ericson, Real-Time Collision Detection §5.1.5).
-
-    points (P, 3), tri (F, 3, 3) -> (closest (P, F, 3), barycentric (P, F, 3)).
-    """
-    a, b, c = tri[None, :, 0], tri[None, :, 1], tri[None, :, 2]
-    p = points[:, None, :]
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = np.sum(ab * ap, -1), np.sum(ac * ap, -1)
-    bp = p - b
-    d3, d4 = np.sum(ab * bp, -1), np.sum(ac * bp, -1)
-    cp = p - c
-    d5, d6 = np.sum(ab * cp, -1), np.sum(ac * cp, -1)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    shape = d1.shape
-    bary = np.zeros(shape + (3,))
-    done = np.zeros(shape, bool)
-
-    def put(mask, u, v, w):
-        nonlocal done
-        m = mask & ~done
-        bary[m] = np.stack([u[m] if np.ndim(u) else np.full(m.sum(), u),
-                            v[m] if np.ndim(v) else np.full(m.sum(), v),
-                            w[m] if np.ndim(w) else np.full(m.sum(), w)], -1)
-        done = done | m
-
-    with np.errstate(divide="ignore", invalid="ignore"):
-        put((d1 <= 0) & (d2 <= 0), 1.0, 0.0, 0.0)  # vertex a
-        put((d3 >= 0) & (d4 <= d3), 0.0, 1.0, 0.0)  # vertex b
-        t = d1 / (d1 - d3)
-        put((vc <= 0) & (d1 >= 0) & (d3 <= 0), 1 - t, t, 0.0)  # edge ab
-        put((d6 >= 0) & (d5 <= d6), 0.0, 0.0, 1.0)  # vertex c
-        t = d2 / (d2 - d6)
-        put((vb <= 0) & (d2 >= 0) & (d6 <= 0), 1 - t, 0.0, t)  # edge ac
-        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        put((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), 0.0, 1 - t, t)  # edge bc
-        denom = 1.0 / (va + vb + vc)
-        v, w = vb * denom, vc * denom
-        put(np.ones(shape, bool), 1 - v - w, v, w)  # interior
-    closest = np.einsum("pfk,fkd->pfd", bary, tri)
-    return closest, bary
-
-
-def bind_markers(vertices: np.ndarray, faces: np.ndarray, markers0: np.ndarray,
-                 chunk: int = 64) -> MarkerBinding:
-    """Bind each marker (M, 3) to the nearest point of the surface (vertices (n, 3), faces (F, 3))."""
-    tri = vertices[faces]
-    fids, barys, dists = [], [], []
-    for s in range(0, len(markers0), chunk):
-        p = markers0[s:s + chunk]
-        closest, bary = closest_points_on_triangles(p, tri)
-        d = np.linalg.norm(closest - p[:, None], axis=-1)
-        k = np.argmin(d, axis=1)
-        r = np.arange(len(p))
-        fids.append(k)
-        barys.append(bary[r, k])
-        dists.append(d[r, k])
-    fid = np.concatenate(fids)
-    return MarkerBinding(faces[fid].astype(np.int64), np.concatenate(barys), np.concatenate(dists))
-
-
-def marker_residuals(binding: MarkerBinding, X: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """r_t^i = m_i(x_t) − p_t^i (w, M, 3) where marker i is observed at frame t (P finite), 0 at a gap
-    (a NaN in P: the marker was not seen)."""
-    observed = np.all(np.isfinite(P), axis=-1, keepdims=True)
-    return np.where(observed, binding.positions(X) - np.where(observed, P, 0.0), 0.0)
-
-
-def marker_loss(binding: MarkerBinding, X: np.ndarray, P: np.ndarray) -> tuple[float, np.ndarray]:
-    """L = Σ_t Σ_{i observed at t} ‖m_i(x_t) − p_t^i‖² and dL/dX, for X (w, n, 3) and markers P (w, M, 3), NaN
-    at a gap; a frame with no observed marker adds 0 to L and to dL/dX."""
-    r = marker_residuals(binding, X, P)
-    return float(np.sum(r * r)), binding.scatter(2.0 * r, X.shape[1])
-
-
-# =========================================================================== point location in tets
-def tet_barycentrics(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates (P, 4) of points (P, 3) in the tets (P, 4) given per point (rows sum to 1;
-    all ≥ 0 inside the tet, affine extrapolation outside)."""
-    lam = np.linalg.solve(shape_matrices(vertices, tets), (points - vertices[tets[:, 0]])[..., None])[..., 0]
-    return np.concatenate([1.0 - lam.sum(1, keepdims=True), lam], axis=1)
-
-
-def locate_in_tets_brute(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, candidates: int = 16,
-                         widen: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """(tet (P,), barycentric (P, 4)): for each point, among the ``candidates`` tets whose centroids are nearest,
-    the one whose smallest barycentric coordinate is the largest — a tet holding the point when one of them
-    does; when none does (the point is outside the mesh, or in a sliver far from its centroid), the same over
-    the ``candidates · widen`` nearest.  One point and one tet at a time (the slow twin of
-    :func:`locate_in_tets`)."""
-    cent = vertices[tets].mean(1)
-    k1, k2 = min(candidates, len(tets)), min(candidates * widen, len(tets))
-    tet = np.empty(len(points), np.int64)
-    for i, p in enumerate(points):
-        order = np.argsort(np.linalg.norm(cent - p, axis=1), kind="stable")
-        for k in (k1, k2):
-            scores = [tet_barycentrics(p[None], vertices, tets[[j]])[0].min() for j in order[:k]]
-            tet[i] = order[int(np.argmax(scores))]
-            if max(scores) >= -1e-9:
-                break
-    return tet, tet_barycentrics(points, vertices, tets[tet])
-
-
-def locate_in_tets(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, candidates: int = 16,
-                   widen: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`locate_in_tets_brute`, vectorised with a k-d tree of the tet centroids."""
-    points = np.asarray(points, np.float64)
-    c = vertices[tets]  # (M, 4, 3)
-    x0 = c[:, 0]
-    tree = cKDTree(c.mean(1))
-    every: list = []  # D⁻¹ of every tet (M, 3, 3), made once if few points do not need only their candidates'
-
-    def best(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        _, cand = tree.query(p, k=k)
-        cand = np.asarray(cand, np.int64).reshape(len(p), k)
-        if cand.size < len(tets) and not every:  # the candidates' inverses only (the same floats)
-            Dc = np.linalg.inv(shape_matrices(vertices, tets[cand.ravel()])).reshape(len(p), k, 3, 3)
-        else:
-            if not every:
-                every.append(np.linalg.inv(shape_matrices(vertices, tets)))
-            Dc = every[0][cand]
-        lam = np.einsum("pkij,pkj->pki", Dc, p[:, None] - x0[cand])
-        b = np.concatenate([1.0 - lam.sum(-1, keepdims=True), lam], axis=-1)  # (P, k, 4)
-        j = np.argmax(b.min(2), axis=1)
-        r = np.arange(len(p))
-        return cand[r, j], b[r, j]
-
-    tet, bary = best(points, min(candidates, len(tets)))
-    far = np.flatnonzero(bary.min(1) < -1e-9)
-    if len(far):
-        tet[far], bary[far] = best(points[far], min(candidates * widen, len(tets)))
-    return tet, bary
-
-
-def invert_element_map(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, element: np.ndarray,
-                       bary0: np.ndarray, iterations: int = 30, tol: float = 1e-13) -> np.ndarray:
-    """Barycentric (corner) coordinates (P, 4) of points (P, 3) in their elements (P,) of a quadratic mesh
-    (vertices (n, 3), tets (m, 10)): Newton on Σ_a N_a(ξ) x_a = p from bary0 (e.g. the corner tet's
-    barycentrics), ξ = (β₁, β₂, β₃), the update solving (Σ_a x_a ⊗ ∂N_a/∂ξ) Δξ = p − x(ξ); stops when
-    every |Δξ| < tol."""
-    xe = np.asarray(vertices, np.float64)[np.asarray(tets)[element]]  # (P, 10, 3)
-    xi = np.asarray(bary0, np.float64)[:, 1:].copy()
-    for _ in range(iterations):
-        b = np.concatenate([1.0 - xi.sum(1, keepdims=True), xi], axis=1)
-        r = np.asarray(points, np.float64) - np.einsum("pk,pkd->pd", shape_values(2, b), xe)
-        J = np.einsum("pki,pkj->pij", xe, shape_reference_gradients(2, b))
-        det = np.linalg.det(J)
-        ok = np.isfinite(det) & (np.abs(det) > 1e-300)
-        J[~ok] = np.eye(3)
-        d = np.where(ok[:, None], np.linalg.solve(J, r[..., None])[..., 0], np.nan)  # NaN: a singular map
-        xi += d
-        if np.nanmax(np.abs(d), initial=0.0) < tol:
-            break
-    return np.concatenate([1.0 - xi.sum(1, keepdims=True), xi], axis=1)
-
-
-def locate_in_elements(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, candidates: int = 16,
-                       hint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(element (P,), barycentric corner coordinates (P, 4)) of points (P, 3) in a mesh of linear (m, 4) or
-    quadratic (m, 10) tets at positions vertices (n, 3): :func:`locate_in_tets` in the corner tets, then for
-    quadratic tets the exact inverse of the (curved) element map (:func:`invert_element_map`); a point that
-    this puts outside its element (a curved element bulges past its corner tet) is inverted in each of the
-    ``candidates`` elements with the nearest corner centroids and kept in the one it is most inside.
-    ``hint`` (P,): a guess of each point's element (e.g. its host before a small motion); a point strictly inside
-    the hinted corner tet (every barycentric > 1e-9: the one tet that holds it) keeps it without the search."""
-    tets = np.asarray(tets, np.int64)
-    points = np.asarray(points, np.float64)
-    if hint is None:
-        host, bary = locate_in_tets(points, vertices, tets[:, :4])
-    else:
-        host = np.asarray(hint, np.int64).copy()
-        c = tets[host, :4]  # the arithmetic of locate_in_tets, so a kept hint gives the very same floats
-        lam = np.einsum("pij,pj->pi", np.linalg.inv(shape_matrices(vertices, c)), points - vertices[c[:, 0]])
-        bary = np.concatenate([1.0 - lam.sum(-1, keepdims=True), lam], axis=-1)
-        out = np.flatnonzero(~(bary.min(1) > 1e-9))
-        if len(out):
-            host[out], bary[out] = locate_in_tets(points[out], vertices, tets[:, :4])
-    if tets.shape[1] != 10:
-        return host, bary
-    bary = invert_element_map(points, vertices, tets, host, bary)
-    far = np.flatnonzero(~(bary.min(1) >= -1e-9))  # outside, or NaN
-    if len(far):  # a curved element holds the point, not the corner tet: the exact inverse in nearby elements
-        k = min(candidates, len(tets))
-        _, cand = cKDTree(vertices[tets[:, :4]].mean(1)).query(points[far], k=k)
-        cand = np.asarray(cand, np.int64).reshape(len(far), k).ravel()
-        rep = np.repeat(points[far], k, axis=0)
-        b0 = tet_barycentrics(rep, vertices, tets[cand, :4])
-        b = invert_element_map(rep, vertices, tets, cand, b0).reshape(len(far), k, 4)
-        score = np.where(np.isfinite(b).all(2), b.min(2), -np.inf)
-        j = np.argmax(score, axis=1)
-        better = score[np.arange(len(far)), j] > np.nan_to_num(bary[far].min(1), nan=-np.inf)
-        pick = far[better]
-        host[pick] = cand.reshape(len(far), k)[better, j[better]]
-        bary[pick] = b[better, j[better]]
-    return host, bary
-
-
-# =========================================================================== vision
 class ImageLoss:
     """L = Σ_c |R(G(x), c) − Ĩ^c|₁ (sum over pixels and channels, paper Eq. 7) and dL/dx.
 
