@@ -14,11 +14,30 @@ shared edge of a front and a back face, two soft edges on the same side: δ = �
 A = ½ exactly on it (without δ, A = ¾ there and the silhouette grows by ~½ px all round, which on a sagging bar
 7 px thick biased E by −4.5 %).  Residual per pixel:
 
-    r_c(p) = (A_c(p; x_t) − m_t^c(p)) · keep_t^c(p)      (keep = 0 under an occluder, controls.json visuals)
+    r_c = G_s [(A_c(x_t) − m_t^c) · keep_t^c]      (keep = 0 under an occluder, controls.json visuals)
 
-Loss Σ r²; J = ∂r/∂x · dX by forward-mode autodiff (jax.jvp), dL/dx by reverse mode (exact, FD-checked in
-tests/test_static_identification.py).  Pixels are evaluated only inside the projected object's bounding box
-grown by a margin where every triangle's term is below e⁻⁴⁰ (outside it A = 0 to double precision).
+G_s a Gaussian blur of s = 2 px (SilhouetteObservation.blur_px; zero beyond the image, so Gᵀ = G).  Without it
+a Gauss–Newton step moves the outline by about the soft edge's width, τ: ∂r/∂x is non-zero only within ~τ of the
+simulated outline, where the saturated misfit (±1 over the whole gap) cannot show how far the mask's outline lies —
+from a start 2.5× too soft the beam's outline crept ~0.3 px per iteration (10 iterations: E 0.63 E_true).  The
+blur spreads both the misfit and ∂r/∂x over ~s, so a step reaches ~2.5 s px; it weights the same misfit
+differently (GᵀG), so a perfect fit stays the minimum.  Loss Σ r²; J = ∂r/∂x · dX by forward-mode autodiff (jax.jvp), dL/dx by reverse mode (exact, FD-checked in
+tests/test_silhouette.py).
+
+Sparse evaluation (the default): a triangle's term is evaluated only at the pixels whose centres lie within its
+projected bounding box grown by m pixels on every side.  A pixel outside it is at least m from the triangle, so
+the term left out is softplus(−(m + δ)/τ) ≤ exp(−(m + δ)/τ); with
+
+    m = τ (ln(F / ε) − δ/τ)      (F the surface triangles, ε = CUT_EPS = 10⁻⁶)
+
+the terms dropped at one pixel sum to at most ε, and A (1 − e^{−S} is 1-Lipschitz in S) moves by at most ε.
+``dense=True`` evaluates every triangle at every pixel of the object's box (grown by 40 τ, where each term is
+below e⁻⁴⁰): the slow obvious twin the tests hold the sparse one to.
+
+σ of the estimate: a mask's error along the outline is shared by neighbouring pixels (and repeats in every frame
+of a still capture), so the residuals are clustered in 8 × 8 pixel blocks (:meth:`SilhouetteObservation.clusters`)
+and Gauss–Newton reports the cluster-robust sandwich (stages.estimator.cluster_scale2) instead of RSS/(m − k),
+which takes ~10⁴ pixels as independent (measured against other block sizes in docs/results/static.md).
 """
 from __future__ import annotations
 
@@ -29,18 +48,21 @@ from typing import Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.ndimage import gaussian_filter
 
 from stages.artefacts import KIND_FILES, CamerasArtefact, MasksArtefact
 from stages.capture import Capture, CaptureError
 from stages.errors import RslError
+from stages.render.mesh_raster import project_points
 
 jax.config.update("jax_enable_x64", True)
 
 TAU_PX = 0.25  # soft edge width τ, pixels
 SHIFT_TAU = -float(np.log(np.sqrt(2.0) - 1.0))  # δ/τ: two faces meeting on the outline make A = ½ there
-_MARGIN_TAU = 40.0  # bounding-box margin in units of τ (softplus(−40) ≈ 4e-18)
-_CHUNK = 64  # triangles per scan step (memory: pixels × chunk)
-_ROUND = 32  # the pixel box is rounded up to this many pixels (fewer re-compilations)
+CUT_EPS = 1e-6  # sparse evaluation: the most the triangles' terms left out change A at any pixel (module doc)
+_MARGIN_TAU = 40.0  # dense twin: bounding-box margin in units of τ (softplus(−40) ≈ 4e-18)
+_CHUNK = 64  # dense twin: triangles per scan step (memory: pixels × chunk)
+_ROUND = 32  # dense twin: the pixel box is rounded up to this many pixels (fewer re-compilations)
 
 
 def _project(x, K, R, t, dist):
@@ -60,23 +82,22 @@ def _project(x, K, R, t, dist):
 
 
 def _signed_distance(pix, tri):
-    """Signed distance (P, B) of pixel centres pix (P, 2) to triangles tri (B, 3, 2): inside > 0 (the smallest
-    distance to the edge lines), outside < 0 (minus the distance to the nearest edge segment); either
-    orientation."""
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    area2 = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    """Signed distance (...) of pixel centres pix (..., 2) to triangles tri (..., 3, 2) (the leading shapes
+    broadcast): inside > 0 (the smallest distance to the edge lines), outside < 0 (minus the distance to the
+    nearest edge segment); either orientation."""
+    a, b, c = tri[..., 0, :], tri[..., 1, :], tri[..., 2, :]
+    area2 = (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
     s = jnp.where(area2 >= 0, 1.0, -1.0)
     lines, segs = [], []
     for p, q in ((a, b), (b, c), (c, a)):
-        e = q - p  # (B, 2)
-        L2 = jnp.sum(e * e, axis=1) + 1e-24
-        w = pix[:, None, :] - p[None]  # (P, B, 2)
-        cross = e[None, :, 0] * w[..., 1] - e[None, :, 1] * w[..., 0]
-        lines.append(s[None] * cross / jnp.sqrt(L2)[None])
-        u = jnp.clip(jnp.sum(w * e[None], axis=-1) / L2[None], 0.0, 1.0)
-        dv = w - u[..., None] * e[None]
-        d2 = jnp.sum(dv * dv, axis=-1)
-        segs.append(d2)
+        e = q - p  # (..., 2)
+        L2 = jnp.sum(e * e, axis=-1) + 1e-24
+        w = pix - p  # (..., 2)
+        cross = e[..., 0] * w[..., 1] - e[..., 1] * w[..., 0]
+        lines.append(s * cross / jnp.sqrt(L2))
+        u = jnp.clip(jnp.sum(w * e, axis=-1) / L2, 0.0, 1.0)
+        dv = w - u[..., None] * e
+        segs.append(jnp.sum(dv * dv, axis=-1))
     inner = jnp.minimum(jnp.minimum(lines[0], lines[1]), lines[2])
     d2 = jnp.minimum(jnp.minimum(segs[0], segs[1]), segs[2])
     outer = -jnp.sqrt(jnp.where(d2 > 0, d2, 1.0)) * (d2 > 0)
@@ -85,8 +106,8 @@ def _signed_distance(pix, tri):
 
 @partial(jax.jit, static_argnames=("tau",))
 def _coverage(x, faces, valid, pix, K, R, t, dist, tau):
-    """Soft coverage (P,) at pixel centres pix (P, 2) of the triangles faces (F, 3) of x (n, 3); faces padded to
-    a multiple of _CHUNK rows, ``valid`` (F,) 0 for the padding."""
+    """Dense twin: soft coverage (P,) at pixel centres pix (P, 2) of every triangle faces (F, 3) of x (n, 3);
+    faces padded to a multiple of _CHUNK rows, ``valid`` (F,) 0 for the padding."""
     uv, z = _project(x, K, R, t, dist)
     tri = uv[faces]  # (F, 3, 2)
     ok = valid * jnp.all(z[faces] > 1e-3, axis=1)
@@ -95,22 +116,64 @@ def _coverage(x, faces, valid, pix, K, R, t, dist, tau):
     def step(S, k):
         sl = jax.lax.dynamic_slice_in_dim(tri, k * _CHUNK, _CHUNK)
         w = jax.lax.dynamic_slice_in_dim(ok, k * _CHUNK, _CHUNK)
-        d = _signed_distance(pix, sl)
+        d = _signed_distance(pix[:, None, :], sl[None])  # (P, chunk)
         return S + jnp.sum(w[None] * jax.nn.softplus(d / tau - SHIFT_TAU), axis=1), None
 
     S, _ = jax.lax.scan(step, jnp.zeros(pix.shape[0], x.dtype), jnp.arange(nch))
     return 1.0 - jnp.exp(-S)
 
 
+def _coverage_pairs(x, faces, pair_face, pair_pix, pair_xy, pair_w, K, R, t, dist, tau, npix):
+    """Sparse: soft coverage (npix,) of the image's pixels (row-major) from the (triangle, pixel) pairs
+    pair_face, pair_pix (N,) (pixel centres pair_xy (N, 2), weight pair_w (N,) 0 for padding):
+    S(p) = Σ_{pairs at p} softplus((d − δ)/τ), A = 1 − e^{−S}."""
+    uv, z = _project(x, K, R, t, dist)
+    fv = faces[pair_face]  # (N, 3)
+    ok = pair_w * jnp.all(z[fv] > 1e-3, axis=1)
+    d = _signed_distance(pair_xy, uv[fv])  # (N,)
+    S = jax.ops.segment_sum(ok * jax.nn.softplus(d / tau - SHIFT_TAU), pair_pix, num_segments=npix)
+    return 1.0 - jnp.exp(-S)
+
+
+_cov_sparse = jax.jit(_coverage_pairs, static_argnames=("tau", "npix"))
+
+
+@partial(jax.jit, static_argnames=("tau", "npix"))
+def _jvp_sparse(x, V, *args, tau, npix):
+    """dA/dx · V (k, npix) for directions V (k, n, 3)."""
+    return jax.vmap(lambda v: jax.jvp(lambda y: _coverage_pairs(y, *args, tau=tau, npix=npix), (x,), (v,))[1])(V)
+
+
+@partial(jax.jit, static_argnames=("tau", "npix"))
+def _vjp_sparse(x, g, *args, tau, npix):
+    """(dA/dx)ᵀ g (n, 3) for a cotangent g (npix,)."""
+    _, back = jax.vjp(lambda y: _coverage_pairs(y, *args, tau=tau, npix=npix), x)
+    return back(g)[0]
+
+
+def _bucket(n: int) -> int:
+    """n rounded up to 1024 · 2^k · {1, 1.25, 1.5, 1.75} (few array shapes: few re-compilations)."""
+    if n <= 1024:
+        return 1024
+    p = 1 << (int(n - 1).bit_length() - 1)
+    for f in (1.0, 1.25, 1.5, 1.75, 2.0):
+        if n <= int(p * f):
+            return int(p * f)
+    return 2 * p
+
+
 class SoftSilhouette:
     """Soft coverage A (H, W) of a surface (faces (F, 3), vertex ids) in one camera, with its forward- and
-    reverse-mode derivatives in the vertex positions."""
+    reverse-mode derivatives in the vertex positions.  ``dense``: the slow obvious twin (every triangle at
+    every pixel of the object's box) instead of the sparse (triangle, nearby pixel) pairs (module doc)."""
 
-    def __init__(self, faces: np.ndarray, camera, tau_px: float = TAU_PX):
+    def __init__(self, faces: np.ndarray, camera, tau_px: float = TAU_PX, dense: bool = False):
         faces = np.asarray(faces, np.int64)[:, :3]
         F = len(faces)
+        self._faces_np = faces
         pad = (-F) % _CHUNK
         self.faces = jnp.asarray(np.vstack([faces, np.zeros((pad, 3), np.int64)]))
+        self.faces_sparse = jnp.asarray(faces if F else np.zeros((1, 3), np.int64))
         self.valid = jnp.asarray(np.r_[np.ones(F), np.zeros(pad)])
         self.H, self.W = int(camera.height), int(camera.width)
         dist = np.zeros(5)
@@ -121,11 +184,47 @@ class SoftSilhouette:
         self._used = np.unique(faces)
         self._camera = camera
         self.tau = float(tau_px)
+        self.dense = bool(dense)
+        # m = τ (ln(F/ε) − δ/τ): F triangles each below ε/F beyond m pixels (module doc)
+        self.margin_px = self.tau * max(float(np.log(max(F, 1) / CUT_EPS)) - SHIFT_TAU, 0.0)
+        self.pairs = 0  # (triangle, pixel) pairs of the last sparse evaluation (without the padding)
+        self._npad = 0  # padded pair count: it only grows (one compilation serves the states that follow)
 
+    # ---------------------------------------------------------------------------------------------- sparse
+    def _pair_arrays(self, x: np.ndarray) -> tuple:
+        """The (triangle, pixel) pairs at positions x (n, 3): every pixel centre within the triangle's projected
+        bounding box grown by margin_px, padded with weight-0 pairs to the largest :func:`_bucket` so far."""
+        c, f = self._camera, self._faces_np
+        uv, z = project_points(np.asarray(x, np.float64), c.K, c.R, c.t, c.dist)
+        front = np.all(z[f] > 1e-3, axis=1)
+        fid = np.flatnonzero(front)
+        tri = uv[f[fid]]  # (F', 3, 2)
+        m = self.margin_px + 1e-6  # (the jax projection may differ from numpy's in the last bits)
+        x0 = np.clip(np.ceil(tri[..., 0].min(1) - m), 0, self.W).astype(np.int64)
+        x1 = np.clip(np.floor(tri[..., 0].max(1) + m) + 1, 0, self.W).astype(np.int64)
+        y0 = np.clip(np.ceil(tri[..., 1].min(1) - m), 0, self.H).astype(np.int64)
+        y1 = np.clip(np.floor(tri[..., 1].max(1) + m) + 1, 0, self.H).astype(np.int64)
+        w, h = np.maximum(x1 - x0, 0), np.maximum(y1 - y0, 0)
+        cnt = w * h
+        N = int(cnt.sum())
+        self.pairs = N
+        face = np.repeat(fid, cnt)
+        local = np.arange(N) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        wr = np.repeat(w, cnt)
+        px = np.repeat(x0, cnt) + local % np.maximum(wr, 1)
+        py = np.repeat(y0, cnt) + local // np.maximum(wr, 1)
+        self._npad = max(self._npad, _bucket(N))
+        pad = self._npad - N
+        face = np.r_[face, np.zeros(pad, np.int64)]
+        pix = np.r_[py * self.W + px, np.zeros(pad, np.int64)]
+        xy = np.stack([pix % self.W, pix // self.W], axis=1).astype(np.float64)
+        wt = np.r_[np.ones(N), np.zeros(pad)]
+        return (self.faces_sparse, jnp.asarray(face, jnp.int32), jnp.asarray(pix, jnp.int32), jnp.asarray(xy),
+                jnp.asarray(wt), *self.cam)
+
+    # ----------------------------------------------------------------------------------------------- dense
     def box(self, x: np.ndarray) -> tuple[int, int, int, int]:
-        """(y0, y1, x0, x1): the pixels where A may be non-zero at positions x (n, 3)."""
-        from stages.render.mesh_raster import project_points
-
+        """Dense twin: (y0, y1, x0, x1), the pixels where A may be non-zero at positions x (n, 3)."""
         c = self._camera
         uv, z = project_points(np.asarray(x)[self._used], c.K, c.R, c.t, c.dist)
         uv = uv[z > 1e-3]
@@ -151,22 +250,34 @@ class SoftSilhouette:
         pix = self._pix(box)
         return lambda x: _coverage(x, self.faces, self.valid, pix, *self.cam, tau=self.tau)
 
+    # ---------------------------------------------------------------------------------------------- public
     def coverage(self, x: np.ndarray, box=None) -> np.ndarray:
         """A (H, W) at positions x (n, 3)."""
+        xj = jnp.asarray(x, jnp.float64)
+        if not self.dense:
+            A = _cov_sparse(xj, *self._pair_arrays(x), tau=self.tau, npix=self.H * self.W)
+            return np.asarray(A).reshape(self.H, self.W)
         box = box or self.box(x)
         out = np.zeros((self.H, self.W))
         y0, y1, x0, x1 = box
         if y1 > y0 and x1 > x0:
-            out[y0:y1, x0:x1] = np.asarray(self._f(box)(jnp.asarray(x, jnp.float64))).reshape(y1 - y0, x1 - x0)
+            out[y0:y1, x0:x1] = np.asarray(self._f(box)(xj)).reshape(y1 - y0, x1 - x0)
         return out
 
     def jvp(self, x: np.ndarray, V: np.ndarray, box=None) -> np.ndarray:
         """dA/dx · V (k, H, W) for position directions V (k, n, 3)."""
+        xj = jnp.asarray(x, jnp.float64)
+        if not self.dense:
+            if not len(V):
+                return np.zeros((0, self.H, self.W))
+            J = _jvp_sparse(xj, jnp.asarray(V, jnp.float64), *self._pair_arrays(x), tau=self.tau,
+                            npix=self.H * self.W)
+            return np.asarray(J).reshape(len(V), self.H, self.W)
         box = box or self.box(x)
         y0, y1, x0, x1 = box
         out = np.zeros((len(V), self.H, self.W))
         if y1 > y0 and x1 > x0:
-            f, xj = self._f(box), jnp.asarray(x, jnp.float64)
+            f = self._f(box)
             for j, v in enumerate(V):
                 out[j, y0:y1, x0:x1] = np.asarray(jax.jvp(f, (xj,), (jnp.asarray(v, jnp.float64),))[1]
                                                   ).reshape(y1 - y0, x1 - x0)
@@ -174,11 +285,15 @@ class SoftSilhouette:
 
     def vjp(self, x: np.ndarray, g: np.ndarray, box=None) -> np.ndarray:
         """(dA/dx)ᵀ g (n, 3) for a pixel cotangent g (H, W)."""
+        xj = jnp.asarray(x, jnp.float64)
+        if not self.dense:
+            return np.asarray(_vjp_sparse(xj, jnp.asarray(np.asarray(g, np.float64).ravel()), *self._pair_arrays(x),
+                                          tau=self.tau, npix=self.H * self.W))
         box = box or self.box(x)
         y0, y1, x0, x1 = box
         if not (y1 > y0 and x1 > x0):
             return np.zeros_like(np.asarray(x, np.float64))
-        _, back = jax.vjp(self._f(box), jnp.asarray(x, jnp.float64))
+        _, back = jax.vjp(self._f(box), xj)
         return np.asarray(back(jnp.asarray(np.asarray(g, np.float64)[y0:y1, x0:x1].ravel()))[0])
 
 
@@ -188,6 +303,7 @@ class SilhouetteObservation:
 
     kind = "silhouette"
     huber = None  # plain least squares: residuals are bounded in [−1, 1]
+    blur_px = 2.0  # σ of the Gaussian blur of the residual images, pixels (module doc: the Gauss–Newton step's reach)
     noise_floor = 1e-3  # of a pixel's coverage
 
     def __init__(self, capture: Capture, ws: Path, cam_spec: str, mesh, tau_px: float = TAU_PX):
@@ -210,6 +326,8 @@ class SilhouetteObservation:
             if self.masks[c].shape[1:] != (cam.height, cam.width):
                 raise RslError(f"{masks_path}: the masks of camera '{c}' are {self.masks[c].shape[2]}x"
                                f"{self.masks[c].shape[1]} but cameras.h5 calibrates it for {cam.width}x{cam.height}.")
+        # quadratic tets: surface_faces are already each curved face split into 4 flat ones through its mid-edge
+        # nodes (stages.sim.quadrature.quadratic_surface), so the silhouette follows the curved surface
         faces = np.asarray(mesh.surface_faces)[:, :3]
         self.soft = [SoftSilhouette(faces, cam, tau_px) for cam in self._cams]
         self.controls = capture.controls()
@@ -240,10 +358,18 @@ class SilhouetteObservation:
         if t >= self.available():
             raise CaptureError(f"masks.h5 holds no mask of frame {t} (rerun rsl segment).")
 
+    def blur(self, img: np.ndarray) -> np.ndarray:
+        """G img: the Gaussian blur of ``blur_px`` pixels (zero beyond the image; a symmetric operator, Gᵀ = G)
+        — (..., H, W) image by image."""
+        if not self.blur_px:
+            return img
+        sig = (0,) * (img.ndim - 2) + (self.blur_px, self.blur_px)
+        return gaussian_filter(np.asarray(img, np.float64), sig, mode="constant", cval=0.0, truncate=4.0)
+
     def residual_images(self, t: int, x: np.ndarray) -> list[np.ndarray]:
-        """Per camera, r (H, W) = (A(x) − m_t)·keep_t."""
+        """Per camera, r (H, W) = G((A(x) − m_t)·keep_t)."""
         self._check(t)
-        return [(s.coverage(x[:self.n]) - self.masks[c][t].astype(np.float64)) * k
+        return [self.blur((s.coverage(x[:self.n]) - self.masks[c][t].astype(np.float64)) * k)
                 for s, c, k in zip(self.soft, self.cameras, self.keep(t))]
 
     def residuals(self, frames: Sequence[int], X: np.ndarray) -> list[np.ndarray]:
@@ -256,17 +382,32 @@ class SilhouetteObservation:
         for i, (t, x) in enumerate(zip(frames, X)):
             for s, r, k in zip(self.soft, self.residual_images(t, x), self.keep(t)):
                 losses[i] += float(np.sum(r * r))
-                grad[i, :self.n] += s.vjp(x[:self.n], 2.0 * r * k)
+                grad[i, :self.n] += s.vjp(x[:self.n], self.blur(2.0 * r) * k)
         return losses, grad
 
     def jacobian(self, frames: Sequence[int], X: np.ndarray, dX: np.ndarray) -> list[np.ndarray]:
-        """Per frame, ∂r_f/∂p (pixels, k) = keep · (∂A/∂x) dX[:, f] by forward mode (exact)."""
+        """Per frame, ∂r_f/∂p (pixels, k) = G(keep · (∂A/∂x) dX[:, f]) by forward mode (exact)."""
         out = []
         for i, (t, x) in enumerate(zip(frames, X)):
-            cols = [(s.jvp(x[:self.n], dX[:, i, :self.n]) * k[None]).reshape(len(dX), -1)
+            cols = [self.blur(s.jvp(x[:self.n], dX[:, i, :self.n]) * k[None]).reshape(len(dX), -1)
                     for s, k in zip(self.soft, self.keep(t))]
             out.append(np.concatenate(cols, axis=1).T)
         return out
+
+    block_px = 8  # side of the pixel blocks whose errors are taken as correlated (:meth:`clusters`)
+
+    def clusters(self, frames: Sequence[int]) -> np.ndarray:
+        """Cluster id (m,) of each residual of :meth:`residuals` over ``frames``: its camera's block of
+        ``block_px`` × ``block_px`` pixels, the same block in every frame (a still capture shows one equilibrium:
+        a mask's error along the outline repeats from frame to frame), for the estimator's cluster-robust σ
+        (stages.estimator.cluster_scale2, as stages.observations.VisionObservation.clusters)."""
+        b, ids, base = self.block_px, [], 0
+        for c in self._cams:
+            yy, xx = np.divmod(np.arange(c.height * c.width), c.width)
+            nbx = -(-c.width // b)
+            ids.append(base + (yy // b) * nbx + xx // b)
+            base += nbx * -(-c.height // b)
+        return np.tile(np.concatenate(ids), len(frames))
 
     def noise_scale(self, r: np.ndarray) -> float:
         """σ of one pixel residual: the RMS over the pixels that differ (> 10⁻³; the pixels far from every edge,
