@@ -1,23 +1,38 @@
-"""Handle and obstacle forces of a full-space replay against the truth's, per number of substeps (issue 12).
+"""Handle and obstacle forces of the full-space replay against a truth converged in time (issue 12).
 
 `rsl export --forces`, `rsl evaluate` and `rsl report` compute the forces of an online adapt run by replaying the
-controls in the full space with θ(t) from the capture's start state, S implicit-Euler steps per frame
-(stages/forces.py replay_forces; `--force-substeps`).  This bench measures what S costs and buys on captures
-rsl did not make (made as bench/accuracy.py makes them: `rsl synth --truth-order 2 --substeps 3 --handles hard`,
-sample_data/bar pulled by a cable with E stepping E0 → 2E0 → 4E0 for each start state, the two-region beam, the
-dinosaur pushed by a sphere), on rsl's own P2 mesh (`rsl tetrahedralize --order 2 --max-tets 1500`):
+controls in the full space with θ(t) from the capture's start state, S implicit-Euler steps per frame, optionally
+Richardson-extrapolated over S and 2S, with θ(t) as adapt.h5 records it or smoothed per segment
+(stages/forces.py: replay_forces, replay_theta; `--force-substeps`, `--force-extrapolate`, `--force-theta`).
+The model has no material damping, so the dynamic part of a hard handle's reaction carries implicit Euler's
+numerical damping and converges only at first order in Δt / S — on both sides: the truth's forces too.
 
-    true E     θ(t) = the truth's E(t), ν (truth/material.csv): the error left is the model's (mesh + time step)
-    adapted    θ(t) of `rsl adapt` (online, full space, markers, window 3, E initialised at 0.5 E0)
+Captures as bench/accuracy.py makes them (`rsl synth --truth-order 2 --handles hard`; sample_data/bar pulled by a
+cable with E stepping E0 → 2E0 → 4E0 for each start state, the two-region beam), each simulated with several
+substep counts (``--truth-substeps``, e.g. 12,24).  The REFERENCE is the Richardson extrapolation of the two finest
+truths, frame by frame (2 F_{2N} − F_N), or the single truth when only one is given.  rsl's mesh:
+`rsl tetrahedralize --order 2 --max-tets 1500`.
 
-Per row: the median relative error of the applied forces against truth/forces.csv, pooled over handles/obstacles
-and frames as `rsl evaluate` reports it (stages.forces.force_errors), the same against the replay with the most
-substeps of this run (a convergence measure that needs no truth), and the CPU seconds of the replay
-(time.process_time, this process); ratios against S = 1 of the same case and θ, measured in the same run.
+    --part time    (1) each truth against the reference (their convergence);
+                   (2) θ(t) = the truth's E(t), ν: replays with plain S and Richardson (S, 2S) for every S, 2S in
+                       ``--substeps``: error against the reference vs CPU.
+    --part theta   θ(t) of existing adapt.h5 (``--adapt-ws case=WS,...``; their mesh.h5 is used) under each θ
+                   rule (online = as recorded; segment = the last estimate of each segment between the changes the
+                   estimator detected; lagL = the estimate L frames later, within the segment), replayed with each
+                   of ``--replays`` (S = plain S substeps, rS = Richardson (S, 2S)); the true E alongside.
 
-    nice .venv/bin/python bench/forces.py [--substeps 1,2,3,4,6] [--cases bar_equilibrium,...] [--work DIR]
+Per row: the median relative error of the applied forces against the reference, pooled over handles/obstacles
+and frames as `rsl evaluate` reports it (stages.forces.force_errors), and the CPU seconds of the replay(s)
+(time.process_time, this process; a Richardson row costs its two replays); ratios against plain S = 1 of the same
+case and θ, measured in the same run.
 
-With RSL_BENCH_REUSE=1, captures, meshes and adapt.h5 already in --work are reused (bench/_pipeline.py).
+    nice -n 5 .venv/bin/python bench/forces.py --part time --truth-substeps 12,24 --substeps 1,2,3,6,12 \\
+        --work /tmp/rsl_forces_conv --name forces_converged
+    nice -n 5 .venv/bin/python bench/forces.py --part theta --truth-substeps 12,24 --replays 3,r1,r3 \\
+        --work /tmp/rsl_forces_conv --adapt-ws bar_equilibrium=/tmp/f_forces/ws_bar_equilibrium_p2,... \\
+        --name forces_theta
+
+With RSL_BENCH_REUSE=1, captures and meshes already in --work are reused (bench/_pipeline.py).
 """
 from __future__ import annotations
 
@@ -49,6 +64,7 @@ CASES = {  # name -> (scene, start): the accuracy captures (bench/accuracy.py sc
     "beam_equilibrium": (lambda: acc.scene_args("beam", FRAMES), "equilibrium"),
     "dino_equilibrium": (lambda: acc.scene_args("dino", FRAMES), "equilibrium"),
 }
+APPLIED = ("applied_fx_N", "applied_fy_N", "applied_fz_N")
 
 
 def pooled(per: dict) -> float | None:
@@ -66,71 +82,226 @@ def by_region(values: np.ndarray, names: list[str], want: list[str], what: str) 
     return np.stack([values[:, names.index(n)] for n in want], axis=1)
 
 
-def run_case(work: Path, name: str, substeps: list[int], truth_substeps: int = 3, true_only: bool = False
-             ) -> list[dict]:
-    from stages.artefacts import AdaptArtefact, MeshArtefact, read_provenance
-    from stages.capture import load_capture, read_forces_csv, read_truth
-    from stages.forces import force_errors, force_table, replay_forces
-    from stages.sim.scene import make_scene
+def extrapolated_table(coarse: list[dict], fine: list[dict]) -> list[dict]:
+    """forces.csv rows of two simulations of the same frames (steps h, h/2) with the applied force Richardson-
+    extrapolated per (frame, name) (stages.forces.richardson)."""
+    from stages.forces import richardson
 
-    scene_fn, start = CASES[name]
-    tag = "" if truth_substeps == 3 else f"_truth{truth_substeps}"
-    cap_dir = pl.foreign_capture(work / f"{name}{tag}", scene_fn(), start=start, frames=FRAMES, poisson=POISSON,
-                                 substeps=truth_substeps)
-    ws = pl.mesh(cap_dir, work / f"ws_{name}{tag}_p2", order=2, max_tets=MAX_TETS)
-    failed = "not run (--true-only)" if true_only else None
-    if not true_only and not pl.skip(ws / "adapt.h5"):
-        try:
-            pl.adapt(cap_dir, ws, "--window", WINDOW, "--space", "full", "--loss", "markers", "--young-init",
-                     f"{0.5 * E0:g}")
-        except pl.RslFailed as e:  # the true-E rows are still measured; the adapted ones say why they are not
-            failed = str(e).strip().splitlines()[-1][:400]
-    cap = load_capture(cap_dir)
-    mesh = MeshArtefact.load(ws / "mesh.h5")
-    ad = None if failed else AdaptArtefact.load(ws / "adapt.h5")
-    cfg = {} if failed else read_provenance(ws / "adapt.h5").get("config", {})
-    truth = read_truth(cap)
-    truth_rows = read_forces_csv(cap.truth_dir / "forces.csv")
-    controls = cap.controls()
-    model, dt = cap.material.model, float(cap.dt)
-    scene = make_scene(mesh, controls, model, dt, np.asarray(cap.gravity, np.float64))
-    regions = list(mesh.region_names)
-    T = FRAMES if ad is None else len(ad.frames)
-    thetas = {"true E": (by_region(truth.young[:T], truth.region_names, regions, "truth/material.csv"),
-                         by_region(truth.poisson[:T], truth.region_names, regions, "truth/material.csv"))}
-    if ad is not None:
-        thetas["adapted"] = (by_region(np.asarray(ad.young), list(ad.region_names), regions, "adapt.h5"),
-                             by_region(np.asarray(ad.poisson), list(ad.region_names), regions, "adapt.h5"))
-    adapt_desc = (f"{cfg.get('space', '?')} space, {cfg.get('loss', '?')}, estimator {cfg.get('estimator', '?')}, "
-                  f"{cfg.get('substeps', 1)} substep(s)")
-    rows = [] if failed is None or true_only else [{"case": name, "start": start, "theta": "adapted", "error": failed}]
-    for label, (young, poisson) in thetas.items():
-        tables = {}
-        for S in substeps:
-            t0 = time.process_time()
-            w0 = time.perf_counter()
-            out, _, _ = replay_forces(scene, controls, young, poisson, cap.start, S)
-            cpu, wall = time.process_time() - t0, time.perf_counter() - w0
-            tables[S] = force_table(out, dt)
-            per = force_errors(tables[S], truth_rows)
-            rows.append({"case": name, "start": start, "theta": label, "substeps": S, "truth_substeps": truth_substeps,
-                         "median_force_error": pooled(per),
-                         "per_set": {k: v["median_relative_error"] for k, v in per.items()},
-                         "cpu_s": cpu, "wall_s": wall, "frames": T, "fps": float(cap.fps),
-                         "dofs": 3 * int(mesh.vertices.shape[0]),
-                         "adapt": adapt_desc if label == "adapted" else None})
-            print(_row(rows[-1]), flush=True)
-        finest = max(substeps)
-        for r in rows:
-            if r["theta"] == label and "error" not in r:
-                r["change_vs_finest"] = pooled(force_errors(tables[r["substeps"]], tables[finest]))
-                r["finest"] = finest
-    for r in rows:  # ratios against S = 1 of the same case and θ, this run
-        ref = next((q for q in rows if q["theta"] == r["theta"] and q.get("substeps") == 1), None)
-        if ref is not None and "error" not in r:
+    c = {(int(r["frame"]), r["name"]): r for r in coarse}
+    out = []
+    for r in fine:
+        q = c[(int(r["frame"]), r["name"])]
+        v = richardson([q[k] for k in APPLIED], [r[k] for k in APPLIED])
+        out.append({**r, **dict(zip(APPLIED, map(float, v)))})
+    return out
+
+
+def truths(work: Path, case: str, truth_substeps: list[int]) -> tuple[dict[int, Path], dict[int, list[dict]], list[dict]]:
+    """The captures of ``case`` simulated with each truth substep count (made when missing), their forces.csv rows,
+    and the reference rows (Richardson of the two finest, or the one truth)."""
+    from stages.capture import read_forces_csv
+
+    scene_fn, start = CASES[case]
+    caps, rows = {}, {}
+    for n in truth_substeps:
+        caps[n] = pl.foreign_capture(work / f"{case}_truth{n}", scene_fn(), start=start, frames=FRAMES,
+                                     poisson=POISSON, substeps=n)
+        rows[n] = read_forces_csv(caps[n] / "truth" / "forces.csv")
+    fine = sorted(truth_substeps)
+    ref = rows[fine[-1]] if len(fine) == 1 else extrapolated_table(rows[fine[-2]], rows[fine[-1]])
+    return caps, rows, ref
+
+
+def reference_name(truth_substeps: list[int]) -> str:
+    s = sorted(truth_substeps)
+    return f"truth N = {s[0]}" if len(s) == 1 else f"Richardson of the truths N = {s[-2]}, {s[-1]}"
+
+
+def truth_rows(case: str, rows: dict[int, list[dict]], ref: list[dict], before: int) -> list[dict]:
+    """Each truth against the reference and against the truth with twice its substeps, and the Richardson of each
+    consecutive pair but the reference's against the reference."""
+    out = []
+    steps = sorted(rows)
+    for n in steps:
+        out.append({"part": "truth", "case": case, "what": f"truth, N = {n}", "truth_substeps": n,
+                    "first_change": before, **errors(rows[n], ref, before)})
+        if 2 * n in rows:
+            out[-1]["vs_2N"] = errors(rows[n], rows[2 * n], before)
+    for a, b in zip(steps, steps[1:-1] if len(steps) > 2 else []):
+        if 2 * a == b:
+            out.append({"part": "truth", "case": case, "what": f"truth, Richardson N = {a}, {b}",
+                        "truth_substeps": b, "first_change": before,
+                        **errors(extrapolated_table(rows[a], rows[b]), ref, before)})
+    return out
+
+
+def replays(scene, controls, young, poisson, start: str, steps: list[int], dt: float, log: str,
+            cache: Path | None = None) -> dict[int, tuple[list, float]]:
+    """{S: (SetForce rows, CPU s)} of plain replays; with ``cache`` (a folder) each replay's rows and CPU are kept
+    there under a hash of (mesh, controls, θ(t), start, S) and reused by a later run."""
+    import hashlib
+
+    from stages.forces import force_table, replay_forces
+    from stages.sim.stress import SetForce
+
+    out = {}
+    for S in steps:
+        key = hashlib.sha1(b"".join([np.ascontiguousarray(scene.rest).tobytes(), repr(controls).encode(),
+                                     np.ascontiguousarray(young, np.float64).tobytes(),
+                                     np.ascontiguousarray(poisson, np.float64).tobytes(),
+                                     f"{start} {S} {scene.dt!r}".encode()])).hexdigest()[:20]
+        path = None if cache is None else cache / f"{key}.json"
+        if path is not None and path.is_file():
+            got = json.loads(path.read_text())
+            rows = [(int(r["frame"]), SetForce(r["name"], r["kind"], np.array([r["fx_N"], r["fy_N"], r["fz_N"]]),
+                                               r["magnitude_sum_N"], np.array([r[k] for k in APPLIED]),
+                                               int(r["n_vertices"]))) for r in got["rows"]]
+            out[S] = (rows, got["cpu_s"])
+            print(f"  {log}: S = {S} from the cache ({out[S][1]:.1f} s CPU when measured)", flush=True)
+            continue
+        t0 = time.process_time()
+        rows, _, _ = replay_forces(scene, controls, young, poisson, start, S)
+        out[S] = (rows, time.process_time() - t0)
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps({"rows": force_table(rows, dt), "cpu_s": out[S][1]}))
+        print(f"  {log}: S = {S} {out[S][1]:.1f} s CPU", flush=True)
+    return out
+
+
+def first_change(young: np.ndarray) -> int:
+    """The first frame whose E (T, R) differs from the previous frame's in any region; T when none."""
+    young = np.asarray(young)
+    moved = np.flatnonzero(np.any(young[1:] != young[:-1], axis=1))
+    return int(moved[0]) + 1 if len(moved) else len(young)
+
+
+def errors(estimated: list[dict], ref: list[dict], before: int) -> dict:
+    """{"median_force_error": pooled over all frames, "median_force_error_before_change": over frames < before,
+    "per_set"} against the reference rows."""
+    from stages.forces import force_errors
+
+    per = force_errors(estimated, ref)
+    early = [e for v in per.values() for t, e in zip(v["frames"], v["rel_error_per_frame"]) if t < before]
+    return {"median_force_error": pooled(per),
+            "median_force_error_before_change": float(np.median(early)) if early else None,
+            "per_set": {k: v["median_relative_error"] for k, v in per.items()}}
+
+
+def method_rows(plain: dict[int, tuple[list, float]], specs: list[str], ref: list[dict], dt: float, base: dict,
+                before: int) -> list[dict]:
+    """Rows per replay spec ('S' plain, 'rS' Richardson (S, 2S)) from the plain replays."""
+    from stages.forces import force_table, richardson_rows
+
+    out = []
+    for spec in specs:
+        if spec.startswith("r"):
+            S = int(spec[1:])
+            if S not in plain or 2 * S not in plain:
+                continue
+            rows, cpu = richardson_rows(plain[S][0], plain[2 * S][0]), plain[S][1] + plain[2 * S][1]
+            method, label, cost = "richardson", f"Richardson ({S}, {2 * S})", 3 * S
+        else:
+            S = int(spec)
+            rows, cpu = plain[S]
+            method, label, cost = "plain", f"plain, S = {S}", S
+        out.append({**base, "method": method, "replay": label, "substeps": S, "steps_per_frame": cost,
+                    **errors(force_table(rows, dt), ref, before), "cpu_s": cpu})
+    return out
+
+
+def ratios(rows: list[dict]) -> None:
+    """CPU / error ratios against plain S = 1 of the same case and θ (this run), in place."""
+    for r in rows:
+        ref = next((q for q in rows if q.get("case") == r.get("case") and q.get("theta") == r.get("theta")
+                    and q.get("adapt") == r.get("adapt") and q.get("method") == "plain" and q.get("substeps") == 1),
+                   None)
+        if ref is not None and "cpu_s" in r:
             r["cpu_ratio"] = r["cpu_s"] / ref["cpu_s"]
             if r["median_force_error"] is not None and ref["median_force_error"]:
                 r["error_ratio"] = r["median_force_error"] / ref["median_force_error"]
+
+
+def part_time(work: Path, case: str, truth_substeps: list[int], substeps: list[int]) -> list[dict]:
+    from stages.artefacts import MeshArtefact
+    from stages.capture import load_capture, read_truth
+    from stages.sim.scene import make_scene
+
+    caps, trows, ref = truths(work, case, truth_substeps)
+    finest = caps[max(caps)]
+    ws = pl.mesh(finest, work / f"ws_{finest.name}_p2", order=2, max_tets=MAX_TETS)
+    cap, mesh = load_capture(finest), MeshArtefact.load(ws / "mesh.h5")
+    truth = read_truth(cap)
+    controls = cap.controls()
+    dt = float(cap.dt)
+    scene = make_scene(mesh, controls, cap.material.model, dt, np.asarray(cap.gravity, np.float64))
+    regions = list(mesh.region_names)
+    young = by_region(truth.young[:FRAMES], truth.region_names, regions, "truth/material.csv")
+    poisson = by_region(truth.poisson[:FRAMES], truth.region_names, regions, "truth/material.csv")
+    before = first_change(young)
+    rows = [{**r, "reference": reference_name(truth_substeps)} for r in truth_rows(case, trows, ref, before)]
+    plain = replays(scene, controls, young, poisson, cap.start, substeps, dt, f"{case}, true E", work / "cache")
+    specs = [str(S) for S in substeps] + [f"r{S}" for S in substeps if 2 * S in substeps]
+    base = {"part": "replay", "case": case, "theta": "true E", "adapt": None, "frames": FRAMES, "fps": float(cap.fps),
+            "dofs": 3 * int(mesh.vertices.shape[0]), "first_change": before,
+            "reference": reference_name(truth_substeps)}
+    rep = method_rows(plain, specs, ref, dt, base, before)
+    ratios(rep)
+    return rows + rep
+
+
+def lag_of(rule: str) -> int | None:
+    return int(rule[3:]) if rule.startswith("lag") else None
+
+
+def part_theta(work: Path, case: str, truth_substeps: list[int], adapt_ws: list[Path], rules: list[str],
+               specs: list[str]) -> list[dict]:
+    from stages.artefacts import AdaptArtefact, MeshArtefact, read_provenance
+    from stages.capture import load_capture, read_truth
+    from stages.forces import replay_theta, smoothed_theta
+    from stages.sim.scene import make_scene
+
+    caps, _, ref = truths(work, case, truth_substeps)
+    cap = load_capture(caps[max(caps)])
+    truth = read_truth(cap)
+    controls = cap.controls()
+    dt = float(cap.dt)
+    steps = sorted({int(s.lstrip("r")) * m for s in specs for m in ((1, 2) if s.startswith("r") else (1,))})
+    rows: list[dict] = []
+    done_true: set = set()
+    for ws in adapt_ws:
+        mesh = MeshArtefact.load(ws / "mesh.h5")
+        ad = AdaptArtefact.load(ws / "adapt.h5")
+        cfg = read_provenance(ws / "adapt.h5").get("config", {})
+        scene = make_scene(mesh, controls, cap.material.model, dt, np.asarray(cap.gravity, np.float64))
+        regions = list(mesh.region_names)
+        T = len(ad.frames)
+        young = by_region(np.asarray(ad.young), list(ad.region_names), regions, "adapt.h5")
+        poisson = by_region(np.asarray(ad.poisson), list(ad.region_names), regions, "adapt.h5")
+        desc = (f"{ws.name}: {cfg.get('space', '?')} space, {cfg.get('loss', '?')}, estimator "
+                f"{(ad.extra or {}).get('estimator', cfg.get('estimator', '?'))}, {cfg.get('substeps', 1)} substep(s), "
+                f"window {cfg.get('window', '?')}, E initialised at {cfg.get('young_init', '?')} Pa, capture "
+                f"{Path(str((ad.extra or {}).get('capture', '?'))).name}")
+        changes = list((ad.extra or {}).get("material_changes_detected", []) or [])
+        base = {"part": "theta", "case": case, "adapt": desc, "changes": changes, "frames": T, "fps": float(cap.fps),
+                "dofs": 3 * int(mesh.vertices.shape[0])}
+        thetas = {}
+        if mesh.vertices.shape[0] not in done_true:  # the true E on this mesh, once
+            done_true.add(mesh.vertices.shape[0])
+            thetas["true E"] = (by_region(truth.young[:T], truth.region_names, regions, "truth/material.csv"),
+                                by_region(truth.poisson[:T], truth.region_names, regions, "truth/material.csv"))
+        for rule in rules:
+            if rule.startswith("lag"):
+                thetas[rule] = smoothed_theta(young, poisson, changes, lag_of(rule))
+            else:
+                thetas[rule] = replay_theta(young, poisson, ad.extra, rule)[:2]
+        before = first_change(by_region(truth.young[:T], truth.region_names, regions, "truth/material.csv"))
+        for label, (y, p) in thetas.items():
+            plain = replays(scene, controls, y, p, cap.start, steps, dt, f"{case}, {ws.name}, {label}",
+                            work / "cache")
+            rows += method_rows(plain, specs, ref, dt, {**base, "theta": label, "first_change": before,
+                                                         "reference": reference_name(truth_substeps),
+                                                         "adapt": None if label == "true E" else desc}, before)
     return rows
 
 
@@ -138,38 +309,70 @@ def _pct(x) -> str:
     return "—" if x is None else f"{100 * x:.1f}"
 
 
-def _row(r: dict) -> str:
-    if "error" in r:
-        return f"| {r['case']} | {r['theta']} | — | failed: {r['error']} | — | — | — | — |"
-    ratio = lambda k: f"{r[k]:.2f}" if k in r else "—"  # noqa: E731
-    return (f"| {r['case']} | {r['theta']} | {r['substeps']} | {_pct(r['median_force_error'])} | "
-            f"{ratio('error_ratio')} | {_pct(r.get('change_vs_finest'))} | {r['cpu_s']:.1f} | {ratio('cpu_ratio')} |")
+def _ratio(r: dict, k: str) -> str:
+    return f"{r[k]:.2f}" if k in r else "—"
 
 
-HEAD = ("| capture | θ(t) | substeps S | median force error vs truth (%) | error / error at S = 1 | "
-        "median change vs the finest S (%) | replay CPU (s) | CPU / CPU at S = 1 |\n"
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+TRUTH_HEAD = ("| capture | truth | reference | vs reference, all frames (%) | vs reference, frames before the first "
+              "change of E (%) | vs the truth with 2N, all frames (%) | vs the truth with 2N, before the change (%) |\n"
+              "| --- | --- | --- | ---: | ---: | ---: | ---: |")
+TIME_HEAD = ("| capture | replay | implicit steps per frame | vs reference, all frames (%) | vs reference, frames before "
+             "the first change of E (%) | error / plain S = 1 (all frames) | replay CPU (s) | CPU / plain S = 1 |\n"
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+THETA_HEAD = ("| capture | adapt.h5 | θ(t) | replay | vs reference, all frames (%) | vs reference, frames before the "
+              "first change of E (%) | replay CPU (s) |\n| --- | --- | --- | --- | ---: | ---: | ---: |")
+
+
+def _before(r: dict) -> str:
+    return f"{_pct(r.get('median_force_error_before_change'))} (frames < {r.get('first_change', '?')})"
+
+
+def _truth_row(r: dict) -> str:
+    two = r.get("vs_2N") or {}
+    return (f"| {r['case']} | {r['what']} | {r.get('reference', '—')} | {_pct(r['median_force_error'])} | {_before(r)} | "
+            f"{_pct(two.get('median_force_error'))} | {_pct(two.get('median_force_error_before_change'))} |")
+
+
+def _time_row(r: dict) -> str:
+    return (f"| {r['case']} | {r['replay']} | {r['steps_per_frame']} | {_pct(r['median_force_error'])} | {_before(r)} | "
+            f"{_ratio(r, 'error_ratio')} | {r['cpu_s']:.1f} | {_ratio(r, 'cpu_ratio')} |")
+
+
+def _theta_row(r: dict) -> str:
+    adapt = "—" if r.get("adapt") is None else r["adapt"].split(":")[0]
+    return (f"| {r['case']} | {adapt} | {r['theta']} | {r['replay']} | {_pct(r['median_force_error'])} | "
+            f"{_before(r)} | {r['cpu_s']:.1f} |")
 
 
 def summary(rows: list[dict]) -> list[str]:
-    """Lines made from the rows only: per θ and S, the worst and median case error, and the mean CPU ratio."""
+    """Lines made from the replay rows only: per replay, the worst and median case error and the mean CPU ratio."""
     out = []
-    for theta in dict.fromkeys(r["theta"] for r in rows):
-        for S in sorted({r["substeps"] for r in rows if "error" not in r}):
-            sub = [r for r in rows if "error" not in r and r["theta"] == theta and r["substeps"] == S
-                   and r["median_force_error"] is not None]
-            if not sub:
-                continue
-            errs = [r["median_force_error"] for r in sub]
-            cpu = [r["cpu_ratio"] for r in sub if "cpu_ratio" in r]
-            n10 = sum(e <= 0.10 for e in errs)
-            out.append(f"- {theta}, S = {S}: worst case {100 * max(errs):.1f} %, median of the cases "
-                       f"{100 * float(np.median(errs)):.1f} %, {n10} of {len(errs)} cases ≤ 10 %"
-                       + (f"; CPU {float(np.mean(cpu)):.2f} × S = 1" if cpu else ""))
+    rep = [r for r in rows if r["part"] == "replay" and r["median_force_error"] is not None]
+    for label in dict.fromkeys(r["replay"] for r in sorted(rep, key=lambda r: r["steps_per_frame"])):
+        sub = [r for r in rep if r["replay"] == label]
+        errs = [r["median_force_error"] for r in sub]
+        cpu = [r["cpu_ratio"] for r in sub if "cpu_ratio" in r]
+        early = [r["median_force_error_before_change"] for r in sub
+                 if r.get("median_force_error_before_change") is not None]
+        out.append(f"- {label} ({sub[0]['steps_per_frame']} step(s) per frame): all frames: worst case "
+                   f"{100 * max(errs):.1f} %, median of the cases {100 * float(np.median(errs)):.1f} %, "
+                   f"{sum(e <= 0.10 for e in errs)} of {len(errs)} cases ≤ 10 %"
+                   + (f"; before the first change of E: worst {100 * max(early):.1f} %, "
+                      f"{sum(e <= 0.10 for e in early)} of {len(early)} ≤ 10 %" if early else "")
+                   + (f"; CPU {float(np.mean(cpu)):.2f} × plain S = 1" if cpu else ""))
     return out
 
 
-def write(rows: list[dict], out: Path, plan: dict, name: str = "forces") -> None:
+def default_line() -> str:
+    from stages.forces import FORCE_EXTRAPOLATE, FORCE_SUBSTEPS, FORCE_THETA
+
+    rep = (f"Richardson ({FORCE_SUBSTEPS}, {2 * FORCE_SUBSTEPS})" if FORCE_EXTRAPOLATE
+           else f"plain, S = {FORCE_SUBSTEPS}")
+    return (f"stages.forces defaults when this report was written (`rsl export --forces`, `rsl evaluate`, `rsl report`): replay "
+            f"'{rep}', θ(t) '{FORCE_THETA}'.")
+
+
+def write(rows: list[dict], out: Path, plan: dict, name: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -180,41 +383,69 @@ def write(rows: list[dict], out: Path, plan: dict, name: str = "forces") -> None
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "load_average_end": os.getloadavg()[0], "plan": plan, "cases": rows}
     (out / f"{name}.json").write_text(json.dumps(data, indent=1))
-    table = "\n".join([HEAD] + [_row(r) for r in rows])
-    md = (f"# Forces of the full-space replay against the truth, per substeps\n\n"
-          f"Captures as bench/accuracy.py makes them (`rsl synth --truth-order 2 --substeps {plan.get('truth_substeps', 3)} --handles hard`, "
-          f"{plan['frames']} frames at {next(r['fps'] for r in rows if 'fps' in r):g} fps, ν = {POISSON}); rsl's mesh "
-          f"`rsl tetrahedralize --order 2 --max-tets {MAX_TETS}`.  θ(t) 'true E': the truth's E(t) and ν; 'adapted': adapt.h5 of `rsl adapt` "
-          f"(online, window {WINDOW}, E initialised at 0.5 E0).  The forces are replayed in the full space from "
-          f"the capture's start state with S implicit-Euler steps per frame (stages/forces.py replay_forces, "
-          f"`--force-substeps S`) and compared with truth/forces.csv as `rsl evaluate` does (median relative "
-          f"error of the applied force over handles/obstacles and frames).  'Change vs the finest S': the same "
-          f"median against the replay with the most substeps of the same capture and θ(t) (no truth needed).  CPU: "
-          f"time.process_time of the replay; ratios against S = 1 of the same capture and θ(t), this run.\n\n"
-          f"{table}\n\n" + "\n".join(summary(rows)) + "\n\n"
-          + (f"Rows merged from {len(plan['merged_from'])} runs (split by capture), ended "
-             + ", ".join(f"{m['date']} (load average {m['load_average_end']:.1f})" for m in plan["merged_from"])
-             + f"; machine {data['machine']}. " if plan.get("merged_from") else
-             f"Machine: {data['machine']}, load average {data['load_average_end']:.1f} at the end; date "
-             f"{data['date']}. ")
-          + f"Produced by `bench/forces.py`.\n\n![force error over substeps]({name}.png)\n")
-    (out / f"{name}.md").write_text(md)
-    fig, (a0, a1) = plt.subplots(1, 2, figsize=(10, 3.8))
-    for c, case in enumerate(dict.fromkeys(r["case"] for r in rows)):
-        for theta, ls in (("true E", "-"), ("adapted", "--")):
-            sub = [r for r in rows if "error" not in r and r["case"] == case and r["theta"] == theta
-                   and r["median_force_error"] is not None]
+    refs = dict.fromkeys(r["reference"] for r in rows if r.get("reference"))
+    ref = "; ".join(refs) or reference_name(plan["truth_substeps"])
+    per_case = {r["case"]: r["reference"] for r in rows if r.get("reference")}
+    parts = [f"# Forces of the full-space replay against a truth refined in time\n\n"
+             f"Captures as bench/accuracy.py makes them (`rsl synth --truth-order 2 --handles hard`, {FRAMES} "
+             f"frames at 30 fps, ν = {POISSON}), each simulated with several numbers N of implicit-Euler substeps "
+             f"per frame.  Reference per capture ("
+             + "; ".join(f"{c}: {v}" for c, v in per_case.items()) + f"): the Richardson "
+             f"extrapolation of its two finest truths, frame by frame (2 F_2N − F_N: cancels implicit Euler's "
+             f"first-order error where the truths are in their asymptotic range), or its one truth.  Errors: median "
+             f"relative error of the applied force over handles/obstacles and frames, as `rsl evaluate` reports it "
+             f"(stages.forces.force_errors), over all frames and over the frames before the first change of the "
+             f"true E (the bars' E steps at frame {FRAMES // 3}; the beam's E is constant).  Replays "
+             f"in the full space from the capture's start state (stages.forces.replay_forces): 'plain, S' = S "
+             f"implicit-Euler steps per frame; 'Richardson (S, 2S)' = 2 F_2S − F_S (3S steps per frame).  CPU: "
+             f"time.process_time of the replay(s); ratios against plain S = 1 of the same capture and θ(t), "
+             f"this run.\n"]
+    tr = [r for r in rows if r["part"] == "truth"]
+    if tr:
+        parts.append("## The truths against the reference\n\n" + "\n".join([TRUTH_HEAD] + [_truth_row(r) for r in tr])
+                     + "\n")
+    rep = [r for r in rows if r["part"] == "replay"]
+    if rep:
+        parts.append(f"## Replays of the true E(t) (rsl's mesh `rsl tetrahedralize --order 2 --max-tets {MAX_TETS}`)"
+                     f"\n\n" + "\n".join([TIME_HEAD] + [_time_row(r) for r in rep]) + "\n\n"
+                     + "\n".join(summary(rows)) + "\n")
+    th = [r for r in rows if r["part"] == "theta"]
+    if th:
+        ads = dict.fromkeys(r["adapt"] for r in th if r.get("adapt"))
+        parts.append("## Replays of an adapted θ(t)\n\nθ(t) rules: 'online' = as adapt.h5 records it (each frame's "
+                     "filter estimate); 'segment' = the last estimate of each segment between the changes the "
+                     "estimator detected (stages.forces.smoothed_theta); 'lagL' = the estimate L frames later, "
+                     "within the segment.  The adapt.h5 were made by `rsl adapt` on the captures of the same scenes "
+                     "that bench/accuracy.py uses (the truth simulated with 3 substeps per frame; the same controls "
+                     "and E(t)), each replayed on its own mesh.h5 and compared with the refined reference:\n\n"
+                     + "\n".join(f"- {a}; detected changes at frames "
+                                 f"{next(r['changes'] for r in th if r.get('adapt') == a)}" for a in ads) + "\n\n"
+                     + "\n".join([THETA_HEAD] + [_theta_row(r) for r in th]) + "\n")
+    parts.append(default_line() + " "
+                 + (f"Rows merged from {len(plan['merged_from'])} runs, ended "
+                    + ", ".join(f"{m['date']} (load average {m['load_average_end']:.1f})" for m in plan["merged_from"])
+                    + f"; machine {data['machine']}. " if plan.get("merged_from") else
+                    f"Machine: {data['machine']}, load average {data['load_average_end']:.1f} at the end; date "
+                    f"{data['date']}. ") + "Produced by `bench/forces.py`.\n")
+    if rep:
+        parts.append(f"![force error against CPU]({name}.png)\n")
+    (out / f"{name}.md").write_text("\n".join(parts))
+    if not rep:
+        return
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for c, case in enumerate(dict.fromkeys(r["case"] for r in rep)):
+        for method, ls in (("plain", "-"), ("richardson", "--")):
+            sub = sorted((r for r in rep if r["case"] == case and r["method"] == method
+                          and r["median_force_error"] is not None), key=lambda r: r["cpu_s"])
             if sub:
-                a0.plot([r["substeps"] for r in sub], [100 * r["median_force_error"] for r in sub], ls, marker="o",
-                        ms=3, color=f"C{c}", label=f"{case}, {theta}")
-                a1.plot([r["substeps"] for r in sub], [r["cpu_s"] for r in sub], ls, marker="o", ms=3, color=f"C{c}")
-    a0.axhline(10, color="k", lw=0.8, ls=":")
-    a0.set_xlabel("substeps S of the replay")
-    a0.set_ylabel("median force error vs truth (%)")
-    a0.set_yscale("log")
-    a0.legend(fontsize=6)
-    a1.set_xlabel("substeps S of the replay")
-    a1.set_ylabel("replay CPU (s)")
+                ax.plot([r["cpu_s"] for r in sub], [100 * r["median_force_error"] for r in sub], ls, marker="o",
+                        ms=3, color=f"C{c}", label=f"{case}, {method}")
+    ax.axhline(10, color="k", lw=0.8, ls=":")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("replay CPU (s)")
+    ax.set_ylabel(f"median force error vs {ref} (%)", fontsize=7)
+    ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(out / f"{name}.png", dpi=110)
     plt.close(fig)
@@ -222,45 +453,59 @@ def write(rows: list[dict], out: Path, plan: dict, name: str = "forces") -> None
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--part", choices=("time", "theta"), default="time")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
-    ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_forces"))
-    ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
-    ap.add_argument("--substeps", default="1,2,3,4,6", help="replay substeps S, comma-separated (include 1)")
-    ap.add_argument("--truth-substeps", type=int, default=3,
-                    help="implicit substeps per frame of the truth (synth --substeps); many = converged in time")
-    ap.add_argument("--name", default="forces", help="file stem of the report in --out (NAME.md/.json/.png)")
-    ap.add_argument("--true-only", action="store_true", help="only the true-E rows (no rsl adapt)")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_forces_conv"))
+    ap.add_argument("--cases", default="bar_equilibrium,bar_rest,beam_equilibrium",
+                    help=f"comma-separated, of {', '.join(CASES)}")
+    ap.add_argument("--truth-substeps", default="12,24",
+                    help="substeps per frame of the truths (synth --substeps); the two finest make the reference")
+    ap.add_argument("--substeps", default="1,2,3,6,12", help="--part time: plain replay substeps S (include 1)")
+    ap.add_argument("--adapt-ws", default="", help="--part theta: CASE=WORKSPACE,... holding adapt.h5 and mesh.h5")
+    ap.add_argument("--rules", default="online,segment,lag3", help="--part theta: θ(t) rules")
+    ap.add_argument("--replays", default="3,r1,r3", help="--part theta: S (plain) or rS (Richardson (S, 2S))")
+    ap.add_argument("--name", default="forces_converged", help="file stem of the report in --out (NAME.md/.json/.png)")
     ap.add_argument("--merge", nargs="+", type=Path, default=None,
-                    help="only write the report from the rows of these forces.json files (runs split by case)")
+                    help="only write the report from the rows of these NAME.json files (runs split by case)")
     a = ap.parse_args()
     if a.merge:
         runs = [json.loads(f.read_text()) for f in a.merge]
         plan = {**runs[0]["plan"], "cases": [c for run in runs for c in run["plan"]["cases"]],
                 "merged_from": [{"file": str(f), "date": run["date"], "load_average_end": run["load_average_end"]}
                                 for f, run in zip(a.merge, runs)]}
-        rows = [r for run in runs for r in run["cases"]]
-        truth_steps = sorted({r.get("truth_substeps", 3) for r in rows})
-        plan["truth_substeps"] = " / ".join(map(str, truth_steps))
-        plan["substeps"] = sorted({r["substeps"] for r in rows if "substeps" in r})
-        if len(truth_steps) > 1:  # the same capture simulated at several truth steps: tell them apart
-            for r in rows:
-                r["case"] = f"{r['case']}, truth S = {r.get('truth_substeps', 3)}"
-        write(rows, a.out, plan, a.name)
+        write([r for run in runs for r in run["cases"]], a.out, plan, a.name)
         return
-    substeps = sorted({int(s) for s in a.substeps.split(",")})
+    truth_substeps = sorted({int(s) for s in a.truth_substeps.split(",")})
     cases = a.cases.split(",")
     unknown = [c for c in cases if c not in CASES]
     if unknown:
         raise SystemExit(f"unknown case(s) {unknown}; known: {', '.join(CASES)}")
     a.work.mkdir(parents=True, exist_ok=True)
-    plan = {"cases": cases, "substeps": substeps, "frames": FRAMES, "max_tets": MAX_TETS,
-            "work": str(a.work), "truth_substeps": a.truth_substeps}
-    print(HEAD, flush=True)
+    plan = {"part": a.part, "cases": cases, "frames": FRAMES, "max_tets": MAX_TETS, "work": str(a.work),
+            "truth_substeps": truth_substeps}
     rows: list[dict] = []
+    if a.part == "time":
+        substeps = sorted({int(s) for s in a.substeps.split(",")})
+        plan["substeps"] = substeps
+        for case in cases:
+            rows += part_time(a.work, case, truth_substeps, substeps)
+            write(rows, a.out, plan, a.name)  # after every case: a stopped run keeps what it measured
+        print("\n".join([TRUTH_HEAD] + [_truth_row(r) for r in rows if r["part"] == "truth"]))
+        print("\n".join([TIME_HEAD] + [_time_row(r) for r in rows if r["part"] == "replay"]))
+        print("\n".join(summary(rows)))
+        return
+    ws_of: dict[str, list[Path]] = {}
+    for item in filter(None, a.adapt_ws.split(",")):
+        case, _, ws = item.partition("=")
+        ws_of.setdefault(case, []).append(Path(ws))
+    rules, specs = a.rules.split(","), a.replays.split(",")
+    plan.update(rules=rules, replays=specs, adapt_ws={k: list(map(str, v)) for k, v in ws_of.items()})
     for case in cases:
-        rows += run_case(a.work, case, substeps, a.truth_substeps, a.true_only)
-        write(rows, a.out, plan, a.name)  # after every case: a stopped run keeps what it measured
-    print("\n".join(summary(rows)))
+        if case not in ws_of:
+            raise SystemExit(f"--adapt-ws names no workspace for {case}")
+        rows += part_theta(a.work, case, truth_substeps, ws_of[case], rules, specs)
+        write(rows, a.out, plan, a.name)
+    print("\n".join([THETA_HEAD] + [_theta_row(r) for r in rows]))
 
 
 if __name__ == "__main__":

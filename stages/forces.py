@@ -12,28 +12,40 @@ Two ways to get the states, one definition of the force (:func:`step_forces`, al
 truth/forces.csv): the force at frame t is the residual of the LAST implicit-Euler step that produced x_t
 (Δt / S with S substeps per frame, from that step's own x_{t−1}, x_{t−2}), at its held vertices.
 * :func:`replay_forces` (export, evaluate and report for an online run, :func:`adapted_forces`): the controls
-  re-simulated in the full space with θ(t) of the trajectory, the capture's start state and S substeps per frame
-  (:func:`replay_substeps`: ``--force-substeps``, default :data:`FORCE_SUBSTEPS`), so every step is a solved step
-  of the model (free-vertex residual 0, held vertices at their targets, inertia from that step's own states).
+  re-simulated in the full space with θ(t) of the trajectory (:func:`replay_theta`), the capture's start state and
+  S substeps per frame (:func:`replay_substeps`: ``--force-substeps``, default :data:`FORCE_SUBSTEPS`), so every
+  step is a solved step of the model (free-vertex residual 0, held vertices at their targets, inertia from that
+  step's own states); by default (:data:`FORCE_EXTRAPOLATE`, ``--force-extrapolate``) two replays, with S and 2S
+  substeps, Richardson-extrapolated frame by frame (:func:`richardson`: 2 F_2S − F_S).
 * :func:`trajectory_forces`: the recorded positions themselves, with frame-level finite differences.  Only
   meaningful for a trajectory that IS one simulation: an online adapt records frame t from a window solved with
   θ_t (a splice of simulations, so x − 2x_{t−1} + x_{t−2} is not an acceleration), and a reduced-space state
   leaves a residual on the free vertices and holds hard handles as springs.  On the bar cable capture
   (docs/results/accuracy.md, first row; truth P2, 3 substeps, hard base): recorded positions 62 % median error
-  (reduced space), 78 % (full space); the replay of the same θ(t) 14 % (S = 1) / 11 % (S = 3, full-space θ);
-  the replay of the true E 12.8 % (S = 1) / 1.3 % (S = 3).
+  (reduced space), 78 % (full space); the replay of the same θ(t) 14 % (S = 1) / 11 % (S = 3, full-space θ).
 
-The time step of the replay: the model has no material damping, so the dynamic part of a handle's reaction (the
-inertia of the oscillating body) carries implicit Euler's numerical damping, which shrinks with Δt / S only at
-first order.  Against truths simulated finer in time (docs/results/forces_converged.md; bar pulled by a cable, true
-E on rsl's own mesh) the replay's error falls as S grows — truth with 24 substeps: 41 % at S = 1, 34.5 % at S = 3,
-24 % at S = 6, 12.8 % at S = 12 — and the truths themselves still differ by ~13 % between 12 and 24 substeps: the
-dynamic forces are not converged at any step measured.  Against a truth made with 3 substeps, S = 3 errs 1.3 %
-only because it copies that truth's integrator (docs/results/forces.md).  :data:`FORCE_SUBSTEPS` = 3 is a cost
-compromise (2.1× the CPU of S = 1, the error 15–30 % lower); ``--force-substeps 12`` costs 6.4× and halves it
-again.  A less dissipative integrator (BDF2, or Richardson extrapolation over S and 2S) is what converged
-dynamic forces need.  With an adapted θ(t) the replay also carries the estimate's start transient
-(docs/results/forces_notes.md).
+The time step of the replay: the model has no material damping, so the dynamic part of a hard handle's reaction
+(the inertia of the oscillating body) carries implicit Euler's numerical damping, an error of first order in
+Δt / S — on the truth's side too.  docs/results/forces_converged.md (bench/forces.py --part time) compares the
+replays of the true E with truths simulated with N = 12, 24 (48) substeps and extrapolated (2 F_2N − F_N):
+* where the truths converge in time — the two-region beam (constant E; N = 12 and 24 differ by 0.7 %) and the
+  bars' frames before their first E step (0.1–3.5 %) — so does the replay: plain S = 1 / 3 / 12 err 8.0 / 4.4 /
+  1.8 % on the beam, 3.1 / 1.3 / 0.4 % (bar, equilibrium start) and 25 / 15 / 6.6 % (bar released at rest, which
+  rings from t = 0); Richardson (1, 2) — 3 steps per frame, like S = 3, at 1.15× its CPU — 3.8, 0.6 and 12.2 %,
+  lower than S = 3 on every capture: hence the default S = 1 with extrapolation;
+* after an instantaneous step of E the undamped body rings with modes implicit Euler damps at every step
+  measured: the truths themselves differ by 11 % (N = 12 vs 24) and 9.5 % (24 vs 48), and over all frames no
+  replay measured comes within 14 % of the reference on the bars (plain S = 12: 29–30 %; Richardson (6, 12), 18
+  steps per frame: 15–18 %).  The force of an undamped model after a sudden change of stiffness depends on the
+  integrator by tens of per cent; a damping model would make it a definite quantity.
+Against a truth made with 3 substeps, plain S = 3 errs ~1 % only because it copies that truth's integrator
+(docs/results/forces.md).
+
+θ(t) of the replay (:func:`replay_theta`, ``--force-theta``): "online" = each frame's filter estimate as adapt.h5
+records it (default :data:`FORCE_THETA`); "segment" = within each segment between the material changes adapt's gn
+estimator detected, the segment's last estimate (:func:`smoothed_theta`; it has seen the whole segment), which
+removes the estimate's start transient (frames 0–3 far off) from the replay; measured in
+docs/results/forces_theta.md (bench/forces.py --part theta).
 
 The error against a truth (rows of forces.csv, stages.capture.FORCE_HEADER): per handle / obstacle and frame,
 e_t = ‖F_t − F_t^true‖ / ‖F_t^true‖ on the applied force (N), over the frames where ‖F_t^true‖ is at least
@@ -50,7 +62,10 @@ from stages.results import previous_states
 from stages.sim import stress as st
 
 APPLIED = ("applied_fx_N", "applied_fy_N", "applied_fz_N")
-FORCE_SUBSTEPS = 3  # default implicit-Euler steps per frame of the replay (module doc; docs/results/forces_converged.md)
+FORCE_SUBSTEPS = 1  # default implicit-Euler steps per frame S of the replay (docs/results/forces_converged.md)
+FORCE_EXTRAPOLATE = True  # default: Richardson-extrapolate the replay over S and 2S substeps (module doc)
+FORCE_THETA = "online"  # default θ(t) of the replay: "online" (as adapt.h5 records it) | "segment" (module doc)
+THETA_RULES = ("online", "segment")
 
 
 def replay_substeps(requested: int, adapt) -> int:
@@ -115,7 +130,8 @@ def step_forces(scene, controls, X: np.ndarray, states: Sequence[tuple[np.ndarra
 
 
 def adapted_forces(scene, controls, adapt, start: str | None, substeps: int, internal, contact_distance: float = 1.0e-3,
-                   reporter: Reporter = SilentReporter()) -> tuple[list[tuple[int, st.SetForce]], np.ndarray, str]:
+                   reporter: Reporter = SilentReporter(), extrapolate: bool = FORCE_EXTRAPOLATE,
+                   theta: str = FORCE_THETA) -> tuple[list[tuple[int, st.SetForce]], np.ndarray, str]:
     """The forces ``rsl export --forces``, ``rsl evaluate`` and ``rsl report`` give for an adapt.h5 trajectory, one
     rule for all three: an online run that starts at frame 0 (a splice of windows) is replayed in the full space
     (:func:`replay_forces`, from the capture's ``start`` with ``substeps`` per frame); an offline or static run,
@@ -123,9 +139,12 @@ def adapted_forces(scene, controls, adapt, start: str | None, substeps: int, int
     positions (:func:`trajectory_forces`; ``internal()`` gives their internal forces (T, n, 3) N).
     Returns (rows, applied (T, n, 3) N, a phrase naming the source)."""
     if getattr(adapt, "mode", "online") == "online" and start is not None and replayable(adapt.frames):
-        rows, applied, _ = replay_forces(scene, controls, np.asarray(adapt.young), np.asarray(adapt.poisson), start,
-                                         substeps, contact_distance, reporter)
-        return rows, applied, f"full-space replay of the controls with θ(t) of adapt.h5, {substeps} substep(s) per frame"
+        young, poisson, how = replay_theta(adapt.young, adapt.poisson, getattr(adapt, "extra", None), theta)
+        rows, applied, _ = replay_forces(scene, controls, young, poisson, start, substeps, contact_distance, reporter,
+                                         extrapolate)
+        steps = (f"Richardson-extrapolated from {substeps} and {2 * substeps} substeps per frame" if extrapolate
+                 else f"{substeps} substep(s) per frame")
+        return rows, applied, f"full-space replay of the controls with {how}, {steps}"
     rows, applied = trajectory_forces(scene, controls, adapt.frames, adapt.positions, internal(), contact_distance,
                                       reporter)
     return rows, applied, "adapt.h5 positions"
@@ -138,22 +157,98 @@ def replayable(frames: np.ndarray) -> bool:
 
 
 def replay_forces(scene, controls, young: np.ndarray, poisson: np.ndarray, start: str, substeps: int = 1,
-                  contact_distance: float = 1.0e-3, reporter: Reporter = SilentReporter()
-                  ) -> tuple[list[tuple[int, st.SetForce]], np.ndarray, np.ndarray]:
+                  contact_distance: float = 1.0e-3, reporter: Reporter = SilentReporter(),
+                  extrapolate: bool = False) -> tuple[list[tuple[int, st.SetForce]], np.ndarray, np.ndarray]:
     """Forces of the controls re-simulated in the full space (module doc): frames 0..T−1 from the ``start`` state
-    (docs/capture.md), θ(t) = young/poisson (T, R), ``substeps`` implicit-Euler steps per frame.  Returns
+    (docs/capture.md), θ(t) = young/poisson (T, R), ``substeps`` implicit-Euler steps per frame; with
+    ``extrapolate``, :func:`richardson` of the replays with S and 2S substeps, frame by frame.  Returns
     (rows [(frame, SetForce)], applied per-vertex force (T, n, 3) N, replayed positions (T, n, 3) m)."""
+    if extrapolate:
+        coarse = replay_forces(scene, controls, young, poisson, start, substeps, contact_distance, reporter)
+        fine = replay_forces(scene, controls, young, poisson, start, 2 * substeps, contact_distance, reporter)
+        return (richardson_rows(coarse[0], fine[0]), richardson(coarse[1], fine[1]), richardson(coarse[2], fine[2]))
     from stages.sim.scene import frame_inputs
     from stages.sim.static import simulate_from_start
 
     T = len(young)
     states: list = []
-    with reporter.task("forces (full-space replay)", T) as task:
+    with reporter.task(f"forces (full-space replay, {substeps} substep(s))", T) as task:
         X = simulate_from_start(scene, lambda f: frame_inputs(scene, controls, f), young, poisson, T, start,
                                 substeps, callback=lambda _t: task.advance(1), states=states)
     rows, applied, _ = step_forces(scene, controls, X, states, np.asarray(young), np.asarray(poisson), substeps,
                                    contact_distance)
     return rows, applied, X
+
+
+def richardson(coarse, fine, order: int = 1):
+    """Richardson extrapolation to Δt → 0 of a quantity computed with steps h (``coarse``) and h / 2 (``fine``) by
+    an integrator of ``order`` p: q ≈ q_{h/2} + (q_{h/2} − q_h) / (2^p − 1) (p = 1, implicit Euler:
+    2 q_{h/2} − q_h), which cancels the error term of order p.  Arrays of one shape (or floats)."""
+    c, f = np.asarray(coarse, np.float64), np.asarray(fine, np.float64)
+    if c.shape != f.shape:
+        raise ValueError(f"Richardson extrapolation needs one shape, found {c.shape} and {f.shape}")
+    return f + (f - c) / (2.0 ** order - 1.0)
+
+
+def richardson_rows(coarse: Sequence[tuple[int, st.SetForce]], fine: Sequence[tuple[int, st.SetForce]],
+                    order: int = 1) -> list[tuple[int, st.SetForce]]:
+    """The rows [(frame, SetForce)] of two replays of the same frames (steps h and h / 2), matched by (frame, name),
+    with their forces extrapolated (:func:`richardson`: internal, magnitude sum, applied); the vertex count of the
+    fine one.  ValueError when the two do not hold the same (frame, name) rows."""
+    import dataclasses
+
+    by_key = {(frame, f.name): f for frame, f in coarse}
+    keys = [(frame, f.name) for frame, f in fine]
+    if len(by_key) != len(coarse) or sorted(by_key) != sorted(keys):
+        raise ValueError("the two replays do not hold the same (frame, handle/obstacle) rows")
+    out = []
+    for frame, f in fine:
+        c = by_key[(frame, f.name)]
+        out.append((frame, dataclasses.replace(
+            f, internal=richardson(c.internal, f.internal, order), applied=richardson(c.applied, f.applied, order),
+            magnitude_sum=float(richardson(c.magnitude_sum, f.magnitude_sum, order)))))
+    return out
+
+
+def segments(changes: Sequence[int], T: int) -> list[tuple[int, int]]:
+    """Frame ranges [a, b) of frames 0..T−1 between change points (each change frame starts a segment)."""
+    cuts = sorted({int(c) for c in changes if 0 < int(c) < T})
+    edges = [0, *cuts, T]
+    return [(a, b) for a, b in zip(edges, edges[1:])]
+
+
+def smoothed_theta(young: np.ndarray, poisson: np.ndarray, changes: Sequence[int], lag: int | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """θ(t) (T, R) of an online run smoothed within the segments between detected material changes: frame t takes
+    the estimate of frame min(t + lag, b − 1), b the end of its segment (:func:`segments`); ``lag`` None = the
+    segment's last estimate (the one that has seen the whole segment: fixed-interval smoothing of a constant)."""
+    young, poisson = np.asarray(young, np.float64), np.asarray(poisson, np.float64)
+    T = len(young)
+    idx = np.arange(T)
+    for a, b in segments(changes, T):
+        idx[a:b] = b - 1 if lag is None else np.minimum(np.arange(a, b) + int(lag), b - 1)
+    return young[idx], poisson[idx]
+
+
+def replay_theta(young: np.ndarray, poisson: np.ndarray, extra: dict | None, rule: str = FORCE_THETA
+                 ) -> tuple[np.ndarray, np.ndarray, str]:
+    """θ(t) the replay uses for an online adapt.h5 (module doc) from its young/poisson (T, R) and extra: (young,
+    poisson (T, R), a phrase).
+    "online": as recorded (each frame's filter estimate).  "segment": :func:`smoothed_theta` with the changes the
+    gn estimator detected (extra['material_changes_detected']); a run without a change detector (Adam) keeps its
+    recorded θ(t).  ValueError for an unknown rule."""
+    if rule not in THETA_RULES:
+        raise ValueError(f"the replay's θ rule should be one of {', '.join(THETA_RULES)}, found {rule!r}")
+    young, poisson = np.asarray(young, np.float64), np.asarray(poisson, np.float64)
+    extra = extra or {}
+    if rule == "online":
+        return young, poisson, "θ(t) of adapt.h5"
+    if extra.get("estimator") != "gn":
+        return young, poisson, "θ(t) of adapt.h5 (no change detector in this run: not smoothed)"
+    changes = [int(c) for c in extra.get("material_changes_detected", []) or []]
+    y, p = smoothed_theta(young, poisson, changes)
+    n = len(segments(changes, len(young)))
+    return y, p, f"θ(t) of adapt.h5 smoothed per segment ({n} segment(s) between detected changes)"
 
 
 def force_table(rows: Sequence[tuple[int, st.SetForce]], dt: float) -> list[dict]:

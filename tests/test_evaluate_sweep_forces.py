@@ -91,10 +91,16 @@ def test_forces_are_replayed_whatever_adapt_h5_recorded(same_model, rsl):
     a.mode, a.window = "online", 3  # an online run: a splice of windows, so its forces are replayed
     a.save(ws / "adapt.h5", Provenance.make({"capture": str(cap), "workspace": str(ws)}))
     # --force-substeps 0: adapt.h5's own step (1 per frame, unrecorded here), the truth's on this same-model capture
-    p = rsl("evaluate", cap, "-w", ws, "--psnr-frames", "0", "--no-plot", "--force-substeps", "0")
+    p = rsl("evaluate", cap, "-w", ws, "--psnr-frames", "0", "--no-plot", "--force-substeps", "0",
+            "--no-force-extrapolate")
     assert p.returncode == 0, p.stderr[-2000:]
     f = json.loads((ws / "evaluation.json").read_text())["forces"]
     assert f["median_relative_error"] < 1e-4 and "replay" in f["source"] and "1 substep" in f["source"]
+    # the default: Richardson over 1 and 2 substeps (stages.forces.FORCE_EXTRAPOLATE), named in the source
+    p = rsl("evaluate", cap, "-w", ws, "--psnr-frames", "0", "--no-plot", "--force-substeps", "0")
+    assert p.returncode == 0, p.stderr[-2000:]
+    f = json.loads((ws / "evaluation.json").read_text())["forces"]
+    assert "Richardson-extrapolated from 1 and 2 substeps" in f["source"], f["source"]
     p = rsl("evaluate", cap, "-w", ws, "--psnr-frames", "0", "--no-plot", "--force-substeps", "-1")
     assert p.returncode != 0 and "--force-substeps" in p.stderr and "Traceback" not in p.stderr
 
