@@ -12,7 +12,7 @@ Gaussians re-bound to the simulated fit frame), one row per cause switched on or
 * adapt's dynamics (1 implicit step per frame) vs the truth's (2 substeps), and the marker loss on the same mesh
   and dynamics (what is left is the dynamics' bias, not the images');
 * segmentation masks vs the truth's masks; the photometric L1 vs the mask (coverage) term alone;
-* the loss's own renderer (stages.adapt_loss.ImageLoss.images) vs BoundGaussians.render (fit-gaussians'
+* the loss's own renderer (stages.render.image_loss.ImageLoss.images) vs BoundGaussians.render (fit-gaussians'
   renderer, fused projection) — the Gaussians rendered without re-binding;
 * 3 cameras and 1 camera.
 
@@ -132,7 +132,7 @@ def vision_curve(ws: Path, cap, X: dict, cams: list[str], masks: str = "segment"
     "mask" (L1 of coverage − mask, BoundGaussians only)."""
     import torch
 
-    from stages.adapt_loss import ImageLoss
+    from stages.render.image_loss import ImageLoss
     from stages.artefacts import CamerasArtefact, GaussiansArtefact, MasksArtefact, MeshArtefact
     from stages.render.gaussians import BoundGaussians
 
@@ -166,7 +166,7 @@ def vision_curve(ws: Path, cap, X: dict, cams: list[str], masks: str = "segment"
 
 
 def marker_curve(ws: Path, cap, X: dict) -> np.ndarray:
-    from stages.adapt_loss import bind_markers, marker_residuals
+    from stages.sim.markers import bind_markers, marker_residuals
     from stages.artefacts import MeshArtefact
 
     faces = np.asarray(MeshArtefact.load(ws / "mesh.h5").surface_faces)
@@ -182,7 +182,7 @@ def gradients(ws: Path, cap, X: dict, lo: float, mid: float, hi: float, cams: li
     """dL/dlog E of the whole-sequence vision loss at E = mid·E_true: the slope of the swept loss (central
     difference over [lo, hi]), the adjoint with the anchor held (Σ_t dL/dX_t · dX_t/dlog E) and with the anchor's
     part (+ dL/dx_0 · dx_0/dlog E), dX/dlog E from the same two simulations."""
-    from stages.adapt_loss import ImageLoss
+    from stages.render.image_loss import ImageLoss
     from stages.artefacts import CamerasArtefact, GaussiansArtefact, MasksArtefact, MeshArtefact
 
     mesh = MeshArtefact.load(ws / "mesh.h5")
@@ -419,14 +419,15 @@ def anchor_run(case: str, space: str, anchor: str, work: Path, window: int = 3) 
             "frames": int(len(e)), "young_over_true": e.round(4).tolist(), "young_true": yt.tolist(),
             "anchor_young_over_true0": (np.asarray(anchor_e) / yt[0]).round(4).tolist(),
             "anchor_apart_from": a.extra.get("anchor_apart_from", "not recorded"),  # None: never
+            "anchor_tests": a.extra.get("anchor_tests", "not recorded"),  # [frame, loss at level, at p, change?]
             "settled_frames": int(ok.sum()), "median_settled_error": float(np.median(np.abs(e[ok] - 1))),
             "final_over_true": float(e[-1]), "seconds": seconds, "failed": failed}
 
 
 def anchor_study(a) -> None:
     """The anchor rows of --anchor-study, added to (replacing rows of the same case, space and anchor in) the
-    vision_bias.json of an earlier run; vision_bias.md is written again."""
-    t0 = time.perf_counter()
+    vision_bias.json of an earlier run; vision_bias.md is written again (its whole-run time stays the earlier
+    run's: each anchor row has its own seconds)."""
     for spec in [s for s in a.anchor_study.split(",") if s]:
         case, space, anchor = spec.split(":")
         run = anchor_run(case, space, anchor, a.work)
@@ -435,7 +436,7 @@ def anchor_study(a) -> None:
         d = json.loads((a.out / "vision_bias.json").read_text())
         rows = [r for r in d.get("anchor_study", []) if (r["case"], r["space"], r["anchor"]) != (case, space, anchor)]
         write(d["cases"], d["gradient"], d["online"], d["pipeline"], a.out, d["mode"] == "quick", d["frames"],
-              d["resolution"], d["seconds"] + time.perf_counter() - t0, anchor_rows=rows + [run])
+              d["resolution"], d["seconds"], anchor_rows=rows + [run])
 
 
 def _anchor_text(rows: list) -> str:
@@ -465,10 +466,17 @@ def _anchor_text(rows: list) -> str:
                        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"] + [line(r) for r in rows])
     per = "\\\n".join(f"{r['case']} {r['space']} {r['anchor']}: " + ", ".join(f"{v:.2f}" for v in r["young_over_true"])
                       for r in rows if "young_over_true" in r)
+    tests = "\\\n".join(
+        f"{r['case']} {r['space']} {r['anchor']}: " + ("; ".join(
+            f"frame {t[0]}: {t[1]:.4g} at the level, {t[2]:.4g} at the window's θ → "
+            f"{'change' if t[3] else 'convergence'}" for t in r["anchor_tests"]) or "no candidate, no test")
+        for r in rows if isinstance(r.get("anchor_tests"), list))
+    tests = ("\n\nChange tests (the loss of the frames after the fit frame, simulated from the start with the "
+             "level's θ and with the window's; stages/vision_anchor.py):\\\n" + tests) if tests else ""
     return ("\n\n## Online with E changing: the material of the Gaussians' anchor\n\n"
             "`rsl adapt --loss vision --estimator adam --window 3 --vision-anchor A`.  Settled frames: constant E, "
             "frames ≥ T/4; E steps, frames ≥ w + 5 after the start and after each step (bench/accuracy.py).\n\n"
-            + table + "\n\nE / E_true per frame:\\\n" + per)
+            + table + "\n\nE / E_true per frame:\\\n" + per + tests)
 
 
 def _row(c: dict) -> str:

@@ -1,0 +1,119 @@
+"""The material of the Gaussians' anchor, online (`rsl adapt --loss vision --estimator adam`, ``--vision-anchor
+estimated``).
+
+The Gaussians are fitted to the images of their fit frame f; online they are re-bound to x_f(θ_a), frame f simulated
+from the start with the material θ_a = θ(p_a), p_a = (log E, s) (2R,).  p_a should be the fit frame's material: the
+window's current θ as long as the material has not changed since f, the old material once it has (re-simulating
+frame f with the new material moves the anchor and holds E back: docs/results/vision_bias.md).  :class:`AnchorMaterial`
+keeps p_a and decides, frame by frame, by this rule (p_T: the window's parameters after frame T's update):
+
+1. **tied** — while the window holds f, and until a change of material is confirmed: p_a = p.
+2. **candidate** — the window's log E has moved more than c (``--anchor-change``) from its *level*, the median of
+   p over frames T−6..T−3, in 2 frames in a row (any region).  Converging from a far-off start, Adam moves as far
+   and as fast as after a change (from 4x too soft: log E +0.8 in 4 frames after a 4-frame plateau), so this
+   alone cannot tell them apart.
+3. **test** — which material explains the frames after the fit frame better, the level p_L or the current p_T:
+   the loss Σ_{t∈F} loss_t(X_t(θ(p))) of the frames F = f+1 .. T−3 (at most 4w of them, those the level was
+   estimated from), simulated from the start with θ(p), the anchor at θ(p) too.  A change since f leaves them
+   showing the old material, so the level explains them better: p_a becomes its own unknown, started at p_L.  A
+   convergence explains them better with the current estimate: the candidate is dropped and the level's history
+   restarts at T (the next candidate at T+7 at the earliest).  No frame in F yet: the test waits.
+4. **apart** — p_a is moved by its own Adam along dL/dp_a, the anchor's part of the window's gradient alone
+   (WindowObjective.last_anchor_g), so that it stays near the old material while the window's θ follows the new.
+
+With c = 0, p_a is its own unknown as soon as the window no longer holds f (no test).
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from stages.parameters import Adam
+
+LEVEL = (3, 6)  # the level: the median of p over frames T−6..T−3
+AWAY = 2  # frames in a row the window's log E must stay more than c from the level
+TEST_WINDOWS = 4  # the test's frames F: at most this many windows' worth
+
+
+class AnchorMaterial:
+    """p_a (2R,), the material the Gaussians' anchor x_f is simulated with, by the rule of this module's docstring.
+
+    Per frame T of the online loop: :meth:`held` before the window's Adam steps (the ``anchor_p`` the window
+    objective takes: None while tied), :meth:`after_step` after each of them, :meth:`end_frame` once the frame's
+    update is done.  ``apart_from``: the frame from which p_a was its own unknown (None: never); ``tests``: one
+    (T, loss at the level, loss at p_T, change?) per test made."""
+
+    def __init__(self, p0: np.ndarray, lr: np.ndarray, beta1: float, n_regions: int, change: float, window: int,
+                 fit_frame: int, first: int = 0):
+        self.p = np.array(p0, float)  # (2R,) = (log E, s)
+        self.adam = Adam(lr, beta1=beta1)  # p_a's optimiser: its moments see the anchor's part from frame 0 on
+        self.R, self.change, self.window = n_regions, float(change), window
+        self.fit_frame, self.first = fit_frame, first
+        self.apart_from: int | None = None
+        self.away = 0
+        self.hist: list[np.ndarray] = []  # p per frame since the level's history (re)started
+        self.tests: list[tuple[int, float, float, bool]] = []
+        self._held = False
+
+    @property
+    def apart(self) -> bool:
+        return self.apart_from is not None
+
+    def held(self, T: int, tied: bool) -> np.ndarray | None:
+        """Before frame T's steps: p_a held apart from the window's p, or None while tied (``tied``: the window holds
+        the fit frame, where the anchor is the window's material in any case)."""
+        if not self.apart and not tied and self.change <= 0:  # c = 0: its own unknown from here on
+            self.apart_from = T
+        self._held = self.apart and not tied
+        return self.p if self._held else None
+
+    def after_step(self, p: np.ndarray, g_anchor: np.ndarray | None, idle: bool) -> np.ndarray | None:
+        """After one Adam step of the window's p (2R,): p_a's own step along dL/dp_a ``g_anchor`` (2R,; None: no
+        anchor part), then p_a = p while tied.  Returns the ``anchor_p`` for the next evaluation."""
+        if g_anchor is not None and not idle:
+            self.p = self.adam.step(self.p, g_anchor)
+        if not self._held:
+            self.p = np.array(p, float)
+            return None
+        return self.p
+
+    def level(self) -> np.ndarray | None:
+        """The median of p over frames T−6..T−3 (2R,), None before 7 frames of history."""
+        a, b = LEVEL
+        if len(self.hist) < b + 1:
+            return None
+        return np.median(np.stack(self.hist[-(b + 1):-a]), axis=0)
+
+    def test_frames(self, T: int) -> list[int]:
+        """F: the frames after the fit frame the level was estimated from, f+1 .. T−3, at most 4w of them."""
+        lo = max(self.fit_frame + 1, self.first)
+        hi = min(T - LEVEL[0], lo + TEST_WINDOWS * self.window - 1)
+        return list(range(lo, hi + 1))
+
+    def end_frame(self, T: int, p: np.ndarray, tied: bool,
+                  explains: Callable[[Sequence[int], np.ndarray], float]) -> bool:
+        """After frame T's update (p: the window's parameters (2R,)): the candidate and, when there is one, the test.
+        ``explains(F, p)`` = Σ_{t∈F} loss_t of the frames F simulated from the start with θ(p) (the anchor at θ(p)).
+        Returns True when p_a became its own unknown at this frame."""
+        self.hist.append(np.array(p, float))
+        if self.apart or tied:
+            return False
+        level = self.level()
+        if level is None:
+            return False
+        R = self.R
+        self.away = self.away + 1 if np.max(np.abs(p[:R] - level[:R])) > self.change else 0
+        if self.away < AWAY:
+            return False
+        F = self.test_frames(T)
+        if not F:
+            return False  # nothing to test on yet: test again at the next frame
+        at_level, at_p = explains(F, level), explains(F, np.array(p, float))
+        changed = bool(at_level < at_p)
+        self.tests.append((T, float(at_level), float(at_p), changed))
+        if changed:
+            self.apart_from, self.p = T, level
+        else:  # a convergence: the level's history restarts here
+            self.hist, self.away = [np.array(p, float)], 0
+        return changed
