@@ -17,7 +17,12 @@ frames after the start and after each step of E_true), the median relative error
 forces against truth/forces.csv (as `rsl evaluate` reports it), the mean surface distance, the adapt mesh's
 DOFs and the median per-frame time of adapt (adapt.h5 time_total_s).
 
-    .venv/bin/python bench/accuracy.py [--quick] [--out docs/results] [--substeps S] [--rows bar,beam]
+    .venv/bin/python bench/accuracy.py [--quick] [--out docs/results] [--substeps S] [--cases bar,beam]
+        [--rows 'bar/rest/2/markers/reduced;beam/equilibrium/2/markers/full'] [--work DIR]
+    .venv/bin/python bench/accuracy.py --merge A/accuracy.json B/accuracy.json [--previous OLD.json]
+
+Runs side by side need their own --work (each workspace's adapt.h5/evaluation.json belong to its last row);
+--merge writes one table from them, --previous lists an older run's rows that were not re-run apart, labelled.
 
 --quick: the bar only, 30 frames, P2 truth on the shipped mesh, markers, P1 and P2, full space.
 With RSL_BENCH_REUSE=1, captures and meshes already in --work are reused.
@@ -47,7 +52,13 @@ WINDOW = 3
 TRUTH_SUBSTEPS = 3
 MAX_TETS = 1500  # adapt mesh size (fTetWild): ~1.2K P2 tets ≈ 7K DOFs on the bar
 SUBSPACE_DIM = 30  # r, the paper's Bar (docs/results/reduced_accuracy.md: r = 12 biases E by 1.5–3.5 %)
+# rsl train-subspace --cubature-tol per case (default 0.01): 0.002 measured better on the released bar
+# (18.8 → 7.7 %), the two-region beam's stiff region (12.3 → 2.8 %) and the dinosaur (22.9 → 8.8 %, helper S;
+# with the Newton fixes of 2026-11-24 it no longer stalls at contact), not on the bar from equilibrium
+# (3.3 → 4.8 %, both ≤ 5 %): accuracy_notes.md, 2026-11-24 afternoon.
+CUBATURE_TOL = {"bar": 0.002, "beam": 0.002, "dino": 0.002}
 EXTRA: list = []  # extra rsl adapt options (--estimator, --substeps)
+EXPORT = True  # also run `rsl export --forces` (evaluate computes the same replayed forces: stages/forces.py)
 
 # (case, start, adapt element order, loss, space): the full run's rows, most telling first.
 FULL_PLAN = (
@@ -58,7 +69,8 @@ FULL_PLAN = (
        ("bar", "equilibrium", 2, "vision", "full"), ("bar", "rest", 2, "vision", "reduced"),
        ("dino", "equilibrium", 2, "vision", "reduced")]
     + [("bar", s, 1, "markers", sp) for s in ("equilibrium", "rest") for sp in ("reduced", "full")]
-    + [("beam", "equilibrium", 1, "markers", "reduced"), ("dino", "equilibrium", 1, "markers", "reduced")]
+    + [("beam", "equilibrium", 1, "markers", "reduced"), ("dino", "equilibrium", 1, "markers", "reduced"),
+       ("dino", "equilibrium", 2, "markers", "full")]
 )
 QUICK_PLAN = [("bar", s, o, "markers", "full") for s in ("equilibrium", "rest") for o in (1, 2)]
 
@@ -95,8 +107,38 @@ def workspace(work: Path, cap: Path, case: str, start: str, order: int, loss: st
     if loss == "vision":
         pl.gaussians(cap, ws, frame=0)
     if space == "reduced":
-        pl.subspace(cap, ws, frames=frames, dim=SUBSPACE_DIM)
+        subspace(cap, ws, frames, SUBSPACE_DIM, CUBATURE_TOL[case])
     return ws
+
+
+def subspace(cap: Path, ws: Path, frames: int, dim: int, tol: float) -> None:
+    """generate-data (skipped per pl.skip on snapshots.h5) + train-subspace --dim r --cubature-tol tol (skipped
+    per pl.skip on subspace.h5 when its provenance has the same r and tolerance)."""
+    if pl.skip(ws / "subspace.h5") and _subspace_settings(ws) == (dim, tol):
+        return
+    if not pl.skip(ws / "snapshots.h5"):
+        pl.rsl("generate-data", cap, "-w", ws, "--sequences", 4, "--frames", frames, "--workers", 1)
+    pl.rsl("train-subspace", "-w", ws, "--dim", dim, "--cubature-tol", tol)
+
+
+def _subspace_settings(ws: Path) -> tuple:
+    """(r, cubature tolerance) that WS/subspace.h5 was trained with (its provenance)."""
+    from stages.artefacts import read_provenance
+
+    cfg = read_provenance(ws / "subspace.h5").get("config", {})
+    return int(cfg.get("dim", -1)), float(cfg.get("cubature_tol", float("nan")))
+
+
+def code_state() -> str:
+    """`git rev-parse --short HEAD` of the repository, and whether the working tree has uncommitted changes."""
+    import subprocess
+
+    def git(*a):
+        return subprocess.run(["git", *a], capture_output=True, text=True, cwd=ROOT).stdout.strip()
+
+    head = git("rev-parse", "--short", "HEAD") or "?"
+    return head + (" with uncommitted changes of the session" if git("status", "--porcelain", "--untracked-files=no")
+                   else "")
 
 
 def run_row(work: Path, row: tuple, frames: int, refine: int) -> dict:
@@ -110,8 +152,9 @@ def run_row(work: Path, row: tuple, frames: int, refine: int) -> dict:
         ws = workspace(work, cap, case, start, order, loss, space, frames)
         t_adapt = pl.adapt(cap, ws, "--window", WINDOW, "--space", space, "--loss", loss,
                            "--young-init", f"{0.5 * E0:g}", *EXTRA)
-        pl.export(ws, ws / f"export_{loss}_{space}", "--forces", "--no-plots", "--no-render", "--no-vtk",
-                  "--no-stress", "--no-ply")
+        if EXPORT:
+            pl.export(ws, ws / f"export_{loss}_{space}", "--forces", "--no-plots", "--no-render", "--no-vtk",
+                      "--no-stress", "--no-ply")
         pl.evaluate(cap, ws, "--psnr-frames", 0, "--no-plot")
     except pl.RslFailed as e:
         return {**out, "error": str(e)[-800:]}
@@ -127,11 +170,19 @@ def run_row(work: Path, row: tuple, frames: int, refine: int) -> dict:
 
     with h5py.File(ws / "mesh.h5", "r") as f:
         dofs = 3 * int(f["vertices"].shape[0])
-    return {**out, "estimator": prov.get("config", {}).get("estimator", "?"),
+    if space == "reduced":
+        from stages.artefacts import SubspaceArtefact
+
+        sub = SubspaceArtefact.load(ws / "subspace.h5")
+        out["cubature_tol"] = _subspace_settings(ws)[1]
+        out["cubature_points"] = (len(sub.extra["cubature_points"]) if "cubature_points" in sub.extra else None)
+    return {**out, "exported": EXPORT, "code": code_state(), "ended": datetime.datetime.now(datetime.timezone.utc).isoformat(
+                timespec="seconds"), "load_average": os.getloadavg()[0], "estimator": prov.get("config", {}).get("estimator", "?"),
             "substeps": prov.get("config", {}).get("substeps", 1), "dofs": dofs,
             "frames": int(len(a.frames)), "settled_frames": int(ok.sum()),
             "median_error_per_region": med.tolist(), "median_error_worst": float(np.max(med)),
-            "force_error": _force_error(ev), "surface_error_mm": _surface_mm(ev),
+            "force_error": _force_error(ev), "force_source": (ev.get("forces") or {}).get("source"),
+            "surface_error_mm": _surface_mm(ev),
             "time_per_frame_s": float(np.median(a.time_total_s)), "adapt_s": t_adapt,
             "young": np.asarray(a.young).tolist(), "young_true": yt.tolist(),
             "young_sigma": (np.asarray(a.young_sigma).tolist() if getattr(a, "young_sigma", None) is not None
@@ -162,10 +213,18 @@ def _fmt(x, scale: float = 100.0, digits: int = 1) -> str:
 def _row(r: dict) -> str:
     key = f"| {r['case']} | {r['start']} | P{r['order']} | {r['loss']} | {r['space']} |"
     if "error" in r:
-        return key + " — | — | failed | — | — | — | — | — |"
+        return key + " — | — | failed | — | — | — | — | — | — |"
     per = ", ".join(f"{100 * e:.1f}" for e in r["median_error_per_region"])
-    return (f"{key} {r['estimator']} | {r['dofs']} | {per} | {r['settled_frames']} | {_fmt(r['force_error'])} | "
-            f"{_fmt(r['surface_error_mm'], 1.0, 2)} | {r['time_per_frame_s']:.2f} | {r['substeps']} |")
+    cub = (f"{r['cubature_points'] if r.get('cubature_points') is not None else 'all'} ({r['cubature_tol']:g})"
+           if r.get("cubature_tol") is not None else "—")
+    return (f"{key} {r['estimator']} | {r['dofs']} | {cub} | {per} | {r['settled_frames']} | "
+            f"{_fmt(r['force_error'])} | {_fmt(r['surface_error_mm'], 1.0, 2)} | {r['time_per_frame_s']:.2f} | "
+            f"{r['substeps']} |")
+
+
+def row_key(r) -> tuple:
+    """(case, start, order, loss, space) of a row dict or a plan tuple."""
+    return tuple(r) if not isinstance(r, dict) else (r["case"], r["start"], r["order"], r["loss"], r["space"])
 
 
 def main() -> None:
@@ -178,17 +237,31 @@ def main() -> None:
     ap.add_argument("--losses", default="", help="only these losses, comma-separated (markers, vision)")
     ap.add_argument("--spaces", default="", help="only these spaces, comma-separated (reduced, full)")
     ap.add_argument("--orders", default="", help="only these adapt element orders, comma-separated (1, 2)")
+    ap.add_argument("--no-export", action="store_true",
+                    help="skip `rsl export --forces` (the force column comes from `rsl evaluate`, the same replay)")
+    ap.add_argument("--rows", default="", help="only these rows: ';'-separated case/start/order/loss/space")
     ap.add_argument("--merge", nargs="+", type=Path, default=None,
                     help="write the tables from the rows of these accuracy.json files (runs split over processes)")
+    ap.add_argument("--previous", type=Path, default=None,
+                    help="with --merge: an earlier accuracy.json whose rows missing from the merged runs are listed "
+                         "apart, labelled as not re-run, with their date")
     ap.add_argument("--estimator", default="", help="rsl adapt --estimator (default: adapt's own default)")
     ap.add_argument("--substeps", type=int, default=0, help="rsl adapt --substeps (default: adapt's own default)")
     a = ap.parse_args()
     if a.merge:
         runs = [json.loads(f.read_text()) for f in a.merge]
         plan = {**runs[0]["plan"], "merged_from": [{"file": str(f), "date": run["date"],
-                                                    "load_average_end": run.get("load_average_end")}
+                                                    "load_average_end": run.get("load_average_end"),
+                                                    "code": run.get("code", "?")}
                                                    for f, run in zip(a.merge, runs)]}
-        write([r for run in runs for r in run["cases"]], a.out, runs[0]["mode"] == "quick", plan)
+        rows = [r for run in runs for r in run["cases"]]
+        if a.previous:
+            old = json.loads(a.previous.read_text())
+            done = {row_key(r) for r in rows}
+            plan["previous"] = {"file": str(a.previous), "date": old.get("date"), "merged_from": [
+                m.get("date") for m in old.get("plan", {}).get("merged_from", [])]}
+            plan["previous_rows"] = [r for r in old["cases"] if row_key(r) not in done]
+        write(rows, a.out, runs[0]["mode"] == "quick", plan)
         return
     a.work.mkdir(parents=True, exist_ok=True)
     frames, refine = (30, 0) if a.quick else (36, 0)
@@ -196,7 +269,14 @@ def main() -> None:
     for opt, i in ((a.cases, 0), (a.starts, 1), (a.orders, 2), (a.losses, 3), (a.spaces, 4)):
         if opt:
             plan = [r for r in plan if str(r[i]) in opt.split(",")]
-    global EXTRA
+    if a.rows:
+        want = [tuple(int(x) if x.isdigit() else x for x in k.split("/")) for k in a.rows.split(";")]
+        unknown = [k for k in want if k not in plan]
+        if unknown:
+            ap.error(f"--rows: {unknown} not in the plan")
+        plan = want
+    global EXTRA, EXPORT
+    EXPORT = not a.no_export
     EXTRA = (["--estimator", a.estimator] if a.estimator else []) + (["--substeps", a.substeps] if a.substeps else [])
     print(HEAD, flush=True)
     rows = []
@@ -208,9 +288,10 @@ def main() -> None:
     write(rows, a.out, a.quick, meta)
 
 
-HEAD = ("| case | start | adapt mesh | loss | space | estimator | DOFs | median |E−E_true|/E_true per region (%) | "
-        "settled frames | force error (%) | surface error (mm) | s / frame | adapt substeps |\n"
-        "| --- | --- | --- | --- | --- | --- | ---: | --- | ---: | ---: | ---: | ---: | ---: |")
+HEAD = ("| case | start | adapt mesh | loss | space | estimator | DOFs | cubature points (tol) | "
+        "median |E−E_true|/E_true per region (%) | settled frames | force error (%) | surface error (mm) | s / frame | "
+        "adapt substeps |\n"
+        "| --- | --- | --- | --- | --- | --- | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: |")
 
 
 def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = False) -> None:
@@ -223,10 +304,22 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
     data = {"machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs, {platform.python_version()}",
             "load_average_end": os.getloadavg()[0],
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "mode": "quick" if quick else "full", "plan": {**plan, "adapt_options": list(map(str, plan["adapt_options"]))},
-            "cases": rows}
+            "code": code_state(), "mode": "quick" if quick else "full",
+            "plan": {**plan, "adapt_options": list(map(str, plan["adapt_options"]))}, "cases": rows}
     (out / "accuracy.json").write_text(json.dumps(data, indent=1))
+    order: dict = {}
+    for k in FULL_PLAN + [row_key(r) for r in rows]:  # FULL_PLAN's order, then rows outside it
+        order.setdefault(k, len(order))
+    rows = sorted(rows, key=lambda r: order[row_key(r)])
     table = "\n".join([HEAD] + [_row(r) for r in rows])
+    previous = plan.get("previous_rows") or []
+    if previous:
+        prev = plan["previous"]
+        table += (f"\n\n**Not re-run** — these rows are the PREVIOUS table's numbers (runs ended "
+                  f"{', '.join(prev['merged_from']) or prev['date']}, code of that time, before that session's "
+                  f"fixes), not measured with the code above:\n\n" + "\n".join([HEAD] + [_row(r) for r in previous]))
+    sources = sorted({r["force_source"] for r in rows if r.get("force_source")})
+    unexported = [r for r in rows if r.get("exported") is False]
     ok = [r for r in rows if "error" not in r]
     n5 = sum(r["median_error_worst"] <= 0.05 for r in ok)
     nf = [r for r in ok if r["force_error"] is not None]
@@ -236,17 +329,24 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
     md = (f"# Accuracy on captures rsl did not make\n\nTruth: P2 tets{' on the mesh refined once' if plan['refine'] else ''}, "
           f"{TRUTH_SUBSTEPS} substeps per frame, hard handles (`rsl synth --truth-order 2 --truth-refine "
           f"{plan['refine']} --substeps {TRUTH_SUBSTEPS} --handles hard`), {plan['frames']} frames, ν = {POISSON}, "
-          f"3 cameras at 96², 40 markers. rsl: fTetWild mesh (`--max-tets {MAX_TETS}`), reduced space r = {SUBSPACE_DIM} (generate-data 4 sequences), adapt online, window "
+          f"3 cameras at 96², 40 markers. rsl: fTetWild mesh (`--max-tets {MAX_TETS}`), reduced space r = {SUBSPACE_DIM} "
+          f"(generate-data 4 sequences; `train-subspace --cubature-tol` "
+          f"{', '.join(f'{c} {t:g}' for c, t in CUBATURE_TOL.items())}), adapt online, window "
           f"{WINDOW}, E initialised at 0.5 E0{', options ' + ' '.join(map(str, plan['adapt_options'])) if plan['adapt_options'] else ''}; "
           f"mode {data['mode']}. Settled frames: ≥ w + 5 after the start and after each step of E_true. "
           f"Force error: median relative error of the handle/obstacle forces of `rsl export --forces` against "
-          f"truth/forces.csv, as `rsl evaluate` reports it.\n\n{table}\n\n"
+          f"truth/forces.csv, as `rsl evaluate` reports it"
+          f"{' (' + '; '.join(sources) + ')' if sources else ''}"
+          f"{f'; on {len(unexported)} row(s) `rsl export` was skipped and the column is evaluate’s own replay (the same stages/forces.py rule)' if unexported else ''}"
+          f".\n\n{table}\n\n"
           f"{n5} of {len(ok)} rows have every region's median E error ≤ 5 %; {n10} of {len(nf)} rows with a force "
           f"error have it ≤ 10 %.{' Failed rows:' + failed if failed else ''}\n\n"
-          + (f"Rows merged from {len(plan['merged_from'])} runs (one per space/loss, run side by side), ended "
-             + ", ".join(f"{m['date']} (load average {m['load_average_end']:.1f})" for m in plan["merged_from"])
+          + (f"Rows merged from {len(plan['merged_from'])} runs (run side by side), ended "
+             + ", ".join(f"{m['date']} (load average {m['load_average_end']:.1f}, code {m.get('code', '?')})"
+                         for m in plan["merged_from"])
              + f"; machine {data['machine']}. " if plan.get("merged_from") else
-             f"Machine: {data['machine']}, load average {data['load_average_end']:.1f} at the end; date {data['date']}. ")
+             f"Machine: {data['machine']}, load average {data['load_average_end']:.1f} at the end; date {data['date']}; "
+             f"code {data['code']}. ")
           + f"Produced by `bench/accuracy.py{' --quick' if quick else ''}`.\n\n![E over time](accuracy.png)\n")
     (out / "accuracy.md").write_text(md)
     keys = sorted({(r["case"], r["start"]) for r in ok})

@@ -7,9 +7,11 @@ the full space on the beam's own coarse mesh as quadratic tets (2 substeps per f
 Scenes: the bar with E stepping ×2 and ×4, the bar with constant E, a two-region beam (E ×3 beyond mid-length).
 Measured per run: the settled error and the ±3 % band, the frames needed after each step to come and stay within
 5 % of the new value, the fraction of settled frames whose truth lies inside ±2σ (gn; E and ν), the change points
-detected and the time per frame.  Writes docs/results/estimator.{md,json,png}.
+detected and the time per frame.  Writes docs/results/estimator.{md,json,png}.  Every step is the `rsl` CLI
+through bench/_pipeline.py (synth, tetrahedralize, adapt).  ``--variant LABEL="ADAPT OPTIONS"`` adds a gn row
+with those options in the same run (on the same captures), e.g. ``--variant "ν always fitted=--poisson-information 0"``.
 
-    nice .venv/bin/python bench/estimator.py [--seeds 3] [--workers 2] [--frames-scale 1.0]
+    nice .venv/bin/python bench/estimator.py [--seeds 3] [--workers 2] [--scenes ...] [--variant LABEL=OPTIONS]
 """
 from __future__ import annotations
 
@@ -29,6 +31,9 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+import _pipeline  # noqa: E402
+
 BEAM = ROOT.parent / "shared" / "data" / "autodef_fulton" / "Coarse_beam.mesh"
 OUT = ROOT / "docs" / "results"
 E0 = 1.0e5
@@ -44,35 +49,24 @@ TRUTH = ["--truth-order", 2, "--truth-refine", 1, "--substeps", 3, "--handles", 
 ADAPT_SUBSTEPS = 2
 
 
-def rsl(*args) -> None:
-    import subprocess
-
-    env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
-    p = subprocess.run([sys.executable, "-m", "rsl_cli.app", *map(str, args)], capture_output=True, text=True,
-                       env=env, cwd=ROOT)
-    if p.returncode != 0:
-        raise SystemExit(f"rsl {' '.join(map(str, args))} failed:\n{p.stderr[-3000:]}")
-
-
 def make_capture(root: Path, scene: str, seed: int):
     """The truth capture and adapt's workspace (the beam's coarse tets as P2); truth E per frame and region."""
     import meshio
 
-    from stages.steps import tetrahedralize
     from stages.steps.synth import prepare_mesh
 
     extra, frames, _ = SCENES[scene]
     cap = root / "cap"
-    rsl("synth", BEAM, cap, "--scenario", "cable", "--cameras", 1, "--resolution", 32, "--frames", frames,
-        "--young", E0, "--markers", 30, "--marker-noise", 2e-4, "--calib-views", 0, "--seed", seed, *TRUTH, *extra)
+    _pipeline.synth(cap, BEAM, "--scenario", "cable", "--cameras", 1, "--resolution", 32, "--frames", frames,
+                    "--young", E0, "--markers", 30, "--marker-noise", 2e-4, "--calib-views", 0, "--seed", seed,
+                    *TRUTH, *extra, reuse=False)
     # adapt's mesh: the beam's own tets (placed as synth placed them), not the truth's refined ones
     m = meshio.read(str(BEAM))
     pm = prepare_mesh(np.asarray(m.points, float), np.asarray(m.cells_dict["tetra"]), 0.2, "")
     meshio.write(str(cap / "model.mesh"), meshio.Mesh(pm.vertices, [("tetra", pm.tets)]), file_format="medit")
     toml = cap / "capture.toml"
     toml.write_text(toml.read_text().replace('mesh = "object.obj"', 'mesh = "model.mesh"'))
-    ws = root / "ws"
-    tetrahedralize.run(tetrahedralize.TetrahedralizeConfig(capture=cap, workspace=ws, order=2))
+    ws = _pipeline.mesh(cap, root / "ws", order=2, calibrate=False, reuse=False)
     import csv
 
     rows = list(csv.DictReader((cap / "truth" / "material.csv").open()))
@@ -82,12 +76,11 @@ def make_capture(root: Path, scene: str, seed: int):
     return cap, ws, truth[:frames], nu[:frames], names
 
 
-def run_adapt(cap: Path, ws: Path, estimator: str):
+def run_adapt(cap: Path, ws: Path, estimator: str, options=()):
     from stages.artefacts import AdaptArtefact
-    from stages.steps import adapt
 
-    adapt.run(adapt.AdaptConfig(capture=cap, workspace=ws, space="full", loss="markers", window=W,
-                                young_init=E0 / 2, estimator=estimator, substeps=ADAPT_SUBSTEPS))
+    _pipeline.adapt(cap, ws, "--space", "full", "--loss", "markers", "--window", W, "--young-init", E0 / 2,
+                    "--estimator", estimator, "--substeps", ADAPT_SUBSTEPS, *options)
     a = AdaptArtefact.load(ws / "adapt.h5")
     return a, list(a.extra.get("region_names", [])) or None
 
@@ -119,16 +112,17 @@ def metrics(E, sd, truth, steps: list[int], nu=None, sd_nu=None, nu_true=None) -
     return out
 
 
-def run_case(scene: str, seed: int, with_adam: bool) -> list[dict]:
-    """One capture, gn (and adam): a row per estimator and region (none, with the error printed, if it failed)."""
+def run_case(scene: str, seed: int, with_adam: bool, variants: dict | None = None) -> list[dict]:
+    """One capture, gn (and adam, and gn with each variant's extra adapt options): a row per estimator and region
+    (none, with the error printed, if it failed)."""
     try:
-        return _run_case(scene, seed, with_adam)
+        return _run_case(scene, seed, with_adam, variants or {})
     except (Exception, SystemExit) as e:  # one failed case must not lose the others' measurements
         print(f"{scene} seed {seed} FAILED: {type(e).__name__}: {e}", flush=True)
         return []
 
 
-def _run_case(scene: str, seed: int, with_adam: bool) -> list[dict]:
+def _run_case(scene: str, seed: int, with_adam: bool, variants: dict) -> list[dict]:
     import time
 
     _, _, steps = SCENES[scene]
@@ -137,13 +131,15 @@ def _run_case(scene: str, seed: int, with_adam: bool) -> list[dict]:
         t0 = time.perf_counter()
         cap, ws, truth, nu_true, names = make_capture(Path(tmp), scene, seed)
         t_synth = time.perf_counter() - t0
-        for est in (["gn", "adam"] if with_adam else ["gn"]):
-            a, _ = run_adapt(cap, ws, est)
+        runs = [("gn", "gn", ())] + [(f"gn, {k}", "gn", tuple(v.split())) for k, v in variants.items()]
+        runs += [("adam", "adam", ())] if with_adam else []
+        for label, est, options in runs:
+            a, _ = run_adapt(cap, ws, est, options)
             T = len(a.young)
             for r, name in enumerate(names):
                 sd = np.asarray(a.young_sigma)[:, r] if a.young_sigma is not None else np.full(T, np.nan)
                 sdn = np.asarray(a.poisson_sigma)[:, r] if a.poisson_sigma is not None else np.full(T, np.nan)
-                row = {"scene": scene, "seed": seed, "region": name, "estimator": est,
+                row = {"scene": scene, "seed": seed, "region": name, "estimator": label, "options": list(options),
                        "steps": steps, "synth_s": t_synth,
                        "s_per_frame": float(np.median(a.time_total_s)),
                        "changes_detected": a.extra.get("material_changes_detected", []),
@@ -153,7 +149,7 @@ def _run_case(scene: str, seed: int, with_adam: bool) -> list[dict]:
                        "sigma_rel": (sd / truth[:T, r]).tolist(), "poisson": a.poisson[:, r].tolist(),
                        "poisson_sigma": sdn.tolist()}
                 rows.append(row)
-                print(f"{scene:16} seed {seed} {name:6} {est:4}: settle {row['settle_frames']} "
+                print(f"{scene:16} seed {seed} {name:6} {label:4}: settle {row['settle_frames']} "
                       f"med {row['median_abs_err_settled']:.2%} max {row['max_abs_err_settled']:.2%} "
                       f"in2σ {row.get('truth_within_2sigma')} changes {row['changes_detected']} "
                       f"{row['s_per_frame']:.3f} s/frame", flush=True)
@@ -210,6 +206,9 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--workers", type=int, default=1, help="processes running cases side by side")
+    ap.add_argument("--variant", action="append", default=[], metavar="LABEL=OPTIONS",
+                    help="an extra gn row: LABEL=\"adapt options\" run on the same captures")
+    ap.add_argument("--adam-seeds", type=int, default=1, help="seeds that also run adam (the first N)")
     args = ap.parse_args()
     if args.from_json:  # re-write the tables and the plot from the last measurement
         write(json.loads((OUT / "estimator.json").read_text())["cases"], args)
@@ -233,7 +232,9 @@ def main() -> None:
     sys.path.insert(0, str(ROOT / "bench"))
     from _parallel import map_tasks
 
-    tasks = [(scene, seed, seed == 0) for scene in args.scenes.split(",") for seed in range(args.seeds)]
+    variants = dict(v.split("=", 1) for v in args.variant)
+    tasks = [(scene, seed, seed < args.adam_seeds, variants) for scene in args.scenes.split(",")
+             for seed in range(args.seeds)]
     import time
 
     t0 = time.perf_counter()
@@ -320,7 +321,7 @@ def write(cases: list, args) -> None:
         cal_in = sum(r["inside_2sigma"] for r in cal)
         cal_n = sum(r["settled_frames"] for r in cal)
         caln = [r["nu_within_2sigma"] for r in rows if "nu_within_2sigma" in r]
-        ch = "; ".join(sorted({str(r["changes_detected"]) for r in rows})) if est == "gn" else ""
+        ch = "; ".join(sorted({str(r["changes_detected"]) for r in rows})) if est.startswith("gn") else ""
         sig = f"{np.median([r['median_sigma_rel_settled'] for r in cal]):.2%}" if cal else ""
         cov = f"{cal_in / cal_n:.0%} ({cal_in}/{cal_n})" if cal else ""
         nuc = f"{np.mean(caln):.0%}" if caln else ""
@@ -351,6 +352,23 @@ def write(cases: list, args) -> None:
                   f"{_cusum_h():.1f}); the innovation z at the steps: "
                   f"{', '.join(sorted({f'{z:.0f}' for r in steps for t in r['steps'] for z in [_z(r, t)] if z}))}.",
                   f"- Wall time of the run: {data['wall_s'] / 60:.1f} min." if data.get("wall_s") else ""]
+    labels = list(dict.fromkeys(c["estimator"] for c in cases if c["estimator"].startswith("gn")))
+    if len(labels) > 1:  # gn variants measured on the same captures
+        lines += ["", "## gn variants on the same captures (computed from the runs above)", "",
+                  "| gn run | adapt options | constant-E settled frames within ±3 % | worst constant-E settled error | "
+                  "steps within 5 % in ≤ w + 5 | worst settled error, step runs | median settled error, all |",
+                  "|---|---|---|---|---|---|---|"]
+        for lab in labels:
+            rs = [r for r in cases if r["estimator"] == lab]
+            const, stp = [r for r in rs if not r["steps"]], [r for r in rs if r["steps"]]
+            after = [x for r in stp for x in r["settle_frames"][1:]]
+            lines.append(
+                f"| {lab} | {' '.join(rs[0].get('options', [])) or '(defaults)'} | "
+                f"{_frac([r['within_3pct_settled'] for r in const], const)} | "
+                f"{_worst(const)} | "
+                f"{f'{sum(x is not None and x <= W + 5 for x in after)}/{len(after)}' if after else ''} | "
+                f"{_worst(stp)} | "
+                f"{np.median([r['median_abs_err_settled'] for r in rs]):.2%} |")
     if gn:
         lines += _floor_table(gn, data)
     if "timing" in data:
@@ -364,6 +382,19 @@ def write(cases: list, args) -> None:
     print(text)
     (OUT / "estimator.md").write_text(text)
     plot(cases)
+
+
+def _worst(rows: list) -> str:
+    """The largest settled error over the runs ('' for none)."""
+    return f"{np.max([r['max_abs_err_settled'] for r in rows]):.2%}" if rows else ""
+
+
+def _frac(values: list, rows: list) -> str:
+    """The mean of per-run fractions, weighted by the runs' settled frames."""
+    if not rows:
+        return ""
+    n = np.array([r["settled_frames"] for r in rows], float)
+    return f"{float(np.sum(np.asarray(values) * n) / max(n.sum(), 1)):.0%}"
 
 
 def _floor_table(gn: list, data: dict) -> list[str]:

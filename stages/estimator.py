@@ -249,6 +249,49 @@ def marginal(prior: Prior, idx: np.ndarray) -> Prior:
     return Prior(prior.mean[idx].copy(), prior.cov[np.ix_(idx, idx)].copy())
 
 
+def marginal_information(n_data: np.ndarray, prior_info: np.ndarray, i: int) -> float:
+    """The information the data give on unknown i when the others are estimated with it (their prior included):
+    the Schur complement  I_i = N_ii − N_i,o (N_oo + P⁻¹_oo)⁻¹ N_o,i  of the data's normal matrix N = JᵀWJ/σ² (k, k)
+    over the other unknowns o, with ``prior_info`` P⁻¹ (k, k) on them.  1/I_i is the variance of p_i from the data
+    alone; a parameter that trades against another (ν against E) has I_i ≪ N_ii."""
+    n_data, prior_info = np.asarray(n_data, np.float64), np.asarray(prior_info, np.float64)
+    o = np.array([j for j in range(len(n_data)) if j != i], dtype=int)
+    if not len(o):
+        return float(n_data[i, i])
+    a = n_data[np.ix_(o, o)] + prior_info[np.ix_(o, o)]
+    return float(n_data[i, i] - n_data[i, o] @ np.linalg.solve(0.5 * (a + a.T), n_data[o, i]))
+
+
+def weakly_informed(n_data: np.ndarray, prior_info: np.ndarray, arrival_var: np.ndarray, idx, ratio: float
+                    ) -> np.ndarray:
+    """Per unknown i in ``idx`` (bool array): whether the data inform it less than ``ratio`` × its arrival cost does,
+    I_i · P_ii < ratio, with I_i = :func:`marginal_information` (the others estimated with it) and P_ii =
+    ``arrival_var`` [i] the variance of everything before.  Such an unknown is better held at its estimate: the
+    window cannot tell it from the others, and moving it moves them (ν against E)."""
+    return np.array([marginal_information(n_data, prior_info, i) * float(arrival_var[i]) < ratio for i in idx], bool)
+
+
+def condition(prior: Prior, i: int, value: float, hold: float = 1e-10) -> Prior:
+    """The Gaussian ``prior`` conditioned on p_i = ``value``:  m_o + P_oi (value − m_i)/P_ii,
+    P_oo − P_oi P_io / P_ii  on the others; p_i itself keeps ``hold`` × P_ii of variance (held there by a
+    solve, not singular) and no correlation."""
+    m, P = prior.mean.astype(np.float64).copy(), prior.cov.astype(np.float64)
+    pii = float(P[i, i])
+    col = P[:, i].copy()
+    mean = m + col * (float(value) - m[i]) / pii
+    cov = P - np.outer(col, col) / pii
+    mean[i] = float(value)
+    cov[i, :], cov[:, i] = 0.0, 0.0
+    cov[i, i] = hold * pii
+    return Prior(mean, 0.5 * (cov + cov.T))
+
+
+def posterior_cov(J: np.ndarray, weights: np.ndarray, sigma2: float, prior: Prior) -> np.ndarray:
+    """(Jᵀ W J / σ² + P⁻¹)⁻¹ (k, k): the Laplace covariance of one linearisation J (m, k) under ``prior``."""
+    JW = np.asarray(J, np.float64) * np.asarray(weights, np.float64)[:, None]
+    return _sym_inv(JW.T @ J / float(sigma2) + prior.info)
+
+
 def bounded_sigma(value: np.ndarray, sd: np.ndarray, lower, upper, pinned: float = 0.02) -> np.ndarray:
     """σ of a parameter confined to [lower, upper] (elementwise): ``sd`` (its posterior σ), but where the value lies
     within ``pinned`` × (upper − lower) of a bound — held there by the bound, not located by the data — at least

@@ -258,7 +258,7 @@ def test_image_loss_gradient_through_render_and_adjoint_matches_finite_differenc
 
 
 def test_appearance_refinement_lowers_the_image_loss_at_fixed_positions(beam):
-    from stages.adapt_loss import ImageLoss
+    from stages.render.image_loss import ImageLoss
 
     cap, ws = beam
     mesh = MeshArtefact.load(ws / "mesh.h5")
@@ -278,7 +278,7 @@ def test_rebound_gaussians_render_as_fitted_at_the_fit_configuration_and_follow_
     """ImageLoss.rebind(x_f): rendered at x_f the re-bound Gaussians are the fitted ones (fitted binding
     rendered at rest), and an affine motion x = A x_f + b moves them exactly as it moves the fitted ones
     from rest — which the first-order offset x − (x_f − rest) does not."""
-    from stages.adapt_loss import ImageLoss
+    from stages.render.image_loss import ImageLoss
 
     cap, ws = beam
     mesh = MeshArtefact.load(ws / "mesh.h5")
@@ -312,7 +312,7 @@ def test_multi_camera_render_matches_bound_gaussians_render_forward_and_backward
     """ImageLoss.images (geometry once for all cameras) against BoundGaussians.render per camera."""
     import torch
 
-    from stages.adapt_loss import ImageLoss
+    from stages.render.image_loss import ImageLoss
 
     cap, ws = beam
     mesh = MeshArtefact.load(ws / "mesh.h5")
@@ -446,14 +446,11 @@ def test_online_reduced_space_writes_z_and_decoded_positions(beam_reduced):
 
 # =========================================================================== vision + reduced (slow)
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=(
-    "known regression of --vision-anchor estimated (the default since 2026-11-24): converging from 4x too soft, E "
-    "rises by more than --anchor-change within a few frames, which the anchor rule takes for a change of material; "
-    "the anchor separates at frame 10 and E settles at 0.88 E_true (0.94 with --vision-anchor simulated). The "
-    "rule cannot yet tell convergence from a change (docs/results/accuracy_notes.md)"))
 def test_online_vision_reduced_space_recovers_young_from_4x_off(tmp_path, rsl):
     """The paper's configuration: images of 2 cameras, Gaussians fitted by fit-gaussians, a subspace from
-    generate-data + train-subspace, online in the reduced space, starting 4x too soft."""
+    generate-data + train-subspace, online in the reduced space, starting 4x too soft.  E rises by more than
+    --anchor-change within a few frames after a plateau, as after a change of material: the anchor's change test
+    (stages/vision_anchor.py) must take it for the convergence it is and keep the anchor tied."""
     from stages.steps import fit_gaussians, generate_data, train_subspace
 
     cap, ws = _make_capture(tmp_path, cameras=2, resolution=48)
@@ -467,6 +464,7 @@ def test_online_vision_reduced_space_recovers_young_from_4x_off(tmp_path, rsl):
     assert art.loss_kind == "vision" and art.space == "reduced" and np.all(art.time_render_s > 0)
     late = np.median(art.young[-8:, 0])
     assert abs(late - E_TRUE) / E_TRUE < 0.10, art.young[:, 0]
+    assert art.extra["anchor_apart_from"] is None, art.extra["anchor_tests"]  # no change of material was taken
     proc = rsl("evaluate", cap, "-w", ws)
     assert proc.returncode == 0, proc.stderr
     ev = json.loads((ws / "evaluation.json").read_text())

@@ -592,7 +592,7 @@ def test_static_mode_identifies_young_from_equilibria(beam, tmp_path, rsl):
     E_true, same mesh: an inverse crime — no P2 truth here); from 3× too soft, Gauss–Newton through the static
     solves recovers E within 5 % (and within 1 %: no noise), with a finite σ; Adam (offline on the same
     equilibria) gets within 5 % too."""
-    from stages.adapt_loss import bind_markers
+    from stages.sim.markers import bind_markers
     from stages.artefacts import AdaptArtefact
     from stages.capture import load_capture, write_markers
     from stages.sim.scene import frame_inputs, make_scene

@@ -349,7 +349,8 @@ def test_tetrahedralize_order_2_cli_on_a_tet_mesh(sample_data, tmp_path):
 
 def test_tetrahedralize_order_2_puts_boundary_nodes_on_a_curved_surface(tmp_path):
     """A sphere surface: boundary mid-edge nodes lie on the input surface (not on the chords), so the
-    P2 volume is closer to the surface's enclosed volume than the linear mesh's; no element folds."""
+    P2 volume is closer to the surface's enclosed volume than the same mesh's straight-sided (corner) tets; no
+    element folds.  (The same mesh: fTetWild's output varies by a few tets between runs.)"""
     import trimesh
 
     from stages.artefacts import MeshArtefact
@@ -362,11 +363,13 @@ def test_tetrahedralize_order_2_puts_boundary_nodes_on_a_curved_surface(tmp_path
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
     sphere.export(cap / "ball.obj")
     (cap / "capture.toml").write_text('[capture]\nname = "ball"\n[object]\nmesh = "ball.obj"\ndensity = 1000.0\n')
-    m1 = MeshArtefact.load(run(TetrahedralizeConfig(cap, tmp_path / "p1", edge_length=0.25, preview=False, order=1)))
     m2 = MeshArtefact.load(run(TetrahedralizeConfig(cap, tmp_path / "p2", edge_length=0.25, preview=False, order=2)))
     assert m2.order == 2 and m2.quality["order"] == 2
+    corners = m2.vertices[m2.tets[:, :4]]  # (T, 4, 3): the straight-sided tets of the same mesh
+    edges = corners[:, 1:] - corners[:, :1]
+    linear_volume = np.abs(np.linalg.det(edges)).sum() / 6.0
     target = sphere.volume
-    assert abs(m2.rest_volumes.sum() - target) < 0.5 * abs(m1.rest_volumes.sum() - target)
+    assert abs(m2.rest_volumes.sum() - target) < 0.5 * abs(linear_volume - target)  # measured 0.27–0.28
     surf_mid = np.unique(m2.surface_faces)
     surf_mid = surf_mid[surf_mid > m2.tets[:, :4].max()]  # fTetWild's corners lie within its envelope only
     assert len(surf_mid) > 100

@@ -59,6 +59,7 @@ from stages.interrupt import CheckedReporter, CtrlC
 from stages.parameters import Adam, params_from_theta, theta_from_params
 from stages.progress import Reporter, SilentReporter
 from stages.sim.meshgen import refine_tets  # noqa: F401  (re-exported: stages.steps.adapt.refine_tets)
+from stages.vision_anchor import AnchorMaterial
 from stages.window_model import Observation, WindowBackend
 from stages.workspace import prepare_workspace
 from stages.window_backends import (FullSpace, Guarded, ReducedSpace, SolveCollapsed, SolveGuard, StoredStates,
@@ -140,6 +141,11 @@ class AdaptConfig:
     --change-sigma (0: never)."""
     change_sigma: float = 0.5
     """gn: σ added to log E when a change of material is detected (0.5: a factor 1.65); ν's prior is kept."""
+    poisson_information: float = 1.0
+    """gn: ν is estimated in a window only while the data of the window before informed it (its information
+    marginalised over E and the state correction, from the Gauss–Newton normal matrix) at least this many times as
+    much as everything before it (the arrival cost); otherwise it is held at its estimate — a window that cannot
+    tell ν from E moves ν with the model error, and E with it (0: always estimated)."""
     state_prior: float = 0.5
     """gn, --state-correction past: prior σ of the correction coefficients (in log E units: the past may look
     as if simulated with E off by this factor's exponent)."""
@@ -161,12 +167,13 @@ class AdaptConfig:
     E ×2, ×4 steps, median settled E error: estimated 7.9 % full / 7.0 % reduced, simulated 39 % / 40 %; constant
     E: 5.7 % both (docs/results/vision_bias.md)."""
     anchor_change: float = 0.4
-    """adam, images, --vision-anchor estimated: the anchor's material is the window's θ until the window's log E has
-    moved more than this from its level 3–6 frames before, in 2 frames in a row (a change of material since the fit
-    frame: 0.4 is a factor 1.5); from then on it is its own unknown, started at that level and moved by the anchor's
-    part of the gradient alone (0: its own unknown as soon as the window no longer holds the fit frame).  The rule
-    cannot yet tell a fast convergence from a far-off start from a change: from 4x too soft it separated at frame 10
-    and E settled 12 % low (6 % with --vision-anchor simulated)."""
+    """adam, images, --vision-anchor estimated: the anchor's material is the window's θ until a change of material
+    since the fit frame is confirmed: the window's log E has moved more than this from its level (the median over
+    frames T−6..T−3) in 2 frames in a row (0.4 is a factor 1.5), AND that level explains the frames after the fit
+    frame better than the window's θ does (both simulated from the start: a convergence from a far-off start, which
+    moves E as much, is explained better by the current θ).  From then on it is its own unknown, started at that
+    level and moved by the anchor's part of the gradient alone (0: its own unknown as soon as the window no longer
+    holds the fit frame, untested).  The rule: stages/vision_anchor.py."""
 
 
 def resolve_estimator(config: AdaptConfig) -> str:
@@ -503,58 +510,51 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
     """Online Adam: per new frame T, ``--iters-per-frame`` Adam steps on the window T−w+1..T's loss L(p).
 
     Images, ``--vision-anchor estimated``: the Gaussians' anchor x_f(θ_a) is simulated with the material of their
-    fit frame f, p_a, which is the window's p (and dL/dp carries the anchor's part) until the material is seen to
-    change: the window's log E moves more than ``--anchor-change`` from its level 3–6 frames before (the median), in
-    2 frames in a row.  From then on p_a is its own unknown, started at that level and moved by Adam along the
-    anchor's part of the gradient alone (dL/dx_f · dx_f/dp_a, WindowObjective), so that it stays at the old material
-    while the window's θ follows the new one.  A window holding only frame f has no information on θ (the
-    re-bound Gaussians render the fitted ones for every θ: dL/dθ = 0 up to round-off) and takes no step (Adam
+    fit frame f, p_a (:class:`stages.vision_anchor.AnchorMaterial`, which gives the rule): the window's p (and dL/dp
+    carries the anchor's part) until a change of material is confirmed — the window's log E has moved more than
+    ``--anchor-change`` from its level, and the level explains the frames after f better than the current p does
+    (a convergence from a far-off start explains them better with the current p) — then its own unknown, moved by
+    Adam along the anchor's part of the gradient alone.  A window holding only frame f has no information on θ
+    (the re-bound Gaussians render the fitted ones for every θ: dL/dθ = 0 up to round-off) and takes no step (Adam
     would turn the round-off into a full step)."""
     config, rec, R, obj = loop.config, loop.rec, loop.objective.R, loop.objective
     w = config.window
-    own = obj.anchor_own
     vision = loop.obs.kind == "vision"
-    if own:  # p_a's optimiser: the same learning rates as p; its moments see the anchor's part from frame 0 on
-        adam_a = Adam(adam.lr, beta1=config.beta1)
-        p_a = params.copy()
+    anchor = None
+    if obj.anchor_own:
+        anchor = AnchorMaterial(params, adam.lr, config.beta1, R, config.anchor_change, w, obj.anchor_frame,
+                                loop.first)
         obj.want_anchor_grad = True
-        rec.anchor_young = []
-        apart, away, hist = False, 0, []  # apart: p_a is its own unknown (a change was seen); hist: p per frame
+        rec.anchor_young, rec.anchor_tests = [], anchor.tests
     with loop.reporter.task(f"adapt online ({loop.backend.space}, {loop.obs.kind}, w={w})", loop.total()) as task:
         for T in loop.online_frames():
             frames = list(range(max(loop.first, T - w + 1), T + 1))
             tt = time.perf_counter()
             times = np.zeros(3)
             tied = frames[0] <= obj.anchor_frame  # the window holds the fit frame (p_a is p there in any case)
-            if own:
-                if not apart and not tied and config.anchor_change <= 0:  # its own unknown from here on
-                    apart, rec.anchor_apart = True, T
-                obj.anchor_p = p_a if apart and not tied else None
             idle = vision and tied and frames == [obj.anchor_frame]
+            if anchor is not None:
+                obj.anchor_p = anchor.held(T, tied)
             for _ in range(config.iters_per_frame):
                 states, losses, g, t3 = obj(frames, params, loop.before(frames[0]), True)
                 times += t3
                 if not idle:
                     params[:] = adam.step(params, g)
-                if own:
-                    if obj.last_anchor_g is not None and not idle:
-                        p_a = adam_a.step(p_a, obj.last_anchor_g)
-                    if obj.anchor_p is None:
-                        p_a = params.copy()
-                    else:
-                        obj.anchor_p = p_a
+                if anchor is not None:
+                    obj.anchor_p = anchor.after_step(params, obj.last_anchor_g, idle)
             for i, t in enumerate(frames):
                 loop.stored[t] = states[i]
             E, nu = theta_from_params(params[:R], params[R:], loop.prange)
-            if own:
-                hist.append(params.copy())
-                if not apart and not tied and len(hist) >= 7:
-                    # the change test: log E against its level 3–6 frames before (the median), 2 frames in a row
-                    level = np.median(np.stack(hist[-7:-3]), axis=0)
-                    away = away + 1 if np.max(np.abs(params[:R] - level[:R])) > config.anchor_change else 0
-                    if away >= 2:
-                        apart, p_a, rec.anchor_apart = True, level, T
-                rec.anchor_young.append(theta_from_params(p_a[:R], p_a[R:], loop.prange)[0].tolist())
+            if anchor is not None:
+
+                def explains(F, p):  # Σ loss over the frames F simulated from the start with θ(p), anchored there
+                    _, fl, _, t3 = obj(list(range(F[-1] + 1)), p, loop.before(0), False)
+                    times[:] += t3
+                    return float(fl[F].sum())
+
+                anchor.end_frame(T, params, tied, explains)
+                rec.anchor_apart = anchor.apart_from
+                rec.anchor_young.append(theta_from_params(anchor.p[:R], anchor.p[R:], loop.prange)[0].tolist())
             rec.add(T, E, nu, losses.sum(), losses[-1], tuple(times), time.perf_counter() - tt)
             task.advance(1, frame=T, E=" ".join(f"{e:.4g}" for e in E), loss=float(losses.sum()),
                          s_per_frame=rec.t_tot[-1])
@@ -610,13 +610,28 @@ def _gn_solve(gn: GNWindow, frames, p0, prior, before, D, sigma, obs, iterations
     return res, lin
 
 
+def _correction_kind(option: str, obs_kind: str, restart: bool, modes_failed: bool) -> str | None:
+    """Which correction of the window's starting states a gn window estimates (AdaptConfig.state_correction):
+    "states" (markers), "past" (asked for, with images — each direction costs 2 renders per frame and camera in
+    the Jacobian's central differences, so the 2R θ-sensitivity directions —, or after the vibration modes
+    failed), or None ("off", and a window that starts at a change point: it starts from the states the last
+    windows of the old material fitted, and with log E's prior widened a correction of those states trades
+    against E — on the demo's ×2 step +20 % at the step, +26 % two frames on; uncorrected −1 %, +6 %, +12 %)."""
+    if option == "off" or restart:
+        return None
+    if option == "states" and obs_kind == "markers" and not modes_failed:
+        return "states"
+    return "past" if (option == "past" or obs_kind == "vision" or modes_failed) else None
+
+
 def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     """Online moving-horizon estimation (stages.estimator): per new frame, Gauss–Newton on the window's
     unknowns against the arrival-cost prior; the frame leaving the window is folded into the prior, which then
     takes one frame of process noise."""
     from scipy.linalg import block_diag
 
-    from stages.estimator import ChangeDetector, Prior, WindowFilter, huber_weights
+    from stages.estimator import (ChangeDetector, Prior, WindowFilter, condition, huber_weights, posterior_cov,
+                                  weakly_informed)
 
     config, obs, backend, objective, stored, rec = (loop.config, loop.obs, loop.backend, loop.objective, loop.stored,
                                                     loop.rec)
@@ -639,6 +654,11 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     rec.innovation = []  # per frame: the normalised innovation z of the change test (NaN: not tested)
     start_w = first  # the window never reaches before the last change point
     modes_failed = False
+    R = objective.R
+    # ν of region j (unknown R + j) is held at its estimate in a window when the last window's data informed it
+    # less than --poisson-information × its arrival cost does (estimator.marginal_information): ν trades against
+    # E, and a window that cannot tell them apart moves ν with the model error and E with it
+    hold_nu = np.zeros(R, bool)
     with loop.reporter.task(f"adapt online gn ({backend.space}, {obs.kind}, w={w})", loop.total()) as task:
         for T in loop.online_frames():
             frames = list(range(max(start_w, T - w + 1), T + 1))
@@ -672,18 +692,17 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                     before = loop.before(t0)
                     rec.changes = changes
             rec.innovation.append(z_innov)
+            kind = _correction_kind(config.state_correction, obs.kind, bool(changes) and t0 == changes[-1],
+                                    modes_failed)
             sc, past_dirs = None, False
-            if config.state_correction == "states" and obs.kind == "markers" and not modes_failed:
+            if kind == "states":
                 try:
                     sc = state_directions(backend, stored, t0, first, STATE_PRIOR_SCALE, gn.theta(p_th)[:2])
                 except (ArithmeticError, RuntimeError, ValueError) as e:  # eigsh / a singular K: fall back
                     loop.reporter.warn(f"the vibration modes for --state-correction states failed ({e}); correcting "
                                   f"along the θ sensitivities instead (--state-correction past).")
                     modes_failed = True
-            if sc is None and config.state_correction != "off" and (modes_failed or obs.kind == "vision"
-                                                                     or config.state_correction == "past"):
-                # "past", or "states" with images: there each correction direction costs 2 renders per frame and
-                # camera (the Jacobian's central differences), so the 2R sensitivity directions are used
+            if kind == "past" or (kind == "states" and modes_failed):
                 sc = past_directions(sens, t0, k_th, config.state_prior)
                 past_dirs = True
             D, prior, p0 = None, filt.prior, p_th.copy()
@@ -696,8 +715,18 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                 r0, _ = gn.evaluate(frames, p0, before, D, False)
                 sigma = max(obs.noise_scale(r0), obs.noise_floor)
             scale = float(np.median(scale_hist[-5:])) if scale_hist else 1.0
-            res, (r_lin, J_lin) = _gn_solve(gn, frames, p0, prior, before, D, sigma, obs, config.iters_per_frame,
-                                            scale)
+            solve_prior = prior
+            for j in np.flatnonzero(hold_nu):  # ν held: the prior conditioned on s_j at its current estimate
+                solve_prior = condition(solve_prior, R + j, p0[R + j])
+            res, (r_lin, J_lin) = _gn_solve(gn, frames, p0, solve_prior, before, D, sigma, obs,
+                                            config.iters_per_frame, scale)
+            if hold_nu.any():  # σ (and the information test) with ν's own prior: held, ν is not known better
+                res.cov_scaled = posterior_cov(res.jacobian, res.weights, sigma ** 2 * res.scale2, prior)
+            held_now = hold_nu.copy()
+            if config.fit_poisson and config.poisson_information > 0 and len(frames) > 1:
+                n_data = (res.jacobian * res.weights[:, None]).T @ res.jacobian / (sigma ** 2 * scale)
+                hold_nu = weakly_informed(n_data, prior.info, np.diag(filt.prior.cov), R + np.arange(R),
+                                          config.poisson_information)
             if hasattr(obs, "clusters") and len(frames) > 1:  # (the fit frame alone carries no information)
                 scale_hist.append(max(res.scale2, 1.0))
             p_th = res.p[:k_th].copy()
@@ -716,7 +745,9 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             if len(frames) == w:  # frame t0 leaves the window: fold it into the arrival cost
                 r0 = r_lin[0] + J_lin[0][:, k_th:] @ (res.p[k_th:] - res.p_lin[k_th:])
                 s_fold = sigma * float(np.sqrt(max(res.scale2, 1.0)))  # never more certain than σ says
-                filt.leave(res.p_lin[:k_th], r0, J_lin[0][:, :k_th], s_fold, huber_weights(r0, sigma, obs.huber))
+                J0 = J_lin[0][:, :k_th].copy()
+                J0[:, R + np.flatnonzero(held_now)] = 0.0  # a window that held ν tells the arrival cost nothing of it
+                filt.leave(res.p_lin[:k_th], r0, J0, s_fold, huber_weights(r0, sigma, obs.huber))
             r_all = np.concatenate(gn.last_rs)
             # the noise level: the median over the last 5 frames of the windows' residual scale per degree of
             # freedom, √(RSS/(m − k)) (robust: one window's transient misfit does not inflate it at once)
@@ -841,6 +872,8 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         # adam, --vision-anchor estimated: per frame, E (per region) of the Gaussians' anchor (the fit frame's material)
         "anchor_young": list(getattr(rec, "anchor_young", [])),
         "anchor_apart_from": getattr(rec, "anchor_apart", None),  # the frame its own material began (None: never)
+        # adam, --vision-anchor estimated: the change tests, [frame, loss at the level, loss at the window's p, change?]
+        "anchor_tests": [list(x) for x in getattr(rec, "anchor_tests", [])],
         "ended": "ctrl-c" if ended_by_ctrl_c else ("last frame" if status == "complete" else "error"),
         "wall_s": wall_s,
         "young_meaning": _young_meaning(config, mesh),

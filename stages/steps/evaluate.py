@@ -30,15 +30,16 @@ from typing import Literal
 
 import numpy as np
 
-from stages.adapt_loss import ImageLoss
 from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, CamerasArtefact, GaussiansArtefact,
                               MasksArtefact, MeshArtefact, Provenance, _jsonable, check_same_mesh)
-from stages.capture import load_capture, read_truth
+from stages.capture import load_capture, read_forces_csv, read_truth
 from stages.errors import RslError
-from stages.forces import FORCE_SUBSTEPS
+from stages.forces import (FORCE_EXTRAPOLATE, FORCE_SUBSTEPS, FORCE_THETA, adapted_forces, force_errors, force_table,
+                           replay_substeps, replayable)
 from stages.observations import render_backgrounds, target_image
 from stages.progress import Reporter, SilentReporter
-from stages.results import gaussian_anchor
+from stages.render.image_loss import ImageLoss
+from stages.results import compute_stress, gaussian_anchor, material_setting
 from stages.sweep import sweep
 from stages.workspace import write_text_atomic
 
@@ -74,7 +75,11 @@ class EvaluateConfig:
     sweep_substeps: int = 1
     """Implicit-Euler steps per frame in the sweep's simulation."""
     force_substeps: int = FORCE_SUBSTEPS
-    """Implicit-Euler steps per frame of the full-space replay the forces are computed on; 0 = adapt's --substeps (docs/results/forces.md)."""
+    """Implicit-Euler steps per frame S of the full-space replay the forces are computed on; 0 = adapt's --substeps (docs/results/forces_converged.md)."""
+    force_extrapolate: bool = FORCE_EXTRAPOLATE
+    """Richardson-extrapolate the replay's forces in time, 2 F(2S) − F(S) from replays with S and 2S steps per frame: cancels implicit Euler's first-order error, costs 3S steps per frame (docs/results/forces_converged.md)."""
+    force_theta: Literal["online", "segment"] = FORCE_THETA
+    """θ(t) of the replay: online = each frame's estimate as adapt.h5 records it; segment = the last estimate of each segment between the material changes adapt's gn estimator detected (docs/results/forces_theta.md)."""
 
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -205,10 +210,7 @@ def _adapt_errors(config, ws, capture, truth, adapt_path, mesh_path, reporter) -
 
 def _forces(config, capture, adapt, mesh, reporter) -> dict | None:
     """Force errors against truth/forces.csv (stages.forces.force_errors), None without the file or --forces."""
-    from stages.capture import read_forces_csv
-    from stages.forces import adapted_forces, force_errors, force_table, replay_substeps, replayable
-    from stages.results import compute_stress, material_setting
-    from stages.sim.scene import make_scene
+    from stages.sim.scene import make_scene  # JAX and numba physics: loaded on use (rsl evaluate --help)
 
     path = capture.truth_dir / "forces.csv"
     if not config.forces or not path.is_file():
@@ -225,7 +227,8 @@ def _forces(config, capture, adapt, mesh, reporter) -> dict | None:
                       "differences), not from a replay; see docs/capture.md.")
     rows, _, source = adapted_forces(scene, controls, adapt, capture.start, substeps,
                                      lambda: compute_stress(adapt, mesh, model, reporter, sigma=False).forces,
-                                     reporter=reporter)
+                                     reporter=reporter, extrapolate=config.force_extrapolate,
+                                     theta=config.force_theta)
     per = force_errors(force_table(rows, dt), truth_rows)
     pooled = [e for v in per.values() for e in v["rel_error_per_frame"]]
     return {"truth": str(path), "median_relative_error": float(np.median(pooled)) if pooled else None,

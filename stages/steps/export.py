@@ -23,28 +23,35 @@ equations live in stages/sim/stress.py; this module only orchestrates and writes
 from __future__ import annotations
 
 import contextlib
+import copy
 import csv
 import dataclasses
 import json
 import math
 import os
 import tempfile
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Literal
 
+import cv2
 import numpy as np
 
-from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, MeshArtefact, Provenance, StressArtefact,
-                              read_provenance)
-from stages.capture import FORCE_HEADER, Capture, CaptureError, Controls, load_capture, load_controls
+from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, CamerasArtefact, GaussiansArtefact,
+                              MeshArtefact, Provenance, StressArtefact, check_same_mesh, read_provenance)
+from stages.capture import FORCE_HEADER, Capture, CaptureError, Controls, load_capture, load_controls, write_image
+from stages.domain.cameras import Camera
 from stages.errors import RslError
-from stages.forces import FORCE_SUBSTEPS
-from stages.artefacts import check_same_mesh
+from stages.forces import (FORCE_EXTRAPOLATE, FORCE_SUBSTEPS, FORCE_THETA, adapted_forces, replay_substeps,
+                           trajectory_forces)
 from stages.progress import Reporter, SilentReporter
+from stages.render.ply import covariance_to_scale_rotation, write_ply
 from stages.results import StressField, material_setting, previous_states, recorded_capture
 from stages.results import compute_stress as results_stress
 from stages.sim import stress as st
+from stages.sim.quadrature import element_order, shape_values
+from stages.vision.colmap_io import write_colmap
 
 ROLLOUT_FILE = "rollout.h5"
 
@@ -97,7 +104,11 @@ class ExportConfig:
     video_fps: float = 0.0
     """Frame rate of the MP4s; 0 = the capture's fps."""
     force_substeps: int = FORCE_SUBSTEPS
-    """Implicit-Euler steps per frame of the full-space replay the forces are computed on; 0 = adapt's --substeps (docs/results/forces.md)."""
+    """Implicit-Euler steps per frame S of the full-space replay the forces are computed on; 0 = adapt's --substeps (docs/results/forces_converged.md)."""
+    force_extrapolate: bool = FORCE_EXTRAPOLATE
+    """Richardson-extrapolate the replay's forces in time, 2 F(2S) − F(S) from replays with S and 2S steps per frame: cancels implicit Euler's first-order error, costs 3S steps per frame (docs/results/forces_converged.md)."""
+    force_theta: Literal["online", "segment"] = FORCE_THETA
+    """θ(t) of the replay: online = each frame's estimate as adapt.h5 records it; segment = the last estimate of each segment between the material changes adapt's gn estimator detected (docs/results/forces_theta.md)."""
 
 
 # =========================================================================== small file helpers
@@ -296,8 +307,7 @@ def compute_forces(seq: Sequence, field: StressField, config: ExportConfig, repo
     """Per frame, per handle and per obstacle: the internal-force sums over its vertices and the force it
     exerts (stages.forces.trajectory_forces, shared with rsl evaluate), with the controls the trajectory was
     made with; and the per-vertex force (T, n, 3) N that handles and obstacles apply."""
-    from stages.forces import adapted_forces, replay_substeps, trajectory_forces
-    from stages.sim.scene import make_scene
+    from stages.sim.scene import make_scene  # JAX and numba physics: loaded on use (rsl export --help)
 
     controls = seq.controls
     if config.force_substeps < 0:
@@ -311,7 +321,8 @@ def compute_forces(seq: Sequence, field: StressField, config: ExportConfig, repo
         substeps = replay_substeps(config.force_substeps, seq.adapt)
         start = seq.capture.start if seq.capture is not None else None
         rows, applied, _ = adapted_forces(scene, controls, seq.adapt, start, substeps, lambda: field.forces,
-                                          config.contact_distance, reporter)
+                                          config.contact_distance, reporter, config.force_extrapolate,
+                                          config.force_theta)
     else:
         rows, applied = trajectory_forces(scene, controls, seq.adapt.frames, seq.adapt.positions, field.forces,
                                           config.contact_distance, reporter)
@@ -334,9 +345,7 @@ def write_vtk(seq: Sequence, field: StressField, applied: np.ndarray | None, out
     computed, applied_force (N, handles and contacts); cell data: von_mises, region, young_pa, poisson.
     Quadratic tets are written as VTK_QUADRATIC_TETRA (meshio "tetra10", the same node order), cell
     von_mises being the mean over the element's quadrature points."""
-    import meshio
-
-    from stages.sim.quadrature import element_order
+    import meshio  # loaded on use: only VTU output needs it
 
     mesh, ad = seq.mesh, seq.adapt
     folder = out / "vtk"
@@ -375,8 +384,6 @@ def write_vtk(seq: Sequence, field: StressField, applied: np.ndarray | None, out
 
 def read_pvd(path: str | Path) -> list[tuple[float, Path]]:
     """(time, VTU path) of each data set of a PVD file."""
-    import xml.etree.ElementTree as ET
-
     path = Path(path)
     root = ET.parse(path).getroot()
     return [(float(d.get("timestep", "0")), path.parent / d.get("file"))
@@ -386,8 +393,7 @@ def read_pvd(path: str | Path) -> list[tuple[float, Path]]:
 # =========================================================================== Gaussians: PLY and renders
 def _load_gaussians(seq: Sequence, ws: Path):
     """(GaussiansArtefact, BoundGaussians) bound to the sequence's mesh."""
-    from stages.artefacts import GaussiansArtefact
-    from stages.render.gaussians import BoundGaussians
+    from stages.render.gaussians import BoundGaussians  # torch and numba: loaded on use
 
     path = ws / KIND_FILES["gaussians"]
     if not path.exists():
@@ -402,8 +408,6 @@ def _load_gaussians(seq: Sequence, ws: Path):
 def gaussian_values(gauss, mesh: MeshArtefact, vertex_values: np.ndarray) -> np.ndarray:
     """A per-vertex field carried by the Gaussians: v_g = Σ_k β_gk v[tet_g,k] (quadratic tets: Σ_a N_a(β_g)
     v[tet_g,a] over all nodes), (G,) from (n,)."""
-    from stages.sim.quadrature import element_order, shape_values
-
     nodes = mesh.tets[gauss.host_tet]  # (G, 4 | 10)
     w = shape_values(element_order(mesh.tets), np.asarray(gauss.bary, np.float64))
     return np.sum(w * np.asarray(vertex_values)[nodes], axis=1)
@@ -424,7 +428,6 @@ def write_ply_frames(seq: Sequence, field: StressField, rows: np.ndarray, config
     import torch
 
     from stages.render.gaussians import color_to_sh0
-    from stages.render.ply import covariance_to_scale_rotation, write_ply
 
     gauss, bound = _load_gaussians(seq, Path(config.workspace))
     vmax = stress_scale(config, field, rows)
@@ -448,8 +451,7 @@ def write_ply_frames(seq: Sequence, field: StressField, rows: np.ndarray, config
 def orbit_cameras(center: np.ndarray, radius: float, n_views: int, size: int, up: np.ndarray,
                   elevation_deg: float = 20.0, fov_deg: float = 40.0) -> list:
     """Cameras on a circle around ``center`` (m), looking at it, the object of ``radius`` (m) filling the view."""
-    from stages.artefacts import Camera
-    from stages.render.mesh_raster import look_at
+    from stages.render.mesh_raster import look_at  # numba: loaded on use
 
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
     e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -471,8 +473,6 @@ def orbit_cameras(center: np.ndarray, radius: float, n_views: int, size: int, up
 
 def add_colorbar(image: np.ndarray, vmax_pa: float, label: str = "von Mises") -> np.ndarray:
     """The image (H, W, 3) uint8 with a turbo colour bar 0 … vmax (kPa) on a white strip to its right."""
-    import cv2
-
     h = image.shape[0]
     scale = max(0.3, h / 900)
     line = int(22 * scale) + 6  # text line height, px
@@ -494,8 +494,6 @@ def add_colorbar(image: np.ndarray, vmax_pa: float, label: str = "von Mises") ->
 
 def write_video(frames: list[np.ndarray], path: Path, fps: float) -> Path | None:
     """An MP4 (OpenCV, mp4v) of RGB uint8 frames of equal size; None when no encoder is available."""
-    import cv2
-
     if not frames:
         return None
     h, w = frames[0].shape[:2]
@@ -518,12 +516,8 @@ def write_renders(seq: Sequence, field: StressField, rows: np.ndarray, config: E
                   reporter: Reporter) -> list[Path]:
     """render/<view>/{appearance,stress}_NNNNNN.png and render/<view>_{appearance,stress}.mp4 for the
     capture cameras (cameras.h5) and an orbit of novel views; stress as a turbo map with a colour bar."""
-    import copy
-
     import torch
 
-    from stages.artefacts import CamerasArtefact
-    from stages.capture import write_image
     from stages.render.gaussians import BoundGaussians, color_to_sh0
 
     ws = Path(config.workspace)
@@ -760,9 +754,6 @@ def colormap(values: np.ndarray, name: str = "turbo") -> np.ndarray:
 
 # =========================================================================== COLMAP
 def write_colmap_model(ws: Path, folder: Path) -> list[Path]:
-    from stages.artefacts import CamerasArtefact
-    from stages.vision.colmap_io import write_colmap
-
     cams = CamerasArtefact.load(ws / KIND_FILES["cameras"])
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
