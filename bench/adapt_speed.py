@@ -1,21 +1,24 @@
 """Per-frame time of online identification (`rsl adapt`, images, reduced space) on Table 1's Bar-like case
-(≈10K DOFs, r = 30, w = 3, c = 4 cameras at 128², 5000 Gaussians; bench/table1.py builds it), with and
-without each speed fix, for both estimators (adam: one Adam step per frame; gn: Gauss–Newton), all in one run.
+(≈10K DOFs, r = 30, w = 3, c = 4 cameras at 128², 5000 Gaussians; bench/table1.py builds it) for both
+estimators, all in one run: adam (one Adam step per frame) and gn (Gauss–Newton, one iteration per frame) with
+each way of getting its image Jacobian.
 
-Variants (each fix switched off by replacing, in this process only, the function that carries it):
+Variants (switched in this process only, VisionObservation.jacobian_mode):
 
-- before: torch's default intra-op thread count during the run, and ImageLoss.rebind locating every Gaussian
-  by the k-d tree search (no host hint) — the code before the fixes;
-- threads: adapt runs under stages.render.gaussians.one_torch_thread() (torch's thread pool only spins against
-  the numba rasterizer's threads), rebind still without the hint;
-- after: both (rebind keeps each Gaussian's host while it stays strictly inside it: the same floats).
+- adam: the default;
+- gn fd: ∂r/∂p by central differences of renders (2 renders per column, window frame and camera), Jᵀ W r by
+  autograd through the rasterizer — the slow twin;
+- gn jvp: the exact forward mode through the projection and the rasterizer (stages/render/rasterize_jvp.py: every
+  column in one pass per frame and camera; the residuals come from the same pass, Jᵀ W r from the exact J) —
+  the default.
 
 Each run adapts frames 0..w+timed; the values are medians over the frames after the first whose window starts
 from stored states (frame > w: no first call's compilation; bench/table1.py takes the same frames): adapt.h5's
 wall times (time_forward_s, time_backward_s, time_render_s, time_total_s) and the process CPU time per frame
-(all threads, measured here between the reporter's per-frame calls).  Runs are interleaved (rounds × estimators
-× variants), so load from other jobs falls on all alike; ratios are before / variant within this run.  The
-E trajectories of the variants are compared (the fixes must not change the result).
+(all threads, measured here between the reporter's per-frame calls).  Runs are interleaved (rounds × variants),
+so load from other jobs falls on all alike; ratios are against adam within this run (issue 13's target: gn's
+per-frame time no higher than adam's) and fd / jvp.  The E trajectories of gn jvp and gn fd are compared
+(relative difference and in units of the reported σ_E).
 
     nice python bench/adapt_speed.py              # 2 rounds, 4 timed frames per run
     nice python bench/adapt_speed.py --quick      # table1's --quick Bar (64², 2000 Gaussians), 1 round
@@ -45,13 +48,12 @@ sys.path.insert(0, str(ROOT / "bench"))
 import table1  # noqa: E402
 from stages.artefacts import AdaptArtefact  # noqa: E402
 from stages.progress import SilentReporter  # noqa: E402
-from stages.render import gaussians as render_gaussians  # noqa: E402
-from stages.render import image_loss  # noqa: E402
+from stages.observations import VisionObservation  # noqa: E402
 from stages.steps import adapt  # noqa: E402
 
 RESULTS = ROOT / "docs" / "results"
-TARGET_S = 0.26  # issue 13: the Bar-like case's per-frame time with Adam some weeks ago
-VARIANTS = ("before", "threads", "after")
+VARIANTS = (("adam", "default"), ("gn", "fd"), ("gn", "jvp"))
+E_TRUE = 1e5  # the Young's modulus bench/table1.py's build() synthesises the Bar with (and capture.toml's, the start)
 
 
 class _CpuClock(SilentReporter):
@@ -77,16 +79,14 @@ class _CpuClock(SilentReporter):
 
 @contextlib.contextmanager
 def variant(name: str):
-    """Switch the fixes off for ``before`` (both) and ``threads`` (the rebind hint)."""
-    saved_threads, saved_locate = render_gaussians.one_torch_thread, image_loss.locate_in_elements
-    if name == "before":
-        render_gaussians.one_torch_thread = contextlib.nullcontext
-    if name in ("before", "threads"):
-        image_loss.locate_in_elements = lambda *a, hint=None, **k: saved_locate(*a, **k)
+    """gn's image Jacobian: "fd" (central differences) or "jvp" (forward mode); "default" changes nothing."""
+    saved = VisionObservation.jacobian_mode
+    if name in ("fd", "jvp"):
+        VisionObservation.jacobian_mode = name
     try:
         yield
     finally:
-        render_gaussians.one_torch_thread, image_loss.locate_in_elements = saved_threads, saved_locate
+        VisionObservation.jacobian_mode = saved
 
 
 def run_once(cap: Path, ws: Path, out: Path, estimator: str, w: int, n_frames: int, name: str) -> dict:
@@ -103,29 +103,40 @@ def run_once(cap: Path, ws: Path, out: Path, estimator: str, w: int, n_frames: i
     return {"forward_s": med(art.time_forward_s), "backward_s": med(art.time_backward_s),
             "render_s": med(art.time_render_s), "total_s": med(art.time_total_s),
             "cpu_s": float(np.median(np.asarray(clock.cpu)[sel])), "frames_timed": int(sel.sum()),
-            "young": np.asarray(art.young).tolist()}
+            "young": np.asarray(art.young).tolist(), "young_sigma": np.asarray(art.young_sigma).tolist(),
+            "frames": np.asarray(art.frames).tolist()}
 
 
 def markdown(data: dict) -> str:
     s = data["settings"]
-    lines = ["# Per-frame time of `rsl adapt` (Bar-like case) with and without the speed fixes", "",
+    lines = ["# Per-frame time of `rsl adapt` (Bar-like case): Gauss–Newton's image Jacobian, and gn against adam", "",
              f"Machine: {data['machine']}; {data['date']}; wall time of the whole run {data['wall_s'] / 60:.1f} min.",
              "",
              f"Case: {s['case']}; reduced space, images ({s['resolution']}², {s['gaussians']} Gaussians, "
-             f"c = {s['cameras']}), r = {s['r']}, w = {s['w']}, one step per frame; {s['rounds']} round(s), runs "
-             f"interleaved; per run the median over frames w + 1 … w + {s['timed']} (no compilation), then the "
-             "median over the rounds.  Wall: adapt.h5's times; CPU: the process CPU time per frame (all threads). "
-             f"Ratio: before / this variant, same run.  Issue 13's target: ≤ {TARGET_S} s per frame.", "",
-             "| estimator | variant | fwd s | bwd s | render s | total s (wall) | CPU s / frame | ratio wall | "
-             "ratio CPU | ≤ target (wall) | ≤ target (CPU) | max rel. E difference vs before |",
-             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | --- | ---: |"]
+             f"c = {s['cameras']}), r = {s['r']}, w = {s['w']}, one step (adam) / one Gauss–Newton iteration (gn) per "
+             f"frame; {s['rounds']} round(s), runs interleaved; per run the median over frames w + 1 … w + "
+             f"{s['timed']} (no compilation), then the median over the rounds.  Wall: adapt.h5's times; CPU: the "
+             "process CPU time per frame (all threads).  gn / adam: this row's time over adam's, same run (issue 13's "
+             "target: ≤ 1).  E error: round 1, every frame, against the E the capture was synthesised with "
+             f"({E_TRUE:.3g} Pa; every run starts there).", "",
+             "| estimator | J | fwd s | bwd s | render s | total s (wall) | CPU s / frame | gn / adam (wall) | "
+             "gn / adam (CPU) | fd / this (CPU) | max \\|E/E_true − 1\\| |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in data["rows"]:
         lines.append(f"| {r['estimator']} | {r['variant']} | {r['forward_s']:.3g} | {r['backward_s']:.3g} | "
-                     f"{r['render_s']:.3g} | {r['total_s']:.3g} | {r['cpu_s']:.3g} | {r['ratio_wall']:.2f}× | "
-                     f"{r['ratio_cpu']:.2f}× | {'yes' if r['total_s'] <= TARGET_S else 'no'} | "
-                     f"{'yes' if r['cpu_s'] <= TARGET_S else 'no'} | {r['young_rel_diff']:.1e} |")
-    lines += ["", "Variants: before = torch's default thread count and rebind's full search; threads = "
-              "one_torch_thread() only; after = both fixes.  Generated by bench/adapt_speed.py.", ""]
+                     f"{r['render_s']:.3g} | {r['total_s']:.3g} | {r['cpu_s']:.3g} | {r['over_adam_wall']:.2f} | "
+                     f"{r['over_adam_cpu']:.2f} | {r['fd_over_this_cpu']:.2f}× | {100 * r['max_err']:.2f} % |"
+                     if r["estimator"] == "gn" else
+                     f"| {r['estimator']} | {r['variant']} | {r['forward_s']:.3g} | {r['backward_s']:.3g} | "
+                     f"{r['render_s']:.3g} | {r['total_s']:.3g} | {r['cpu_s']:.3g} | 1.00 | 1.00 | | "
+                     f"{100 * r['max_err']:.2f} % |")
+    cmp_ = data["jvp_vs_fd"]
+    lines += ["", f"gn with the forward-mode J against gn with central differences, the same frames (round 1): E "
+              f"differs by at most {100 * cmp_['max_rel']:.2f} % (median {100 * cmp_['median_rel']:.2f} %), at most "
+              f"{cmp_['max_in_sigma']:.2f} σ_E (σ_E as gn fd reports it).  Per round (CPU s / frame, "
+              "adam / gn fd / gn jvp): " + "; ".join(
+                  " / ".join(f"{x:.3g}" for x in rnd) for rnd in data["per_round_cpu"]) + ".", "",
+              "Generated by bench/adapt_speed.py.", ""]
     return "\n".join(lines)
 
 
@@ -134,7 +145,6 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="table1's --quick Bar (64², 2000 Gaussians), 1 round.")
     ap.add_argument("--rounds", type=int, default=None)
     ap.add_argument("--timed", type=int, default=4, help="Timed frames per run (after frame w).")
-    ap.add_argument("--estimators", default="adam,gn")
     ap.add_argument("--work", default="/tmp/rsl_bench_table1", help="table1's work folder (its builds are reused).")
     args = ap.parse_args()
     case = next(c for c in table1.CASES if c.name == "Bar")
@@ -148,34 +158,40 @@ def main() -> None:
     t0 = time.perf_counter()
     runs: dict = {}
     for rnd in range(rounds):
-        for est in args.estimators.split(","):
-            for name in VARIANTS:
-                t = time.perf_counter()
-                r = run_once(cap, ws, work / "Bar" / f"speed_{est}_{name}", est, case.w, n_frames, name)
-                runs.setdefault((est, name), []).append(r)
-                print(f"[{time.strftime('%H:%M:%S')}] round {rnd} {est} {name}: total {r['total_s']:.3f} s wall, "
-                      f"{r['cpu_s']:.3f} s CPU per frame ({time.perf_counter() - t:.0f} s)", flush=True)
+        for est, name in VARIANTS:
+            t = time.perf_counter()
+            r = run_once(cap, ws, work / "Bar" / f"speed_{est}_{name}", est, case.w, n_frames, name)
+            runs.setdefault((est, name), []).append(r)
+            print(f"[{time.strftime('%H:%M:%S')}] round {rnd} {est} {name}: total {r['total_s']:.3f} s wall, "
+                  f"{r['cpu_s']:.3f} s CPU per frame ({time.perf_counter() - t:.0f} s)", flush=True)
     rows = []
-    for est in args.estimators.split(","):
-        base = runs[(est, "before")]
-        for name in VARIANTS:
-            rs = runs[(est, name)]
-            row = {"estimator": est, "variant": name}
-            for k in ("forward_s", "backward_s", "render_s", "total_s", "cpu_s"):
-                row[k] = statistics.median(r[k] for r in rs)
-            row["ratio_wall"] = statistics.median(b["total_s"] for b in base) / row["total_s"]
-            row["ratio_cpu"] = statistics.median(b["cpu_s"] for b in base) / row["cpu_s"]
-            yb, yv = np.asarray(base[0]["young"]), np.asarray(rs[0]["young"])
-            row["young_rel_diff"] = float(np.max(np.abs(yv - yb) / np.abs(yb)))
-            row["rounds"] = [{k: r[k] for k in ("total_s", "cpu_s")} for r in rs]
-            rows.append(row)
+    base = runs[("adam", "default")]
+    for est, name in VARIANTS:
+        rs = runs[(est, name)]
+        row = {"estimator": est, "variant": name}
+        for k in ("forward_s", "backward_s", "render_s", "total_s", "cpu_s"):
+            row[k] = statistics.median(r[k] for r in rs)
+        row["over_adam_wall"] = row["total_s"] / statistics.median(b["total_s"] for b in base)
+        row["over_adam_cpu"] = row["cpu_s"] / statistics.median(b["cpu_s"] for b in base)
+        row["fd_over_this_cpu"] = statistics.median(r["cpu_s"] for r in runs[("gn", "fd")]) / row["cpu_s"]
+        row["rounds"] = [{k: r[k] for k in ("total_s", "cpu_s")} for r in rs]
+        row["young"] = rs[0]["young"]
+        row["young_sigma"] = rs[0]["young_sigma"]
+        row["max_err"] = float(np.max(np.abs(np.asarray(rs[0]["young"]) / E_TRUE - 1.0)))  # round 1, every frame
+        rows.append(row)
+    fd, jv = runs[("gn", "fd")][0], runs[("gn", "jvp")][0]
+    yf, yj, sf = np.asarray(fd["young"]), np.asarray(jv["young"]), np.asarray(fd["young_sigma"])
+    rel = np.abs(yj - yf) / np.abs(yf)
+    jvp_vs_fd = {"max_rel": float(rel.max()), "median_rel": float(np.median(rel)),
+                 "max_in_sigma": float(np.max(np.abs(yj - yf) / sf)), "frames": fd["frames"]}
+    per_round = [[runs[v][i]["cpu_s"] for v in VARIANTS] for i in range(rounds)]
     from stages.artefacts import MeshArtefact
 
     mesh = MeshArtefact.load(ws / "mesh.h5")
     data = {"machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs, {platform.python_version()}, "
                        f"load average {os.getloadavg()[0]:.1f} at the end (a shared machine)",
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "wall_s": time.perf_counter() - t0, "target_s": TARGET_S,
+            "wall_s": time.perf_counter() - t0, "jvp_vs_fd": jvp_vs_fd, "per_round_cpu": per_round,
             "settings": {"case": f"Bar, {case.shape}, {3 * mesh.n_vertices} DOFs, {mesh.n_tets} tets of order "
                                  f"{mesh.order}", "resolution": resolution, "gaussians": gaussians,
                          "cameras": case.c, "r": case.r, "w": case.w, "timed": timed, "rounds": rounds,

@@ -264,11 +264,50 @@ class VisionObservation:
         return [(self._renders(x) - np.concatenate([im.reshape(-1) for im in self.targets(t)]).astype(np.float64))
                 * self._keep(t) for t, x in zip(frames, X)]
 
+    #: how GNWindow gets ∂r/∂p: "jvp" — exact forward mode through projection and rasterizer, all k columns in one
+    #: pass per frame and camera (:meth:`residuals_and_jacobian`), where the renderer supports it
+    #: (ImageLoss.jvp_supported); "fd" — central differences (:meth:`jacobian`, :meth:`binding_jacobian`, 2 renders
+    #: per column, frame and camera) with Jᵀ W r from autograd (:meth:`exact_jtwr`): the slow twin the tests hold
+    #: the jvp path to
+    jacobian_mode = "jvp"
+
+    def uses_jvp(self) -> bool:
+        """Whether GN takes J from :meth:`residuals_and_jacobian` (else :meth:`jacobian` + :meth:`binding_jacobian`)."""
+        return self.jacobian_mode == "jvp" and self.loss_fn.jvp_supported
+
+    def residuals_and_jacobian(self, frames: Sequence[int], X: np.ndarray, dX: np.ndarray, dXa: np.ndarray | None = None
+                               ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """(per frame r_f — the floats of :meth:`residuals` —, per frame ∂r_f/∂p (pixels, k) exactly): the renderer's
+        derivative along each position sensitivity dX[j, f] (k, w, n, 3) and, with ``dXa`` (k, n, 3), along the
+        anchor x_f(θ)'s own sensitivity jointly (rebind: the binding of ImageLoss.anchored_geometry moves with it;
+        offset: the renders at x − (x_a − x_fit), along v − v_a) — by forward mode (ImageLoss.images_jvp: one pass
+        per frame and camera for all k columns).  The exact derivative of the float32 render (the one autograd
+        gives, so Jᵀ W r from this J is :meth:`exact_jtwr`'s); 0 under an occluder."""
+        lf = self.loss_fn
+        rs, Js = [], []
+        k = len(dX)
+        if dXa is not None and self.anchor_kind == "rebind":
+            binding = lf.binding_jvp(lf._anchor_x, dXa[:, :self.n], k)  # once: the anchor is every frame's
+        else:
+            binding = lf.binding_jvp(k=k)
+        for i, (t, x) in enumerate(zip(frames, X)):
+            V = dX[:, i, :self.n]
+            if dXa is not None and self.anchor_kind == "offset":
+                V = V - dXa[:, :self.n]
+            out = lf.images_jvp(x[:self.n] - self.anchor, V, binding)
+            keep = self._keep(t)
+            tg = np.concatenate([im.reshape(-1) for im in self.targets(t)]).astype(np.float64)
+            rs.append((np.concatenate([o[0].reshape(-1) for o in out]).astype(np.float64) - tg) * keep)
+            J = np.concatenate([o[1].reshape(len(V), -1) for o in out], axis=1).T.astype(np.float64)  # (m, k)
+            Js.append(J * (keep[:, None] if isinstance(keep, np.ndarray) else keep))
+        return rs, Js
+
     def jacobian(self, frames: Sequence[int], X: np.ndarray, dX: np.ndarray, rel_step: float = 1e-2,
                  skip: Sequence[int] = ()) -> list[np.ndarray]:
         """Per frame, ∂r_f/∂p (pixels, k) approximately: the renderer's directional derivative along each
         position sensitivity dX[j, f] by central differences, (R(x + ε v) − R(x − ε v)) / 2ε with ε·max|v| =
-        ``rel_step`` × the object's size (the rasterizer has no forward mode; 2k renders per frame).  3DGS
+        ``rel_step`` × the object's size (2k renders per frame; the slow twin of :meth:`residuals_and_jacobian`'s
+        forward mode, which GN uses where the renderer supports it, :attr:`jacobian_mode`).  3DGS
         rasterization is only piecewise smooth (the α < 1/255 cut-off) and renders in float32, so these
         columns carry errors of several % (tests); Gauss–Newton therefore takes its gradient from
         :meth:`exact_jtwr` and uses J only for the normal matrix (step shape and σ).  (One-sided differences

@@ -9,6 +9,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from stages.errors import RslError
+from stages.estimator import bounded_sigma
 from stages.parameters import chain_params, theta_from_params
 from stages.window_model import Observation, Window, WindowBackend
 
@@ -260,15 +261,17 @@ class GNWindow:
         smooth = getattr(obj.obs, "binding_jacobian", None) is not None  # markers: d binding/dθ goes into J
         x_anchor = None
         if anchored and (smooth or (need_jac and self.rebind_next)):
-            # markers: re-anchored at every evaluation (r(p) is one smooth function of p, its J includes the
-            # binding's derivative); images: once per solve, at its first linearisation (J leaves it out)
+            # re-anchored at every evaluation (r(p) is one smooth function of p; J includes the binding's or the
+            # anchor's derivative: markers' binding_jacobian, the images' anchored Gaussians)
             self.rebind_next = False
             x_anchor = obj.anchor_positions(E, nu)
             obj.obs.rebind(x_anchor)
         states = obj.win.forward(list(frames), E, nu, b)
         X = backend.decode(states)
         t1 = time.perf_counter()
-        rs = obj.obs.residuals(frames, X)
+        # images with a forward-mode renderer: the residuals come with J from one pass (the same floats)
+        jvp = need_jac and getattr(obj.obs, "uses_jvp", None) is not None and obj.obs.uses_jvp()
+        rs = None if jvp else obj.obs.residuals(frames, X)
         t2 = time.perf_counter()
         self.times[0] += t1 - t0
         self.times[2] += t2 - t1
@@ -289,16 +292,29 @@ class GNWindow:
         dX = obj.win.sensitivity(list(frames), E, nu, states, b, de, dn, db)
         t3 = time.perf_counter()
         self.last_state_sens = obj.win.last_state_sensitivity  # (k, w, …) of the window's states
+        dXa = None
+        if x_anchor is not None and smooth:
+            # the anchor frame's own sensitivity (frame 0 = x_0(θ), or the fit frame simulated from it), from the
+            # states anchor_positions simulated for this θ
+            ka = obj.anchor_frame + 1
+            aE, anu, sa = getattr(obj, "_anchor_states", (None, None, None))
+            if sa is None or not (np.array_equal(aE, E) and np.array_equal(anu, nu)):
+                sa = obj.win.forward(list(range(ka)), E, nu, None)
+            dXa = obj.win.sensitivity(list(range(ka)), E, nu, sa, None, de, dn)[:, -1]
+        if jvp:  # exact J (anchor included) and the residuals in one forward-mode pass; Jᵀ W r from it
+            rs, Js = obj.obs.residuals_and_jacobian(frames, X, dX, dXa)
+            t4 = time.perf_counter()
+            self.times[1] += t3 - t2
+            self.times[2] += t4 - t3
+            self.last_rs, self.last_frames, self.last_jac = rs, rs, Js
+            r, J = np.concatenate(rs), np.concatenate(Js, axis=0)
+            return r, J, lambda W: J.T @ (W * r)  # J is exact: Jᵀ W r from it is the autograd product
         if x_anchor is not None and smooth and obj.obs.kind == "vision" and self.skip_joint:
             # binding_jacobian differences the θ columns jointly (positions and anchor): jacobian skips them
             Js = obj.obs.jacobian(frames, X, dX, skip=range(self.k_theta))
         else:
             Js = obj.obs.jacobian(frames, X, dX)
-        if x_anchor is not None and smooth:
-            # the anchor frame's own sensitivity (frame 0 = x_0(θ), or the fit frame simulated from it)
-            ka = obj.anchor_frame + 1
-            sa = obj.win.forward(list(range(ka)), E, nu, None)
-            dXa = obj.win.sensitivity(list(range(ka)), E, nu, sa, None, de, dn)[:, -1]
+        if dXa is not None:
             Js = [J + Jb for J, Jb in zip(Js, obj.obs.binding_jacobian(frames, X, x_anchor, dXa))]
         t4 = time.perf_counter()
         self.times[1] += t3 - t2
@@ -327,8 +343,6 @@ def sigma_from_cov(gn: GNWindow, p: np.ndarray, cov: np.ndarray, model_error: fl
     itself makes, added in quadrature: it does not average out over frames).  A parameter held at a bound of its range ([material] young_range, poisson_range)
     reports at least the σ of a uniform prior over the range (stages.estimator.bounded_sigma): there the data
     do not locate it (and the sigmoid's slope ν'(s) → 0 would shrink σ_ν to nothing)."""
-    from stages.estimator import bounded_sigma
-
     R = gn.R
     E, nu, s = gn.theta(p)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))

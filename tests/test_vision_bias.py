@@ -262,6 +262,7 @@ def test_gn_image_jacobian_agrees_with_autograd_and_finite_differences(capture):
     cap, ws, _ = capture
     obj, backend = _objective(cap, ws)
     gn = GNWindow(obj, True, np.zeros(1))
+    obj.obs.jacobian_mode = "fd"  # the central-difference J (the forward-mode one: tests/test_estimator_speed.py)
     p = np.concatenate(params_from_theta(np.array([0.7 * E_TRUE]), np.array([0.42]), (0.3, 0.49)))
     frames = [0, 1, 2]
     r, J, jtw = gn.evaluate(frames, p, None, None, True)
