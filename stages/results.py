@@ -65,7 +65,7 @@ def previous_states(frames: np.ndarray, positions: np.ndarray, rest: np.ndarray,
 
 def gaussian_anchor(renderer, adapt: AdaptArtefact, gaussians_path: Path) -> np.ndarray | float:
     """Make the Gaussians of ``renderer`` (an ImageLoss) follow the mesh as ``rsl adapt`` made them follow it
-    (adapt.h5 extra "gaussian_anchor"): "rebind" — re-bound to the tets of the adapted fit-frame shape
+    (adapt.h5 extra "gaussian_anchor"; the one rule of evaluate, report and export): "rebind" — re-bound to the tets of the adapted fit-frame shape
     (returns 0); "offset" (older files) — render at x_t − anchor with anchor = x_fit − fit_positions (n, 3).
     0 when adapt.h5 does not hold the frame the Gaussians were fitted at."""
     fit_frame = int(read_provenance(gaussians_path).get("config", {}).get("frame", 0) or 0)

@@ -12,7 +12,7 @@ positions x (n, 3):
     colour   c_g = 0.5 + SH(sh_g, view direction)   (degree 0, optionally 1), clamped ≥ 0
     opacity  o_g = sigmoid(opacity_logit_g)
 
-API for the stages (adapt, fit-gaussians, export)::
+API for the stages (fit-gaussians; adapt, evaluate, report and export through render.image_loss.ImageLoss)::
 
     g = BoundGaussians.from_artefact(GaussiansArtefact.load(...), MeshArtefact.load(...))
     out = g.render(positions, camera, background=None)   # positions: torch (n,3), any float dtype

@@ -1,5 +1,5 @@
-"""The image observation model of ``rsl adapt``, ``rsl evaluate`` and ``rsl report`` (paper Eq. 7) and its
-gradient with respect to vertex positions.
+"""The image observation model of ``rsl adapt``, ``rsl evaluate``, ``rsl report`` and ``rsl export``'s renders and
+PLY (paper Eq. 7) and its gradient with respect to vertex positions.
 
 L = Σ_t Σ_c |R(G(x_t), c) − Ĩ_t^c|, the L1 distance between the render of the Gaussians bound to the mesh and
 the masked image Ĩ = I·m + bg·(1 − m) (what a render is compared with: stages/observations.py);
@@ -109,6 +109,8 @@ class ImageLoss:
             self._set_binding(self._fit_host, self._fit_bary, self._fit_cov0, self._fit_factor0)
             return
         x = np.asarray(x_fit, np.float64)
+        if self._anchor_x is not None and np.array_equal(x, self._anchor_x):
+            return  # bound there already (the same floats would come out)
         self._anchor_x = x.copy()  # (n, 3): the configuration of the binding (see :meth:`anchored_geometry`)
         host, bary = locate_in_elements(self._fit_means, x, self._tets, hint=self.host_tet)  # x moves little
         if self.quadratic:  # F = Σ x_a ⊗ G_a at each Gaussian's new location
@@ -166,7 +168,7 @@ class ImageLoss:
             Fa = D @ torch.as_tensor(self._dm_inv_all[self.host_tet], dtype=f64)
         return beta, torch.linalg.inv(Fa), N, G
 
-    def images(self, xt, xa=None) -> list:
+    def images(self, xt, xa=None, views: list | None = None) -> list:
         """Renders (H, W, 3) of every camera at positions xt (n, 3), torch, differentiable.
 
         ``BoundGaussians.shade`` on the Gaussians of the current binding — barycentric β and rest covariance
@@ -175,7 +177,8 @@ class ImageLoss:
         xa (differentiable in xa too) — projected by the fused numba kernel (bind_project.project_bound) where
         it applies (rasterizer "fast", pinhole camera, SH degree 0), else by its torch twin
         (gaussians.bound_geometry + project_gaussians): μ = Σ βₖ xₖ (quadratic tets: Σ N_a(β) x_a),
-        M = F L, Σ = M Mᵀ.
+        M = F L, Σ = M Mᵀ.  ``views``: [(camera, background)] to render instead of the loss's own cameras and
+        backgrounds (:meth:`render_views`).
         """
         from stages.render.bind_project import project_bound
         from stages.render.gaussians import bound_geometry
@@ -189,7 +192,7 @@ class ImageLoss:
             factor = Fi @ self.torch.as_tensor(self._fit_factor)
         twin = None  # (centres, factors) in torch, computed once for every camera that needs them
         out = []
-        for cam, bg in zip(self.cams, self.backgrounds):
+        for cam, bg in (zip(self.cams, self.backgrounds) if views is None else views):
             if self.rasterizer == "fast" and g.fusable(cam):
                 m2d, con, dep, vis = project_bound(xt, beta, factor, self._host, self._shape, cam, g.dtype)
                 means = None
@@ -200,6 +203,126 @@ class ImageLoss:
                 proj = project_gaussians(means, None, cam, factors=twin[1])
                 m2d, con, dep, vis = proj.means2d, proj.conics, proj.depths, proj.visible
             out.append(g.shade(m2d, con, dep, vis, means, cam, bg, self.rasterizer).image)
+        return out
+
+    @property
+    def jvp_supported(self) -> bool:
+        """Whether :meth:`images_jvp` models these Gaussians: the fast rasterizer and SH degree 0 (colours that do
+        not depend on the view direction, so on the positions)."""
+        return self.rasterizer == "fast" and self.g.sh.shape[1] == 1
+
+    def binding_jvp(self, xa: np.ndarray | None = None, Va: np.ndarray | None = None, k: int = 0) -> tuple:
+        """(β (G, 4), L (G, 3, 3), dβ (k, G, 4), dL (k, G, 3, 3)): the current binding (as fitted, or :meth:`rebind`'s
+        — what :meth:`images` renders at xt alone) and its tangents: after a :meth:`rebind` and given the anchor
+        configuration xa (n, 3) (that rebind's), those of :meth:`anchored_geometry`'s β(xa), L(xa) = F_a⁻¹ L_fit
+        along Va (k, n, 3) (torch.func.jvp; β(xa), L(xa) themselves equal the rebind's up to rounding); else zeros
+        (k of them).  β, L torch float64; the tangents numpy."""
+        from torch.func import jvp, vmap
+
+        torch, f64 = self.torch, self.torch.float64
+        if xa is None or self._anchor_x is None:
+            return (self._beta64, self._factor, np.zeros((k,) + tuple(self._beta64.shape)),
+                    np.zeros((k,) + tuple(self._factor.shape)))
+        fit_factor = torch.as_tensor(self._fit_factor, dtype=f64)
+
+        def binding(xa_):
+            b, Fi, _, _ = self._anchored(xa_)
+            return b, Fi @ fit_factor
+
+        xa_t = torch.as_tensor(np.asarray(xa, np.float64))
+        Va_t = torch.as_tensor(np.asarray(Va, np.float64))
+        db, dL = vmap(lambda va: jvp(binding, (xa_t,), (va,))[1])(Va_t)
+        return self._beta64, self._factor, db.numpy(), dL.numpy()  # (the primal: the very floats images() renders)
+
+    def geometry_jvp(self, xt: np.ndarray, V: np.ndarray, binding: tuple) -> tuple:
+        """(μ (G, 3), M (G, 3, 3), dμ (k, G, 3), dM (k, G, 3, 3)) float64 numpy: the Gaussians' centres and covariance
+        factors (Σ = M Mᵀ) at positions xt (n, 3) with ``binding`` = :meth:`binding_jvp`'s (β, L, dβ, dL), and their
+        tangents along V (k, n, 3) and the binding's tangents.  Linear tets: μ = Σ β_k p_k, M = D_s D_m⁻¹ L, so
+        dμ = Σ (β_k dp_k + dβ_k p_k), dM = dD_s D_m⁻¹ L + D_s D_m⁻¹ dL; quadratic tets: torch.func.jvp through
+        gaussians.bound_geometry (the torch twin of the projection's element geometry)."""
+        from torch.func import jvp, vmap
+
+        from stages.render.gaussians import bound_geometry
+
+        torch, f64 = self.torch, self.torch.float64
+        beta, factor, db, dL = binding
+        x = np.asarray(xt, np.float64)
+        V = np.asarray(V, np.float64)
+        if self.quadratic:
+            args = (torch.as_tensor(x), beta, factor)
+
+            def geom(x_, b_, L_):
+                return bound_geometry(x_, b_, L_, self._host, self._shape, f64)
+
+            means, M = geom(*args)
+            dmu, dM = vmap(lambda v, b_, l_: jvp(geom, args, (v, b_, l_))[1])(
+                torch.as_tensor(V), torch.as_tensor(db), torch.as_tensor(dL))
+            return means.numpy(), M.numpy(), dmu.numpy(), dM.numpy()
+        hv = self._host.numpy()
+        b, Lf, Dmi = beta.numpy(), factor.numpy(), self._shape.numpy()
+        P, dP = x[hv], V[:, hv]  # (G, 4, 3), (k, G, 4, 3)
+        mu = np.einsum("gk,gkd->gd", b, P)
+        dmu = np.einsum("gk,jgkd->jgd", b, dP) + np.einsum("jgk,gkd->jgd", db, P)
+        F = np.einsum("gjd,gje->gde", P[:, 1:4] - P[:, :1], Dmi)  # D_s D_m⁻¹, D_s columns p_j − p_0
+        dF = np.einsum("kgjd,gje->kgde", dP[:, :, 1:4] - dP[:, :, :1], Dmi)
+        return mu, F @ Lf, dmu, dF @ Lf + F[None] @ dL
+
+    def images_jvp(self, xt: np.ndarray, V: np.ndarray, binding: tuple | None = None
+                   ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per camera (image (H, W, 3), d image (k, H, W, 3)) float32 numpy: the render of :meth:`images` at positions
+        xt (n, 3) (the same floats) and its exact derivatives along k tangents V (k, n, 3) of the positions and of
+        the binding (``binding`` = :meth:`binding_jvp`'s, with the anchor's tangents after a :meth:`rebind`; None:
+        the current binding held).
+
+        Forward mode: the tangents of the Gaussians' centres and covariance factors (:meth:`geometry_jvp`), of their
+        pinhole projection (rasterize_jvp.project_jvp; with distortion, dual numbers through the torch twin
+        project_gaussians), then the rasterizer's own forward mode (rasterize_jvp.rasterize_jvp: every tangent in
+        one pass).  Colours and opacities are held.  Needs :attr:`jvp_supported`."""
+        import torch.autograd.forward_ad as fwAD
+
+        from stages.render.bind_project import project_bound
+        from stages.render.gaussians import bound_geometry, sh_to_color
+        from stages.render.projection import CameraTensors, project_gaussians
+        from stages.render.rasterize_jvp import project_jvp, rasterize_jvp
+
+        if not self.jvp_supported:
+            raise ValueError("images_jvp models the fast rasterizer with SH degree 0 only")
+        torch, g = self.torch, self.g
+        V = np.asarray(V, np.float64)
+        if binding is None:
+            binding = self.binding_jvp(k=len(V))
+        beta, factor = binding[0], binding[1]
+        x = torch.as_tensor(np.asarray(xt, np.float64))
+        means_np, M_np, d_means_np, d_M_np = self.geometry_jvp(np.asarray(xt, np.float64), V, binding)
+        with torch.no_grad():
+            colors, opac = sh_to_color(g.sh, None), g.opacities()  # as BoundGaussians.shade at SH degree 0
+        out = []
+        for cam, bg in zip(self.cams, self.backgrounds):
+            if g.fusable(cam):  # the primal exactly as images() projects it
+                m2d, con, dep, vis = project_bound(x, beta, factor, self._host, self._shape, cam, g.dtype)
+            else:
+                tw = bound_geometry(x, beta, factor, self._host, self._shape, g.dtype)
+                proj = project_gaussians(tw[0], None, cam, factors=tw[1])
+                m2d, con, dep, vis = proj.means2d, proj.conics, proj.depths, proj.visible
+            if cam.has_distortion:  # the torch twin's forward mode (dual numbers; slow, but general)
+                cam64 = CameraTensors(cam.K.double(), cam.dist.double(), cam.R.double(), cam.t.double(), cam.width,
+                                      cam.height, cam.name)
+                mu_t, M_t = torch.as_tensor(means_np), torch.as_tensor(M_np)
+                dm2d, dcon = [], []
+                for a, b in zip(d_means_np, d_M_np):
+                    with fwAD.dual_level():
+                        p = project_gaussians(fwAD.make_dual(mu_t, torch.as_tensor(a)), None, cam64,
+                                              factors=fwAD.make_dual(M_t, torch.as_tensor(b)))
+                        dm2d.append(fwAD.unpack_dual(p.means2d).tangent.numpy())
+                        dcon.append(fwAD.unpack_dual(p.conics).tangent.numpy())
+                dm2d, dcon = np.stack(dm2d), np.stack(dcon)
+            else:
+                dm2d, dcon = project_jvp(means_np, M_np, d_means_np, d_M_np, cam)
+            C, A, dC, dA = rasterize_jvp(m2d.detach(), con.detach(), colors, opac, dep.detach(), vis,
+                                         cam.width, cam.height, dm2d, dcon)
+            bgt = g.background if bg is None else torch.as_tensor(bg, dtype=g.dtype)
+            image = torch.from_numpy(C) + (1 - torch.from_numpy(A))[..., None] * bgt  # as BoundGaussians.shade
+            out.append((image.numpy(), dC - dA[..., None] * bgt.detach().numpy()))
         return out
 
     def __call__(self, x: np.ndarray, targets: list[np.ndarray], ignore: list[np.ndarray | None] | None = None,
@@ -240,3 +363,31 @@ class ImageLoss:
         torch = self.torch
         with torch.no_grad():
             return [im.numpy().copy() for im in self.images(torch.tensor(np.asarray(x, np.float64)))]
+
+    def render_views(self, x: np.ndarray, cameras: list, backgrounds: list | None = None) -> list[np.ndarray]:
+        """:meth:`render` into other cameras: images (H, W, 3) float32 at positions x (n, 3), one per camera of
+        ``cameras`` (artefacts.Camera), over ``backgrounds`` (per camera None — the Gaussians' colour — or an
+        (H, W, 3) image in [0, 1]; default None each), with the current binding (as fitted or :meth:`rebind`'s)."""
+        torch = self.torch
+        bgs = [None] * len(cameras) if backgrounds is None else backgrounds
+        views = [(self.g.camera(c), None if b is None else torch.as_tensor(np.asarray(b, np.float32)))
+                 for c, b in zip(cameras, bgs)]
+        with torch.no_grad():
+            return [im.numpy().copy() for im in self.images(torch.tensor(np.asarray(x, np.float64)), views=views)]
+
+    @property
+    def bary(self) -> np.ndarray:
+        """(G, 4) float64: the barycentric coordinates β of the current binding in the elements ``host_tet``."""
+        return self._bary_np
+
+    def geometry(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(centres μ (G, 3) m, covariances Σ = M Mᵀ (G, 3, 3) m²) float64 of the current binding's Gaussians at
+        positions x (n, 3) — what :meth:`images` projects (gaussians.bound_geometry in float64)."""
+        from stages.render.gaussians import bound_geometry
+
+        torch = self.torch
+        with torch.no_grad():
+            mu, M = bound_geometry(torch.as_tensor(np.asarray(x, np.float64)), self._beta64, self._factor,
+                                   self._host, self._shape, torch.float64)
+        M = M.numpy()
+        return mu.numpy().copy(), M @ M.transpose(0, 2, 1)

@@ -47,7 +47,7 @@ from stages.forces import (FORCE_EXTRAPOLATE, FORCE_SUBSTEPS, FORCE_THETA, adapt
                            trajectory_forces)
 from stages.progress import Reporter, SilentReporter
 from stages.render.ply import covariance_to_scale_rotation, write_ply
-from stages.results import StressField, material_setting, previous_states, recorded_capture
+from stages.results import StressField, gaussian_anchor, material_setting, previous_states, recorded_capture
 from stages.results import compute_stress as results_stress
 from stages.sim import stress as st
 from stages.sim.quadrature import element_order, shape_values
@@ -108,7 +108,7 @@ class ExportConfig:
     force_extrapolate: bool = FORCE_EXTRAPOLATE
     """Richardson-extrapolate the replay's forces in time, 2 F(2S) − F(S) from replays with S and 2S steps per frame: cancels implicit Euler's first-order error, costs 3S steps per frame (docs/results/forces_converged.md)."""
     force_theta: Literal["online", "segment"] = FORCE_THETA
-    """θ(t) of the replay: online = each frame's estimate as adapt.h5 records it; segment = the last estimate of each segment between the material changes adapt's gn estimator detected (docs/results/forces_theta.md)."""
+    """θ(t) of the replay: online = each frame's estimate as adapt.h5 records it (frame t's force uses estimates up to t); segment = the last estimate of each segment between the material changes adapt's gn estimator detected: removes the estimate's start transient (two-region beam 26 → 4 % force error) but moves a later material into earlier frames when a change is detected off the true one (bar released at rest 18 → 26 % before its step), docs/results/forces_theta.md."""
 
 
 # =========================================================================== small file helpers
@@ -391,23 +391,37 @@ def read_pvd(path: str | Path) -> list[tuple[float, Path]]:
 
 
 # =========================================================================== Gaussians: PLY and renders
-def _load_gaussians(seq: Sequence, ws: Path):
-    """(GaussiansArtefact, BoundGaussians) bound to the sequence's mesh."""
-    from stages.render.gaussians import BoundGaussians  # torch and numba: loaded on use
+def _load_gaussians(seq: Sequence, ws: Path, gauss: GaussiansArtefact | None = None):
+    """(GaussiansArtefact, ImageLoss, anchor): the Gaussians of WS/gaussians.h5 (or ``gauss``, another appearance of
+    them) placed on the mesh as ``rsl adapt`` placed them and evaluate and report render them
+    (stages.results.gaussian_anchor on adapt.h5 — the source artefact itself, or WS/adapt.h5 for a rollout;
+    bound as fitted without one): a row's positions x render and write as the Gaussians at x − anchor."""
+    from stages.render.image_loss import ImageLoss  # scipy.spatial here, torch and numba when built: loaded on use
 
     path = ws / KIND_FILES["gaussians"]
     if not path.exists():
         raise ExportError(f"{path}: file not found; PLY and renders need the Gaussians (run `rsl fit-gaussians`).")
-    gauss = GaussiansArtefact.load(path)
+    if gauss is None:
+        gauss = GaussiansArtefact.load(path)
     if gauss.host_tet.size and gauss.host_tet.max() >= seq.mesh.n_tets:
         raise ExportError(f"{path}: Gaussians are bound to tet {int(gauss.host_tet.max())} but "
                           f"{ws / KIND_FILES['mesh']} has {seq.mesh.n_tets} tets; they belong to another mesh.")
-    return gauss, BoundGaussians.from_artefact(gauss, seq.mesh)
+    try:
+        renderer = ImageLoss(gauss, seq.mesh, [])
+    except ValueError as e:
+        raise ExportError(f"{path}: {e}.") from None
+    adapt = seq.adapt
+    if seq.source_path.name == ROLLOUT_FILE:  # a prediction: the Gaussians as the adapted run anchored them
+        adapt_path = ws / KIND_FILES["adapt"]
+        adapt = AdaptArtefact.load(adapt_path) if adapt_path.exists() else None
+    anchor = 0.0 if adapt is None else gaussian_anchor(renderer, adapt, path)
+    return gauss, renderer, anchor
 
 
 def gaussian_values(gauss, mesh: MeshArtefact, vertex_values: np.ndarray) -> np.ndarray:
-    """A per-vertex field carried by the Gaussians: v_g = Σ_k β_gk v[tet_g,k] (quadratic tets: Σ_a N_a(β_g)
-    v[tet_g,a] over all nodes), (G,) from (n,)."""
+    """A per-vertex field carried by the Gaussians of a binding ``gauss`` (host_tet (G,), bary (G, 4): a
+    GaussiansArtefact as fitted, or an ImageLoss's current binding): v_g = Σ_k β_gk v[tet_g,k] (quadratic tets:
+    Σ_a N_a(β_g) v[tet_g,a] over all nodes), (G,) from (n,)."""
     nodes = mesh.tets[gauss.host_tet]  # (G, 4 | 10)
     w = shape_values(element_order(mesh.tets), np.asarray(gauss.bary, np.float64))
     return np.sum(w * np.asarray(vertex_values)[nodes], axis=1)
@@ -423,24 +437,21 @@ def stress_scale(config: ExportConfig, field: StressField, rows: np.ndarray) -> 
 
 def write_ply_frames(seq: Sequence, field: StressField, rows: np.ndarray, config: ExportConfig, out: Path,
                      reporter: Reporter) -> list[Path]:
-    """ply/frame_NNNNNN.ply per chosen row: the Gaussians deformed with the frame's positions
-    (centre Σ β x, covariance F Σ Fᵀ) in the standard 3DGS layout; colours by stress with ply_stress."""
-    import torch
-
+    """ply/frame_NNNNNN.ply per chosen row: the Gaussians deformed with the frame's positions, placed as
+    :func:`_load_gaussians` places them (centre Σ β x, covariance F Σ₀ Fᵀ), in the standard 3DGS layout; colours
+    by stress with ply_stress."""
     from stages.render.gaussians import color_to_sh0
 
-    gauss, bound = _load_gaussians(seq, Path(config.workspace))
+    gauss, placed, anchor = _load_gaussians(seq, Path(config.workspace))
     vmax = stress_scale(config, field, rows)
     written = []
-    with reporter.task("ply", len(rows)) as task, torch.no_grad():
+    with reporter.task("ply", len(rows)) as task:
         for i in rows:
-            x = torch.as_tensor(seq.adapt.positions[i])
-            means = bound.centres(x).double().numpy()
-            covs = bound.covariances(x).double().numpy()
+            means, covs = placed.geometry(seq.adapt.positions[i] - anchor)
             log_scales, rotations = covariance_to_scale_rotation(covs)
             sh = gauss.sh
             if config.ply_stress:
-                vm = gaussian_values(gauss, seq.mesh, field.von_mises_vertex[i])
+                vm = gaussian_values(placed, seq.mesh, field.von_mises_vertex[i])
                 sh = color_to_sh0(colormap(vm / vmax))[:, None, :]
             path = out / "ply" / f"frame_{int(seq.adapt.frames[i]):06d}.ply"
             written.append(write_ply(path, means, log_scales, rotations, gauss.opacity_logit, sh))
@@ -508,8 +519,9 @@ def write_video(frames: list[np.ndarray], path: Path, fps: float) -> Path | None
     return path
 
 
-def _to_uint8(image) -> np.ndarray:
-    return (np.clip(image.detach().cpu().numpy(), 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
+def _to_uint8(image: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float in [0, 1] → uint8, rounded."""
+    return (np.clip(image, 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
 
 
 def write_renders(seq: Sequence, field: StressField, rows: np.ndarray, config: ExportConfig, out: Path,
@@ -518,14 +530,14 @@ def write_renders(seq: Sequence, field: StressField, rows: np.ndarray, config: E
     capture cameras (cameras.h5) and an orbit of novel views; stress as a turbo map with a colour bar."""
     import torch
 
-    from stages.render.gaussians import BoundGaussians, color_to_sh0
+    from stages.render.gaussians import color_to_sh0
 
     ws = Path(config.workspace)
-    gauss, bound = _load_gaussians(seq, ws)
+    gauss, bound, anchor = _load_gaussians(seq, ws)
     stress_art = copy.copy(gauss)
     stress_art.sh = np.zeros((gauss.host_tet.shape[0], 1, 3))
     stress_art.background = np.ones(3)
-    stress_g = BoundGaussians.from_artefact(stress_art, seq.mesh)
+    _, stress_g, _ = _load_gaussians(seq, ws, stress_art)  # the same placement, coloured by stress per frame
     vmax = stress_scale(config, field, rows)
 
     xs = seq.adapt.positions[rows]
@@ -559,11 +571,11 @@ def write_renders(seq: Sequence, field: StressField, rows: np.ndarray, config: E
         for name, cams in views:
             app_frames, stress_frames = [], []
             for i, cam, name_tag in cams:
-                x = torch.as_tensor(seq.adapt.positions[i])
-                app = _to_uint8(bound.render(x, cam).image)
-                vm = gaussian_values(gauss, seq.mesh, field.von_mises_vertex[i])
-                stress_g.sh.data = torch.as_tensor(color_to_sh0(colormap(vm / vmax))[:, None, :], dtype=torch.float32)
-                stress = add_colorbar(_to_uint8(stress_g.render(x, cam).image), vmax)
+                x = seq.adapt.positions[i] - anchor
+                app = _to_uint8(bound.render_views(x, [cam])[0])
+                vm = gaussian_values(stress_g, seq.mesh, field.von_mises_vertex[i])
+                stress_g.g.sh.data = torch.as_tensor(color_to_sh0(colormap(vm / vmax))[:, None, :], dtype=torch.float32)
+                stress = add_colorbar(_to_uint8(stress_g.render_views(x, [cam])[0]), vmax)
                 for kind, img, store in (("appearance", app, app_frames), ("stress", stress, stress_frames)):
                     path = out / "render" / name / f"{kind}_{name_tag}.png"
                     with _atomic_path(path) as tmp:
