@@ -10,8 +10,12 @@ Measured per run: the settled error and the ±3 % band, the frames needed after 
 detected and the time per frame.  Writes docs/results/estimator.{md,json,png}.  Every step is the `rsl` CLI
 through bench/_pipeline.py (synth, tetrahedralize, adapt).  ``--variant LABEL="ADAPT OPTIONS"`` adds a gn row
 with those options in the same run (on the same captures), e.g. ``--variant "ν always fitted=--poisson-information 0"``.
+``--window-sweep`` instead checks the loss before the estimator: on one capture (two-region beam, seed 1), with and
+without its marker noise, where the marker loss of adapt's model at fixed E has its minimum per 3-frame window and
+over frames 0 … t, and the offline gn fit of the whole sequence (docs/results/estimator_window_sweep.{md,json}).
 
     nice .venv/bin/python bench/estimator.py [--seeds 3] [--workers 2] [--scenes ...] [--variant LABEL=OPTIONS]
+    nice .venv/bin/python bench/estimator.py --window-sweep [--sweep-scene S --sweep-seed N]
 """
 from __future__ import annotations
 
@@ -49,7 +53,7 @@ TRUTH = ["--truth-order", 2, "--truth-refine", 1, "--substeps", 3, "--handles", 
 ADAPT_SUBSTEPS = 2
 
 
-def make_capture(root: Path, scene: str, seed: int):
+def make_capture(root: Path, scene: str, seed: int, marker_noise: float = 2e-4):
     """The truth capture and adapt's workspace (the beam's coarse tets as P2); truth E per frame and region."""
     import meshio
 
@@ -58,7 +62,7 @@ def make_capture(root: Path, scene: str, seed: int):
     extra, frames, _ = SCENES[scene]
     cap = root / "cap"
     _pipeline.synth(cap, BEAM, "--scenario", "cable", "--cameras", 1, "--resolution", 32, "--frames", frames,
-                    "--young", E0, "--markers", 30, "--marker-noise", 2e-4, "--calib-views", 0, "--seed", seed,
+                    "--young", E0, "--markers", 30, "--marker-noise", marker_noise, "--calib-views", 0, "--seed", seed,
                     *TRUTH, *extra, reuse=False)
     # adapt's mesh: the beam's own tets (placed as synth placed them), not the truth's refined ones
     m = meshio.read(str(BEAM))
@@ -199,6 +203,112 @@ def timing_case(work: Path) -> list[dict]:
     return out
 
 
+def _parabola_min(x: np.ndarray, y: np.ndarray) -> float:
+    """x at the minimum of samples y(x) (x > 0): the vertex of the parabola in log x through the smallest sample
+    and its neighbours (the end sample's neighbours at an end of the grid; NaN where that parabola opens down)."""
+    i = int(np.clip(np.argmin(y), 1, len(x) - 2))
+    c = np.polyfit(np.log(x[i - 1:i + 2]), y[i - 1:i + 2], 2)
+    return float(np.exp(-c[1] / (2 * c[0]))) if c[0] > 0 else float("nan")
+
+
+def window_sweep(scene: str, seed: int, body: list[float], stiff: list[float]) -> dict:
+    """The marker loss adapt's gn minimises, at FIXED θ, per frame: adapt's model (the beam's coarse tets as P2,
+    ADAPT_SUBSTEPS substeps, the capture's start) simulated from frame 0 with E = scale × E_true per region and the
+    true ν, markers bound to the simulated frame-0 surface (stages.sweep).  Per frame t: the E of each region at the
+    minimum of the w-frame window's loss (t − w + 1 … t) and of the loss of frames 0 … t (the other region at its
+    truth; parabola in log E through the grid), on the capture with its marker noise and on the same capture
+    without noise (model error alone); and rsl adapt --mode offline (gn, the whole sequence) with ν fitted and
+    with ν held at the truth."""
+    from stages.artefacts import AdaptArtefact, MeshArtefact
+    from stages.capture import load_capture
+    from stages.sim.markers import bind_markers, marker_residuals
+    from stages.sim.scene import make_scene
+    from stages.sweep import simulate_fixed
+
+    out: dict = {"scene": scene, "seed": seed, "window": W, "body_scales": body, "stiff_scales": stiff}
+    with tempfile.TemporaryDirectory() as tmp:
+        for label, noise in (("noisy", 2e-4), ("noise-free", 0.0)):
+            cap, ws, truth, nu_true, names = make_capture(Path(tmp) / label, scene, seed, marker_noise=noise)
+            capture = load_capture(cap)
+            mesh = MeshArtefact.load(ws / "mesh.h5")
+            ctl = capture.controls()
+            sc = make_scene(mesh, ctl, capture.material.model, capture.dt, capture.gravity)
+            order = [names.index(n) for n in sc.region_names]
+            E_true, nu = truth[0, order], nu_true[0, order]
+            P = capture.markers()
+            faces = np.asarray(mesh.surface_faces)
+
+            def frame_loss(scale) -> np.ndarray:
+                X = simulate_fixed(sc, ctl, E_true * np.asarray(scale), nu, len(P), capture.start, ADAPT_SUBSTEPS)
+                r = marker_residuals(bind_markers(X[0], faces, P[0]), X, P)
+                return np.sum(r * r, axis=(1, 2))
+
+            Lb = np.array([frame_loss([b, 1.0]) for b in body])  # (K, T), region order of the scene
+            Ls = np.array([frame_loss([1.0, s]) for s in stiff])
+            T = Lb.shape[1]
+            rows = []
+            for t in range(T):
+                a = max(0, t - W + 1)
+                rows.append({"frame": t,
+                             "window_body": _parabola_min(np.array(body), Lb[:, a:t + 1].sum(1)),
+                             "window_stiff": _parabola_min(np.array(stiff), Ls[:, a:t + 1].sum(1)),
+                             "cumulative_body": _parabola_min(np.array(body), Lb[:, :t + 1].sum(1)),
+                             "cumulative_stiff": _parabola_min(np.array(stiff), Ls[:, :t + 1].sum(1))})
+            out[label] = {"regions": list(sc.region_names), "frames": rows,
+                          "loss_at_truth": float(Lb[list(np.isclose(body, 1.0)).index(True)].sum())}
+            print(f"{label}: swept", flush=True)
+            if label == "noisy":
+                off = {}
+                for tag, opts in (("ν fitted", ()), ("ν held at the truth", ("--fixed-poisson",))):
+                    _pipeline.adapt(cap, ws, "--space", "full", "--loss", "markers", "--mode", "offline",
+                                    "--estimator", "gn", "--young-init", E0 / 2, "--substeps", ADAPT_SUBSTEPS, *opts)
+                    art = AdaptArtefact.load(ws / "adapt.h5")
+                    rn = list(art.extra.get("region_names", [])) or list(sc.region_names)
+                    off[tag] = {n: {"young_rel": float(art.young[-1, i] / truth[0, names.index(n)]),
+                                    "poisson": float(art.poisson[-1, i])} for i, n in enumerate(rn)}
+                    print(f"offline {tag}: {off[tag]}", flush=True)
+                out["offline"] = off
+    return out
+
+
+def write_window_sweep(d: dict) -> None:
+    """docs/results/estimator_window_sweep.{md,json} from :func:`window_sweep`'s result."""
+    (OUT / "estimator_window_sweep.json").write_text(json.dumps(d, indent=1))
+    settled = lambda rows: [r for r in rows if r["frame"] >= W + 5]  # noqa: E731
+    lines = [f"# Estimator: where the marker loss has its minimum, window by window ({d['date']})", "",
+             f"Scene {d['scene']!r}, seed {d['seed']} of bench/estimator.py (same capture recipe; once with its marker "
+             f"noise, once without). adapt's model ({ADAPT_SUBSTEPS} substeps, P2 on the coarse beam) simulated at "
+             f"FIXED E = scale × E_true per region from frame 0, ν at the truth, markers bound to the simulated "
+             f"frame-0 surface. Per frame t: E/E_true at the minimum of the loss of the w = {W} frames t − {W - 1} … t "
+             f"('window') and of frames 0 … t ('cumulative'), one region swept with the other at its truth "
+             f"(parabola in log E; grids: body {d['body_scales']}, stiff {d['stiff_scales']}).", "",
+             "| frame | window body (noisy) | window stiff (noisy) | cumulative body (noisy) | cumulative stiff (noisy) "
+             "| window body (noise-free) | window stiff (noise-free) | cumulative body (noise-free) "
+             "| cumulative stiff (noise-free) |", "|---|---|---|---|---|---|---|---|---|"]
+    def cell(v: float, grid: list) -> str:  # a minimum beyond the grid is an extrapolation: only its side is known
+        return f"> {max(grid):g}" if v > max(grid) else (f"< {min(grid):g}" if v < min(grid) else f"{v:.3f}")
+
+    for a, b in zip(d["noisy"]["frames"], d["noise-free"]["frames"]):
+        lines.append(f"| {a['frame']} | " + " | ".join(
+            cell(x[k], d["body_scales"] if k.endswith("body") else d["stiff_scales"]) for x in (a, b) for k in (
+                "window_body", "window_stiff", "cumulative_body", "cumulative_stiff")) + " |")
+    lines += ["", f"## Summary (frames ≥ w + 5 = {W + 5}, computed from the table)", ""]
+    for label in ("noisy", "noise-free"):
+        rows = settled(d[label]["frames"])
+        for k in ("window_body", "window_stiff", "cumulative_body", "cumulative_stiff"):
+            v = np.array([r[k] for r in rows])
+            v = v[np.isfinite(v)]
+            g = d["body_scales"] if k.endswith("body") else d["stiff_scales"]
+            lines.append(f"- {label}, {k.replace('_', ' ')}: E/E_true from {cell(v.min(), g)} to {cell(v.max(), g)} "
+                         f"({np.mean(np.abs(v - 1) <= 0.03):.0%} of the frames within ±3 %)")
+    for tag, regs in d.get("offline", {}).items():
+        lines.append(f"- rsl adapt --mode offline (gn, the whole noisy sequence, {tag}): " + ", ".join(
+            f"{n} E/E_true {v['young_rel']:.3f}, ν {v['poisson']:.3f}" for n, v in regs.items()))
+    text = "\n".join(lines) + "\n"
+    print(text)
+    (OUT / "estimator_window_sweep.md").write_text(text)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--timing", action="store_true", help="only the bar-like timing case (appended to the json)")
@@ -209,7 +319,20 @@ def main() -> None:
     ap.add_argument("--variant", action="append", default=[], metavar="LABEL=OPTIONS",
                     help="an extra gn row: LABEL=\"adapt options\" run on the same captures")
     ap.add_argument("--adam-seeds", type=int, default=1, help="seeds that also run adam (the first N)")
+    ap.add_argument("--window-sweep", action="store_true",
+                    help="only the fixed-E loss sweep per window on one capture (estimator_window_sweep.md)")
+    ap.add_argument("--sweep-scene", default="two-region beam")
+    ap.add_argument("--sweep-seed", type=int, default=1)
     args = ap.parse_args()
+    if args.window_sweep and args.from_json:  # re-write the table from the last sweep
+        write_window_sweep(json.loads((OUT / "estimator_window_sweep.json").read_text()))
+        return
+    if args.window_sweep:
+        d = window_sweep(args.sweep_scene, args.sweep_seed, [0.94, 0.97, 1.0, 1.03, 1.06, 1.09],
+                         [0.7, 0.8, 0.9, 1.0, 1.1, 1.2, 1.3])
+        d["date"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+        write_window_sweep(d)
+        return
     if args.from_json:  # re-write the tables and the plot from the last measurement
         write(json.loads((OUT / "estimator.json").read_text())["cases"], args)
         return
@@ -300,7 +423,8 @@ def write(cases: list, args) -> None:
                 f"Coarse_beam (the shared beam, 0.2 m) pulled by a cable, filmed by rsl synth with a truth of "
                 f"quadratic tets on the once-refined mesh (1632 tets), 3 substeps per frame, hard handles, start = equilibrium, "
                 f"30 markers with σ 0.2 mm noise; rsl adapt: full space, quadratic tets on the beam's own 204 tets, "
-                f"{ADAPT_SUBSTEPS} substeps per frame, markers, w = {W}, E_init = E0/2, default --process-noise, "
+                f"{ADAPT_SUBSTEPS} substeps per frame, markers, w = {W}, E_init = E0/2, default --process-noise "
+                f"({_default('process_noise'):g}; {_default('process_noise_change'):g} after a detected change), "
                 f"--model-error, --change-threshold")),
             "cases": cases}
     if "timing" in old:
@@ -432,32 +556,54 @@ def _floor_table(gn: list, data: dict) -> list[str]:
 
 
 def plot(cases: list) -> None:
+    """Top row: seed 0's E/E_true ± 2σ per scene and region (log scale); bottom row: every seed's E/E_true zoomed to
+    ±10 % with the ±3 % band (colour: estimator, line style: seed)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     panels = list(dict.fromkeys((c["scene"], c["region"]) for c in cases))
-    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), squeeze=False)
-    for ax, (scene, region) in zip(axes[0], panels):
+    fig, axes = plt.subplots(2, len(panels), figsize=(5 * len(panels), 7.5), squeeze=False)
+    labels = list(dict.fromkeys(c["estimator"] for c in cases))
+    colours = {lab: f"C{i}" for i, lab in enumerate(labels)}
+    styles = ["-", "--", ":", "-."]
+    for ax, zoom, (scene, region) in zip(axes[0], axes[1], panels):
         rows = [c for c in cases if c["scene"] == scene and c["region"] == region and c["seed"] == 0]
         for r in rows:
             e = np.asarray(r["young_rel"])
             t = np.arange(len(e))
-            line, = ax.plot(t, e, label=r["estimator"])
+            ax.plot(t, e, color=colours[r["estimator"]], label=r["estimator"])
             sd = np.asarray(r["sigma_rel"])
             if np.all(np.isfinite(sd)):
-                ax.fill_between(t, e - 2 * sd, e + 2 * sd, color=line.get_color(), alpha=0.25, lw=0,
+                ax.fill_between(t, e - 2 * sd, e + 2 * sd, color=colours[r["estimator"]], alpha=0.25, lw=0,
                                 label=f"{r['estimator']} ± 2σ")
-        ax.axhline(1.0, color="k", lw=0.8, ls="--", label="truth")
-        for s in rows[0]["steps"] if rows else []:
-            ax.axvline(s, color="grey", lw=0.6, ls=":")
+        for c in [c for c in cases if c["scene"] == scene and c["region"] == region]:
+            e = np.asarray(c["young_rel"])
+            zoom.plot(np.arange(len(e)), e, color=colours[c["estimator"]], ls=styles[c["seed"] % len(styles)], lw=1,
+                      label=f"{c['estimator']}, seed {c['seed']}")
+        steps = next((c["steps"] for c in cases if c["scene"] == scene), [])
+        for a in (ax, zoom):
+            a.axhline(1.0, color="k", lw=0.8, ls="--", label="truth" if a is ax else None)
+            for s in steps:
+                a.axvline(s, color="grey", lw=0.6, ls=":")
+            a.set_xlabel("frame")
+        zoom.axhspan(0.97, 1.03, color="grey", alpha=0.15, lw=0, label="±3 %")
+        zoom.set_ylim(0.9, 1.1)
+        zoom.set_title(f"{scene} ({region}), every seed: E / E_true", fontsize=9)
         ax.set_yscale("log")
         ax.set_ylim(0.3, 3.0)
-        ax.set_title(f"{scene} ({region}), seed 0: E / E_true", fontsize=9)
-        ax.set_xlabel("frame")
-        ax.legend(fontsize=7)
-    fig.tight_layout()
+        ax.set_title(f"{scene} ({region}), seed 0: E / E_true ± 2σ", fontsize=9)
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    seeds = sorted({c["seed"] for c in cases})
+    handles = ([Line2D([], [], color=colours[lab], label=lab) for lab in labels]
+               + [Line2D([], [], color="k", ls=styles[s % len(styles)], lw=1, label=f"seed {s}") for s in seeds]
+               + [Line2D([], [], color="k", ls="--", lw=0.8, label="truth"),
+                  Patch(color="grey", alpha=0.3, label="±3 % (bottom row)")])
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
     fig.savefig(OUT / "estimator.png", dpi=110)
 
 

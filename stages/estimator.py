@@ -118,9 +118,10 @@ def cluster_scale2(r: np.ndarray, J: np.ndarray, sigma: float, delta: float | No
     u = r / sigma
     psi, dpsi = huber_psi(u, delta)
     score = J * (sigma * psi)[:, None]  # (m, k)
-    _, ids = np.unique(np.asarray(clusters), return_inverse=True)
-    g = np.zeros((ids.max() + 1, k))
-    np.add.at(g, ids, score)
+    ids = np.asarray(clusters)
+    if ids.dtype.kind not in "iu" or ids.min() < 0 or ids.max() > 4 * m:  # labels → 0..G−1 (np.unique is slow)
+        ids = np.unique(ids, return_inverse=True)[1].reshape(-1)
+    g = np.stack([np.bincount(ids, weights=score[:, j]) for j in range(k)], axis=1)  # (clusters, k): Σ_{i∈c}
     G = int(np.sum(np.any(g != 0.0, axis=1)))
     if G < 4 * k:
         return residual_scale2(r, sigma, delta, k)
@@ -346,6 +347,14 @@ class ChangeDetector:
             self.g = 0.0
             return True
         return False
+
+
+def process_noise(frame: int, changes: list, window: int, settled: float, after_change: float) -> float:
+    """σ of the random walk per frame that the arrival cost takes at ``frame``: ``after_change`` during the
+    window + 5 frames after the last detected change of the unknowns (``changes``: their frames), while the estimate
+    re-settles on the new value; ``settled`` otherwise (a constant material: the estimate averages over the motion
+    rather than follow a model error that varies with it)."""
+    return float(after_change if changes and 0 <= frame - changes[-1] < window + 5 else settled)
 
 
 def _sym_inv(a: np.ndarray) -> np.ndarray:

@@ -51,13 +51,16 @@ from typing import Literal
 
 import numpy as np
 
-from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, MeshArtefact, Provenance, check_mesh_source,
-                              check_same_mesh)
+from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, MeshArtefact, Provenance, SubspaceArtefact,
+                              check_mesh_source, check_same_mesh)
 from stages.capture import CaptureError, check_obstacles_clear, load_capture
 from stages.errors import Interrupted, RslError
+from stages.estimator import (ChangeDetector, Prior, WindowFilter, condition, gauss_newton, huber_weights, posterior_cov,
+                              process_noise, weakly_informed)
 from stages.interrupt import CheckedReporter, CtrlC
 from stages.parameters import Adam, params_from_theta, theta_from_params
 from stages.progress import Reporter, SilentReporter
+from stages.sim.mesh import rest_quantities
 from stages.sim.meshgen import refine_tets  # noqa: F401  (re-exported: stages.steps.adapt.refine_tets)
 from stages.vision_anchor import AnchorMaterial
 from stages.window_model import Observation, WindowBackend
@@ -124,10 +127,18 @@ class AdaptConfig:
     estimator: Literal["auto", "adam", "gn"] = "auto"
     """adam: a few Adam steps on the window loss per frame; gn: Gauss–Newton / Levenberg–Marquardt on the window
     residuals with an arrival-cost prior and process noise (a moving-horizon filter), reporting E ± σ; auto: gn
-    with markers (it settles in 4 frames against Adam's 33, docs/results/estimator.md), adam with images (measured
-    closer to the truth than gn on images, docs/results/vision_bias.md)."""
-    process_noise: float = 0.02
-    """gn: σ of the random walk of log E (and of the ν parameter) per frame — how fast the material may change."""
+    with markers (docs/results/estimator.md: steps followed within w + 5 frames, E ± 2σ calibrated), adam with
+    images (measured closer to the truth than gn on images from a far start, docs/results/vision_bias.md)."""
+    process_noise: float = 0.005
+    """gn: σ of the random walk of log E (and of the ν parameter) per frame — how fast the material may change —
+    while no change of material has been detected in the last w + 5 frames.  Small, so the estimate averages over
+    the motion instead of following the model error, which varies with the motion's phase (two-region beam: the
+    3-frame window's loss minimum in the body moves from 0.96 to beyond 1.09 E_true, with or without marker noise,
+    docs/results/estimator_window_sweep.md); a step of E is
+    caught by the change test (--change-threshold), and --process-noise-change applies after it."""
+    process_noise_change: float = 0.02
+    """gn: σ of the random walk per frame (as --process-noise) during the w + 5 frames after a detected change of
+    material, while the estimate re-settles on the new material."""
     state_correction: Literal["states", "past", "off"] = "states"
     """gn: also estimate a correction of the window's two starting states, so the simulated past cannot drift
     from what is observed.  states: every latent coordinate of both states in the reduced space (2r unknowns),
@@ -188,8 +199,6 @@ def resolve_estimator(config: AdaptConfig) -> str:
 
 # =========================================================================== mesh refinement
 def _refined_mesh(mesh: MeshArtefact, levels: int) -> MeshArtefact:
-    from stages.sim.mesh import rest_quantities
-
     v, t, reg = mesh.vertices, mesh.tets, mesh.tet_region
     for _ in range(levels):
         v, t, reg = refine_tets(v, t, reg)
@@ -310,8 +319,9 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     if config.estimator not in ("auto", "adam", "gn"):
         raise RslError(f"{capture.toml_path}: --estimator should be auto, adam or gn, found '{config.estimator}'.")
     estimator = resolve_estimator(config)
-    if not config.process_noise >= 0:
-        raise RslError(f"{capture.toml_path}: --process-noise must be 0 or more, found {config.process_noise}.")
+    if not (config.process_noise >= 0 and config.process_noise_change >= 0):
+        raise RslError(f"{capture.toml_path}: --process-noise and --process-noise-change must be 0 or more, found "
+                       f"{config.process_noise} and {config.process_noise_change}.")
     if config.iters_per_frame < 1 or config.offline_iters < 1:
         raise RslError(f"{capture.toml_path}: --iters-per-frame and --offline-iters must be at least 1.")
     if config.refine and config.space != "full":
@@ -336,7 +346,6 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     if config.space == "full":
         backend = FullSpace(scene, inputs, config.solver)
     else:
-        from stages.artefacts import SubspaceArtefact
         from stages.subspace import ReducedModel
 
         sub_path = ws / KIND_FILES["subspace"]
@@ -567,8 +576,6 @@ def _frame_loss(obs, r: np.ndarray) -> float:
 
 def _gn_prior(p: np.ndarray) -> "object":
     """The initial arrival cost: N(p, I) — σ = 1 on log E (a factor e either way) and on s."""
-    from stages.estimator import Prior
-
     return Prior(p.copy(), np.eye(len(p)))
 
 
@@ -578,8 +585,6 @@ def _gn_solve(gn: GNWindow, frames, p0, prior, before, D, sigma, obs, iterations
     stiff regime the motion hardly depends on E and an unbounded step could run away.  ``scale``: the data term's
     variance factor s² (estimator.gauss_newton); observations with correlated residuals (images: pixel blocks,
     VisionObservation.clusters) get the cluster-robust s² in the result (estimator.cluster_scale2)."""
-    from stages.estimator import gauss_newton
-
     k, kt = len(p0), gn.k_theta
     lower, upper, cap = np.full(k, np.nan), np.full(k, np.nan), np.full(k, np.inf)
     if gn.young_range is not None:
@@ -629,9 +634,6 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     unknowns against the arrival-cost prior; the frame leaving the window is folded into the prior, which then
     takes one frame of process noise."""
     from scipy.linalg import block_diag
-
-    from stages.estimator import (ChangeDetector, Prior, WindowFilter, condition, huber_weights, posterior_cov,
-                                  weakly_informed)
 
     config, obs, backend, objective, stored, rec = (loop.config, loop.obs, loop.backend, loop.objective, loop.stored,
                                                     loop.rec)
@@ -747,6 +749,10 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                 s_fold = sigma * float(np.sqrt(max(res.scale2, 1.0)))  # never more certain than σ says
                 J0 = J_lin[0][:, :k_th].copy()
                 J0[:, R + np.flatnonzero(held_now)] = 0.0  # a window that held ν tells the arrival cost nothing of it
+                # the process noise of the frame: small while the material is taken as constant, larger during the
+                # w + 5 frames after a detected change (the estimate re-settles there)
+                filt.q = np.full(k_th, process_noise(T, changes, w, config.process_noise,
+                                                     config.process_noise_change))
                 filt.leave(res.p_lin[:k_th], r0, J0, s_fold, huber_weights(r0, sigma, obs.huber))
             r_all = np.concatenate(gn.last_rs)
             # the noise level: the median over the last 5 frames of the windows' residual scale per degree of
@@ -785,7 +791,10 @@ def _offline_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
         sigma2 = max(obs.noise_scale(np.concatenate(gn.last_rs)), obs.noise_floor)
         res, _ = _gn_solve(gn, frames, q, _gn_prior(p), before, None, sigma2, obs, 1)
     E, nu, _ = gn.theta(res.p)
-    sE, sN = sigma_from_cov(gn, res.p, res.cov_scaled, config.model_error, config.model_error_poisson)
+    cov = np.array(res.cov_scaled, dtype=float)
+    if hasattr(obs, "sigma_floor"):  # silhouettes: a mask outline's error no residual shows (stages/silhouette.py)
+        cov[np.arange(gn.R), np.arange(gn.R)] += obs.sigma_floor()[:gn.R] ** 2
+    sE, sN = sigma_from_cov(gn, res.p, cov, config.model_error, config.model_error_poisson)
     per_frame = tuple(np.asarray(gn.times) / len(frames))
     for i, t in enumerate(frames):
         loop.stored[t] = gn.last_states[i]
