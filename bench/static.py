@@ -12,16 +12,20 @@ capture.toml E (the guess: adapt's start and GrabCut's seed, 0.4 and 1.0 × E_tr
 
 `rsl adapt --space full --loss vision --fixed-poisson --poisson-init 0.45` (static by itself: the soft silhouette
 of stages/silhouette.py against masks.h5, Gauss–Newton, σ from the cluster-robust sandwich over 8×8 pixel blocks
-plus adapt's 2 % model-error floor).  Each row: E/E_true, adapt's ±σ (and the data part alone, the floor taken
-out), whether E_true lies within ±2σ, adapt's wall time and render time per frame, the mask IoU of frame 0
-against the truth's mask.
+plus adapt's 2 % model-error floor and the silhouette's outline floor).  Each row: E/E_true, adapt's ±σ (and the
+data part alone, both floors taken out), the outline floor and the outline offset b matched at the estimate,
+whether E_true lies within ±2σ, adapt's wall time and render time per frame, the mask IoU of frame 0 against the
+truth's mask.
+
+Per object and resolution (--shifts N): the resolution floor, E from truth masks alone as the camera moves by
+sub-pixel offsets (resolution_floor), against stages.silhouette.OUTLINE_PX.
 
 Per object and resolution, the per-frame cost of the silhouette (coverage + forward mode in one direction +
 reverse mode, at adapt's final positions, compiled beforehand, median of --repeats) of the sparse evaluation
 against its dense twin (every triangle at every pixel of the object's box), in the same run.
 
     nice .venv/bin/python bench/static.py [--objects beam,bar] [--resolutions 64,96] [--guesses 0.4,1.0]
-                                          [--masks grabcut,truth] [--work /tmp/rsl_static] [--merge]
+                                          [--masks grabcut,truth] [--shifts 6] [--work /tmp/rsl_static] [--merge]
 
 With RSL_BENCH_REUSE=1 the captures, meshes and masks already in --work are reused (adapt always runs).
 ``--merge`` adds the rows to docs/results/static.json's (rows with the same key replaced).
@@ -35,6 +39,7 @@ import os
 import platform
 import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -143,11 +148,73 @@ def sigma_study(capg: Path, ws: Path, young: float, h: float = 1e-3) -> dict:
     dX = ((X[1] - X[-1]) / (2 * h))[None]  # (1, T, n, 3)
     J = np.concatenate(obs.jacobian(frames, X[0], dX), axis=0)  # (m, 1)
     A = float(J[:, 0] @ J[:, 0])
-    out = {"sigma_iid": float(np.sqrt(residual_scale2(r, 1.0, None, 1) / A))}
+    out = {"sigma_iid": float(np.sqrt(residual_scale2(r, 1.0, None, 1) / A)),
+           "sigma_floor": float(obs.sigma_floor()[0]), "floor_unit": float(obs.floor_unit[0]),
+           "outline_rms_px": obs.outline_rms_px, "grow_px": float(np.mean(list(obs.grow_px.values()))),
+           "outline_px": float(obs.outline_px)}
     for b in BLOCKS:
         obs.block_px = b
         out[f"sigma_block{b}"] = float(np.sqrt(cluster_scale2(r, J, 1.0, None, obs.clusters(frames)) / A))
     return out
+
+
+def resolution_floor(name: str, res: int, cap: Path, ws0: Path, shifts: int) -> dict:
+    """E from truth masks alone as the camera moves by sub-pixel offsets (the principal point shifted by (u, v),
+    u, v uniform in [0, 1) px; the first unshifted): the masks are made as rsl synth makes truth/masks (2 × 2
+    supersampled coverage of the truth surface ≥ ½, the clamp's pixels removed), E minimises the silhouette loss
+    along the static equilibria (a cubic spline in log E through 10 solves over 0.8…1.25 E_true).  The spread
+    of log E over the offsets is the resolution floor of the estimate; ``floor_unit`` (σ of log E per pixel of
+    outline error per block, stages/silhouette.py) turns it into the outline error in pixels it amounts to."""
+    import dataclasses
+
+    from scipy.interpolate import CubicSpline
+    from scipy.optimize import minimize_scalar
+
+    from stages.artefacts import MeshArtefact
+    from stages.capture import load_capture
+    from stages.occluders import ignore_mask
+    from stages.silhouette import SilhouetteObservation, SoftSilhouette
+    from stages.sim.scene import make_scene
+    from stages.sweep import silhouette_coverage, simulate_fixed
+
+    e_true = OBJECTS[name]
+    capture = load_capture(cap)
+    mesh = MeshArtefact.load(ws0 / "mesh.h5")
+    ctl = capture.controls()
+    scene = make_scene(mesh, ctl, capture.material.model, capture.dt, capture.gravity)
+    truth = np.load(cap / "truth" / "surface.npz")
+    from stages.artefacts import CamerasArtefact
+
+    cam0 = CamerasArtefact.load(ws0 / "cameras.h5").cameras[0]
+    lg = np.log(e_true) + np.linspace(np.log(0.8), np.log(1.25), 10)
+    spl = CubicSpline(lg, np.stack([simulate_fixed(scene, ctl, np.array([np.exp(v)]), np.array([POISSON]), 1,
+                                                   "equilibrium")[0] for v in lg]), axis=0)
+    faces = np.asarray(mesh.surface_faces)[:, :3]
+    rng = np.random.default_rng(0)
+    est, units, rms = [], [], []
+    for k in range(shifts):
+        u, v = (0.0, 0.0) if k == 0 else rng.random(2)
+        K = np.array(cam0.K, np.float64)
+        K[0, 2] += u
+        K[1, 2] += v
+        cam = dataclasses.replace(cam0, K=K)
+        m = silhouette_coverage(truth["vertices"][0], truth["faces"], cam, supersample=2) >= 0.5
+        m &= ~ignore_mask(ctl, 0, cam, margin_px=0)
+        obs = SilhouetteObservation.__new__(SilhouetteObservation)  # one camera, the masks made here
+        obs.n, obs.cameras, obs.masks, obs._cams = mesh.n_vertices, [cam.name], {cam.name: m[None]}, [cam]
+        obs.soft, obs.grow_px = [SoftSilhouette(faces, cam)], {}
+        obs._ignore = {0: [(~ignore_mask(ctl, 0, cam)).astype(np.float64)]}
+        best = minimize_scalar(lambda q: float(np.sum(obs.residual_images(0, spl(q))[0] ** 2)),
+                               bounds=(lg[0], lg[-1]), method="bounded", options={"xatol": 1e-4})
+        est.append(float(best.x - np.log(e_true)))
+        obs.jacobian([0], spl(best.x)[None], spl(best.x, 1)[None, None])
+        units.append(float(obs.floor_unit[0]))
+        rms.append(obs.outline_rms_px)
+    spread = float(np.std(est, ddof=1))
+    return {"kind": "resolution", "object": name, "resolution": res, "shifts": shifts,
+            "log_E_over_true": est, "mean_E_over_true": float(np.exp(np.mean(est))), "std_log_E": spread,
+            "max_abs_log_E": float(np.max(np.abs(est))), "floor_unit": float(np.mean(units)),
+            "outline_rms_px": float(np.mean(rms)), "outline_px_implied": spread / float(np.mean(units))}
 
 
 def identify(name: str, res: int, guess: float, masks: str, cap: Path, ws0: Path, iters: int) -> dict:
@@ -167,11 +234,13 @@ def identify(name: str, res: int, guess: float, masks: str, cap: Path, ws0: Path
     assert art.mode == "static" and art.loss_kind == "silhouette", (art.mode, art.loss_kind)
     E, sE = float(art.young[-1, 0]), float(art.young_sigma[-1, 0])
     rel = sE / E
-    data = float(np.sqrt(max(rel ** 2 - 0.02 ** 2, 0.0)))  # adapt's --model-error 0.02 in quadrature taken out
     study = sigma_study(capg, ws, E)
-    for k in [k for k in study if k.startswith("sigma_")]:
+    # adapt's --model-error 0.02 and the silhouette's outline floor (both in quadrature) taken out
+    data = float(np.sqrt(max(rel ** 2 - 0.02 ** 2 - study["sigma_floor"] ** 2, 0.0)))
+    for k in [k for k in study if k.startswith("sigma_") and k != "sigma_floor"]:
         study[f"inside_2{k}"] = bool(abs(np.log(E / e_true)) <= 2 * study[k])
-        study[f"inside_2{k}_floor"] = bool(abs(np.log(E / e_true)) <= 2 * np.hypot(study[k], 0.02))
+        study[f"inside_2{k}_floor"] = bool(abs(np.log(E / e_true))
+                                           <= 2 * np.sqrt(study[k] ** 2 + 0.02 ** 2 + study["sigma_floor"] ** 2))
     return {"kind": "identification", "object": name, "resolution": res, "masks": masks, "guess": guess,
             "E_over_true": E / e_true, "sigma_rel": rel, "sigma_data_rel": data,
             "inside_2sigma": bool(abs(E - e_true) <= 2 * sE),
@@ -213,6 +282,12 @@ def timing(name: str, res: int, ws: Path, repeats: int) -> dict:
     return out
 
 
+def _outline_px() -> float:
+    from stages.silhouette import OUTLINE_PX
+
+    return OUTLINE_PX
+
+
 def _key(c: dict) -> tuple:
     return (c["kind"], c["object"], c["resolution"], c.get("masks"), c.get("guess"))
 
@@ -220,14 +295,21 @@ def _key(c: dict) -> tuple:
 def table(cases: list[dict]) -> str:
     ids = sorted((c for c in cases if c["kind"] == "identification"),
                  key=lambda c: (c["object"], c["resolution"], c["masks"], c["guess"]))
-    lines = ["| object | px | masks | toml E / E_true | E / E_true | ±σ (adapt) | ±σ data | inside 2σ | "
-             "inside 2σ data | s/frame | render s/frame | mask IoU |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| object | px | masks | toml E / E_true | E / E_true | ±σ (adapt) | ±σ data | ±σ outline floor | "
+             "outline offset b px | inside 2σ | inside 2σ data | s/frame | render s/frame | mask IoU |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in ids:
+        so = f" (σ_o {max(c['outline_px'], c['outline_rms_px']):.3f} px)" if "outline_px" in c else ""
+        fl = f"{c['sigma_floor']:.1%}{so} | {c['grow_px']:+.2f}" if "sigma_floor" in c else "– | –"
         lines.append(f"| {c['object']} | {c['resolution']}² | {c['masks']} | {c['guess']:.1f} | {c['E_over_true']:.3f} "
-                     f"| {c['sigma_rel']:.1%} | {c['sigma_data_rel']:.1%} | {'yes' if c['inside_2sigma'] else 'no'} "
+                     f"| {c['sigma_rel']:.1%} | {c['sigma_data_rel']:.1%} | {fl} "
+                     f"| {'yes' if c['inside_2sigma'] else 'no'} "
                      f"| {'yes' if c['inside_2sigma_data'] else 'no'} | {c['s_per_frame']:.1f} "
                      f"| {c['render_s_per_frame']:.1f} | {c['mask_iou']:.3f} |")
+    old = [c for c in ids if "sigma_floor" not in c]
+    if old:
+        lines += ["", f"{len(old)} rows (– in the floor columns) were measured before the outline offset b and the "
+                      "outline floor (static.json keeps them as they were)."]
     if ids:
         n = len(ids)
         k = sum(c["inside_2sigma"] for c in ids)
@@ -246,9 +328,24 @@ def table(cases: list[dict]) -> str:
         for c in ids:
             lines.append(f"| {c['object']} | {c['resolution']}² | {c['masks']} | {c['guess']:.1f} | "
                          f"{abs(np.log(c['E_over_true'])):.1%} | " + " | ".join(f"{c[k]:.2%}" for k in keys) + " |")
-        lines += ["", "E_true within ±2σ of that σ alone / with adapt's 2 % model-error floor in quadrature: "
+        lines += ["", "E_true within ±2σ of that σ alone / with adapt's 2 % model-error floor and the outline floor "
+                      "in quadrature: "
                   + "; ".join(f"{nm} {sum(c[f'inside_2{k}'] for c in ids)}/{sum(c[f'inside_2{k}_floor'] for c in ids)} "
                               f"of {len(ids)}" for k, nm in zip(keys, names)) + "."]
+    rf = sorted((c for c in cases if c["kind"] == "resolution"), key=lambda c: (c["object"], c["resolution"]))
+    if rf:
+        lines += ["", "Resolution floor: E from truth masks alone (made as rsl synth makes truth/masks) as the camera "
+                      "moves by sub-pixel offsets (bench/static.py resolution_floor); the spread of log E over the "
+                      "offsets, and the outline error per 8×8 block it amounts to (spread / floor unit):", "",
+                  "| object | px | offsets | mean E / E_true | std log E | largest abs log E | floor unit (σ log E per "
+                  "px) | outline error px | RMS outline misfit px |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for c in rf:
+            lines.append(f"| {c['object']} | {c['resolution']}² | {c['shifts']} | {c['mean_E_over_true']:.3f} | "
+                         f"{c['std_log_E']:.2%} | {c['max_abs_log_E']:.2%} | {c['floor_unit']:.3f} | "
+                         f"{c['outline_px_implied']:.3f} | {c['outline_rms_px']:.3f} |")
+        lines += ["", f"Largest outline error implied: {max(c['outline_px_implied'] for c in rf):.3f} px "
+                      f"(stages.silhouette.OUTLINE_PX, the floor adapt adds: {_outline_px():.3f} px)."]
     tim = sorted((c for c in cases if c["kind"] == "timing"), key=lambda c: (c["object"], c["resolution"]))
     if tim:
         lines += ["", "Silhouette per frame (coverage + jvp + vjp, compiled), sparse vs dense twin, same run:", "",
@@ -280,6 +377,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--offline-iters", type=int, default=30, help="rsl adapt --offline-iters (its default: 30)")
     ap.add_argument("--no-timing", action="store_true")
+    ap.add_argument("--shifts", type=int, default=6, help="sub-pixel camera offsets of the resolution floor (0: none)")
+    ap.add_argument("--only-floor", action="store_true", help="only the resolution floor rows")
     ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_static"))
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
     ap.add_argument("--merge", action="store_true")
@@ -296,7 +395,7 @@ def main() -> None:
         for res in map(int, args.resolutions.split(",")):
             cap, ws0 = capture(name, res, args.work)
             last_ws = None
-            for guess in map(float, args.guesses.split(",")):
+            for guess in map(float, args.guesses.split(",") if not args.only_floor else []):
                 for masks in args.masks.split(","):
                     try:
                         c = identify(name, res, guess, masks, cap, ws0, args.offline_iters)
@@ -307,7 +406,12 @@ def main() -> None:
                     print(f"{name} {res}² {masks} toml×{guess}: E/E_true {c['E_over_true']:.3f} "
                           f"±{c['sigma_rel']:.1%} ({c['s_per_frame']:.1f} s/frame)", flush=True)
                     save(args.out, [c], args.merge)
-            if last_ws is not None and not args.no_timing:
+            if args.shifts > 1:
+                c = resolution_floor(name, res, cap, ws0, args.shifts)
+                print(f"{name} {res}²: resolution floor std log E {c['std_log_E']:.2%} "
+                      f"= {c['outline_px_implied']:.3f} px of outline", flush=True)
+                save(args.out, [c], args.merge)
+            if last_ws is not None and not args.no_timing and not args.only_floor:
                 c = timing(name, res, last_ws, args.repeats)
                 print(f"{name} {res}²: dense/sparse {c['speedup']:.1f}×", flush=True)
                 save(args.out, [c], args.merge)
@@ -321,7 +425,7 @@ def save(out: Path, cases: list[dict], merge: bool) -> None:
 
     out.mkdir(parents=True, exist_ok=True)
     jpath = out / "static.json"
-    with open(out / ".static.lock", "w") as lock:
+    with open(Path(tempfile.gettempdir()) / "rsl_bench_static.lock", "w") as lock:  # not in docs/results
         fcntl.flock(lock, fcntl.LOCK_EX)
         fresh = not merge and not _STARTED
         old = [] if fresh or not jpath.exists() else json.loads(jpath.read_text())["cases"]

@@ -43,6 +43,11 @@ def test_soft_silhouette_derivatives_match_finite_differences():
         fd = (s.coverage(x + h * V[j]) - s.coverage(x - h * V[j])) / (2 * h)
         assert np.abs(fd - J[j]).max() < 1e-4 * np.abs(J[j]).max()
         assert np.sum(G * V[j]) == pytest.approx(np.sum(g * J[j]), rel=1e-9)
+    # ∂A/∂b, b the outline offset in pixels: central differences in b; the outline's length is Σ ∂A/∂b
+    A0, dA = s.coverage_dgrow(x, 0.2)
+    fd = (s.coverage(x, grow=0.2 + 1e-4) - s.coverage(x, grow=0.2 - 1e-4)) / 2e-4
+    assert np.abs(fd - dA).max() < 1e-5 * np.abs(dA).max() and np.abs(A0 - s.coverage(x, grow=0.2)).max() < 1e-14
+    assert s.coverage(x, grow=0.2).sum() > A.sum() + 0.1 * dA.sum()
 
 
 @pytest.mark.parametrize("shift", [(-0.1, -0.02), (-0.2, 0.03)])
@@ -67,24 +72,34 @@ def test_sparse_soft_silhouette_equals_its_dense_twin(shift):
     g = rng.standard_normal(A.shape)
     G, Gd = sp.vjp(x, g), de.vjp(x, g)
     assert np.abs(G - Gd).max() < 1e-6 * np.abs(Gd).max()
+    # with the outline moved (the observation's offset b): coverage, ∂A/∂b and the derivatives in x
+    (A, dA), (Ad, dAd) = sp.coverage_dgrow(x, 0.4), de.coverage_dgrow(x, 0.4)
+    assert np.abs(A - Ad).max() <= CUT_EPS * (1 + 1e-9) + 1e-14 and np.abs(A - sp.coverage(x, grow=0.4)).max() < 1e-14
+    assert np.abs(dA - dAd).max() < 1e-6 * np.abs(dAd).max() and dA.min() >= 0  # growing only adds coverage
+    assert np.abs(sp.jvp(x, V, grow=-0.3) - de.jvp(x, V, grow=-0.3)).max() < 1e-6 * np.abs(Jd).max()
+    assert np.abs(sp.vjp(x, g, grow=-0.3) - de.vjp(x, g, grow=-0.3)).max() < 1e-6 * np.abs(Gd).max()
 
 
 def test_sparse_margin_bounds_the_left_out_terms():
-    """The margin m = τ (ln(F/ε) − δ/τ): one triangle's term at distance m from it is ε/F (softplus(−(m+δ)/τ) ≈
-    e^{−(m+δ)/τ}), so F of them sum to ε; a triangle seen alone, its coverage one pixel beyond its grown box is
-    below ε/F, and what the dense twin gives inside the grown box."""
-    from stages.silhouette import CUT_EPS, SHIFT_TAU, TAU_PX, SoftSilhouette
+    """The margin m = τ (ln(F/ε) − δ/τ) + b_max: one triangle's term at distance m from it, its outline moved out
+    by the largest offset b_max, is ε/F (softplus(−(m − b_max + δ)/τ) ≈ e^{−(m − b_max + δ)/τ}), so F of them sum
+    to ε; a triangle seen alone, its coverage one pixel beyond its grown box is below ε/F, and what the dense twin
+    gives inside the grown box — at b = 0 and at b = ±b_max."""
+    from stages.silhouette import CUT_EPS, GROW_MAX_PX, SHIFT_TAU, TAU_PX, SoftSilhouette
 
     faces = np.array([[0, 1, 2]])
     x = np.array([[0.0, 0.0, 0.5], [0.01, 0.0, 0.5], [0.0, 0.012, 0.5]])
     cam = _sil_camera(48, (0.0, 0.0))
     sp, de = SoftSilhouette(faces, cam), SoftSilhouette(faces, cam, dense=True)
     m = sp.margin_px
-    assert m == pytest.approx(TAU_PX * (np.log(1 / CUT_EPS) - SHIFT_TAU))
-    assert np.log1p(np.exp(-(m / TAU_PX + SHIFT_TAU))) == pytest.approx(CUT_EPS, rel=1e-6)
-    A, Ad = sp.coverage(x), de.coverage(x)
-    assert np.abs(A - Ad).max() <= CUT_EPS
-    assert (A == 0).any() and Ad[A == 0].max() <= CUT_EPS  # only terms below ε are left out
+    assert m == pytest.approx(TAU_PX * (np.log(1 / CUT_EPS) - SHIFT_TAU) + GROW_MAX_PX)
+    assert np.log1p(np.exp(-((m - GROW_MAX_PX) / TAU_PX + SHIFT_TAU))) == pytest.approx(CUT_EPS, rel=1e-6)
+    for b in (0.0, GROW_MAX_PX, -GROW_MAX_PX):
+        A, Ad = sp.coverage(x, grow=b), de.coverage(x, grow=b)
+        assert np.abs(A - Ad).max() <= CUT_EPS
+        assert (A == 0).any() and Ad[A == 0].max() <= CUT_EPS  # only terms below ε are left out
+    with pytest.raises(ValueError):
+        sp.coverage(x, grow=1.5 * GROW_MAX_PX)
 
 
 def test_soft_silhouette_is_the_hard_silhouette_blurred_by_a_pixel():
@@ -167,7 +182,7 @@ def _bar_observation(mask: np.ndarray, n: int, faces: np.ndarray, cam):
     obs = _observation_with_cameras([cam])
     obs.n, obs.cameras, obs.masks = n, [cam.name], {cam.name: mask}
     obs.soft = [SoftSilhouette(faces, cam)]
-    obs.occluded, obs.controls, obs._ignore = False, None, {}
+    obs.occluded, obs.controls, obs._ignore, obs.grow_px = False, None, {}, {}
     assert isinstance(obs, SilhouetteObservation)
     return obs
 
@@ -201,3 +216,70 @@ def test_silhouette_observation_residuals_jacobian_and_gradient_agree():
     lp = obs.loss([0, 1], X + h * V)[0].sum()
     lm = obs.loss([0, 1], X - h * V)[0].sum()
     assert np.sum(grad * V) == pytest.approx((lp - lm) / (2 * h), rel=1e-5)
+
+
+def test_matched_outline_offset_takes_up_a_dilated_mask():
+    """A mask whose outline lies b pixels outside the surface's (a segmentation's convention: 2×2-supersampled
+    coverage ≥ ½ fattens it by ~¼ px) would pull E through the blurred residual (docs/results/static.md); the
+    observation matches the offset per camera and frame (Σ keep·(A(x, b) − m) = 0): at the true positions b is
+    the dilation, the residual and the gradient vanish — with b held at 0 neither does.  A mask beyond any offset
+    pins b at GROW_MAX_PX, and the derivatives stay exact there (b constant)."""
+    from stages.silhouette import GROW_MAX_PX, SoftSilhouette
+
+    x, f = _bar(seed=4)
+    cam = _sil_camera(48)
+    m = SoftSilhouette(f, cam).coverage(x, grow=0.3)[None]
+    obs = _bar_observation(m, len(x), f, cam)
+    b, A, _, beta = obs.outline(0, 0, x)
+    assert b == pytest.approx(0.3, abs=1e-9) and beta is not None
+    assert np.abs(obs.residuals([0], x[None])[0]).max() < 1e-8
+    loss, grad = obs.loss([0], x[None])
+    assert loss[0] < 1e-15 and np.abs(grad).max() < 1e-6
+    obs.match_outline = False
+    loss0, grad0 = obs.loss([0], x[None])
+    assert loss0[0] > 1.0 and np.abs(grad0).max() > 1e3 * max(np.abs(grad).max(), 1e-9)
+    obs.match_outline = True
+    # away from the truth the areas still match (b follows x)
+    y = x + 2e-3 * np.random.default_rng(1).standard_normal(x.shape)
+    b, A, _, _ = obs.outline(0, 0, y)
+    assert abs(b - 0.3) > 1e-3 and abs(np.sum(A - m[0])) < 1e-8 * m.sum()
+    # pinned: a mask far larger than the surface
+    big = np.zeros((1, 48, 48))
+    big[:, 5:43, 5:43] = 1.0
+    obs = _bar_observation(big, len(x), f, cam)
+    b, _, _, beta = obs.outline(0, 0, x)
+    assert b == GROW_MAX_PX and beta is None
+    dX = 1e-3 * np.random.default_rng(2).standard_normal((1, 1) + x.shape)
+    J = obs.jacobian([0], x[None], dX)[0][:, 0]
+    h = 1e-3
+    fd = (obs.residuals([0], x[None] + h * dX[0])[0] - obs.residuals([0], x[None] - h * dX[0])[0]) / (2 * h)
+    assert np.abs(fd - J).max() < 1e-4 * np.abs(J).max()
+
+
+def test_outline_floor_is_the_spread_that_block_outline_errors_give_the_estimate():
+    """SilhouetteObservation.sigma_floor: an outline error e_c of the mask in pixel block c (Δm = e_c ∂A/∂b on c)
+    moves the linearised estimate p̂ = −Jᵀr / JᵀJ by w_c e_c; the floor σ_o √(Σ_c w_c²) from :meth:`jacobian`'s
+    g_c equals the one from central differences of p̂ in each e_c (b re-matched each time)."""
+    from stages.silhouette import SoftSilhouette
+
+    x, f = _bar(seed=4)
+    cam = _sil_camera(48)
+    soft = SoftSilhouette(f, cam)
+    m0, dA = soft.coverage_dgrow(x, 0.2)
+    obs = _bar_observation(m0[None].copy(), len(x), f, cam)
+    d = np.zeros_like(x)
+    d[:, 2] = 0.05 * (x[:, 0] - x[:, 0].min()) ** 2  # a sag-like direction, m per unit of p
+    J = obs.jacobian([0], x[None], d[None, None])[0][:, 0]
+    assert obs.floor_unit.shape == (1,) and obs.floor_unit[0] > 0
+    ids = obs.clusters([0])
+    w, h = [], 1e-3
+    for c in np.unique(ids[(dA.ravel() > 1e-3)]):
+        on = (ids == c).reshape(48, 48)
+        est = []
+        for e in (h, -h):
+            obs.masks[cam.name] = (m0 + e * dA * on)[None]
+            est.append(-float(J @ obs.residuals([0], x[None])[0]) / float(J @ J))
+        w.append((est[0] - est[1]) / (2 * h))
+    fd = max(obs.outline_px, obs.outline_rms_px) * np.sqrt(np.sum(np.square(w)))
+    print(f"outline floor {obs.sigma_floor()[0]:.4g} (g_c) vs {fd:.4g} (differences), {len(w)} blocks")
+    assert obs.sigma_floor()[0] == pytest.approx(fd, rel=1e-4)
