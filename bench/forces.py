@@ -19,7 +19,9 @@ truths, frame by frame (2 F_{2N} − F_N), or the single truth when only one is 
     --part theta   θ(t) of existing adapt.h5 (``--adapt-ws case=WS,...``; their mesh.h5 is used) under each θ
                    rule (online = as recorded; segment = the last estimate of each segment between the changes the
                    estimator detected; lagL = the estimate L frames later, within the segment), replayed with each
-                   of ``--replays`` (S = plain S substeps, rS = Richardson (S, 2S)); the true E alongside.
+                   of ``--replays`` (S = plain S substeps, rS = Richardson (S, 2S)); the true E alongside, and
+                   each rule's forces also against the true E replayed the same way (the part of the error the
+                   adapted θ(t) adds, free of the replay's own time-step error).
 
 Per row: the median relative error of the applied forces against the reference, pooled over handles/obstacles
 and frames as `rsl evaluate` reports it (stages.forces.force_errors), and the CPU seconds of the replay(s)
@@ -28,9 +30,12 @@ case and θ, measured in the same run.
 
     nice -n 5 .venv/bin/python bench/forces.py --part time --truth-substeps 12,24 --substeps 1,2,3,6,12 \\
         --work /tmp/rsl_forces_conv --name forces_converged
-    nice -n 5 .venv/bin/python bench/forces.py --part theta --truth-substeps 12,24 --replays 3,r1,r3 \\
-        --work /tmp/rsl_forces_conv --adapt-ws bar_equilibrium=/tmp/f_forces/ws_bar_equilibrium_p2,... \\
-        --name forces_theta
+    # per case (its own --truth-substeps), then --merge; each WS made by `rsl adapt CAP -w WS --space full
+    # --loss markers --estimator gn --window 3 --young-init 5e4` on the bench/accuracy.py capture of the case
+    nice -n 5 .venv/bin/python bench/forces.py --part theta --cases bar_equilibrium --truth-substeps 12,24,48 \\
+        --replays 1,r1,3 --work /tmp/rsl_forces_conv --adapt-ws bar_equilibrium=WS1,bar_equilibrium=WS2 \\
+        --out OUT --name theta_bar_eq
+    .venv/bin/python bench/forces.py --merge OUT/theta_bar_eq.json OUT/theta_beam.json ... --name forces_theta
 
 With RSL_BENCH_REUSE=1, captures and meshes already in --work are reused (bench/_pipeline.py).
 """
@@ -43,6 +48,7 @@ import os
 import platform
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -189,8 +195,9 @@ def errors(estimated: list[dict], ref: list[dict], before: int) -> dict:
 
 
 def method_rows(plain: dict[int, tuple[list, float]], specs: list[str], ref: list[dict], dt: float, base: dict,
-                before: int) -> list[dict]:
-    """Rows per replay spec ('S' plain, 'rS' Richardson (S, 2S)) from the plain replays."""
+                before: int, keep_table: bool = False) -> list[dict]:
+    """Rows per replay spec ('S' plain, 'rS' Richardson (S, 2S)) from the plain replays; with ``keep_table`` each
+    row also holds its forces.csv rows under "table"."""
     from stages.forces import force_table, richardson_rows
 
     out = []
@@ -205,8 +212,9 @@ def method_rows(plain: dict[int, tuple[list, float]], specs: list[str], ref: lis
             S = int(spec)
             rows, cpu = plain[S]
             method, label, cost = "plain", f"plain, S = {S}", S
+        table = force_table(rows, dt)
         out.append({**base, "method": method, "replay": label, "substeps": S, "steps_per_frame": cost,
-                    **errors(force_table(rows, dt), ref, before), "cpu_s": cpu})
+                    **errors(table, ref, before), "cpu_s": cpu, **({"table": table} if keep_table else {})})
     return out
 
 
@@ -268,7 +276,7 @@ def part_theta(work: Path, case: str, truth_substeps: list[int], adapt_ws: list[
     dt = float(cap.dt)
     steps = sorted({int(s.lstrip("r")) * m for s in specs for m in ((1, 2) if s.startswith("r") else (1,))})
     rows: list[dict] = []
-    done_true: set = set()
+    true_tables: dict = {}  # (vertices, T) -> {replay label: forces.csv rows of the true E}
     for ws in adapt_ws:
         mesh = MeshArtefact.load(ws / "mesh.h5")
         ad = AdaptArtefact.load(ws / "adapt.h5")
@@ -280,14 +288,18 @@ def part_theta(work: Path, case: str, truth_substeps: list[int], adapt_ws: list[
         poisson = by_region(np.asarray(ad.poisson), list(ad.region_names), regions, "adapt.h5")
         desc = (f"{ws.name}: {cfg.get('space', '?')} space, {cfg.get('loss', '?')}, estimator "
                 f"{(ad.extra or {}).get('estimator', cfg.get('estimator', '?'))}, {cfg.get('substeps', 1)} substep(s), "
-                f"window {cfg.get('window', '?')}, E initialised at {cfg.get('young_init', '?')} Pa, capture "
+                f"window {cfg.get('window', '?')}, process noise {cfg.get('process_noise', '?')}"
+                + (f" ({cfg['process_noise_change']} after a change)" if cfg.get("process_noise_change") is not None
+                   else "") + ", E initialised at "
+                f"{cfg.get('young_init', '?')} Pa, capture "
                 f"{Path(str((ad.extra or {}).get('capture', '?'))).name}")
         changes = list((ad.extra or {}).get("material_changes_detected", []) or [])
         base = {"part": "theta", "case": case, "adapt": desc, "changes": changes, "frames": T, "fps": float(cap.fps),
-                "dofs": 3 * int(mesh.vertices.shape[0])}
+                "dofs": 3 * int(mesh.vertices.shape[0]),
+                "adapt_capture_substeps": capture_substeps((ad.extra or {}).get("capture"))}
+        key = (mesh.vertices.shape[0], T)
         thetas = {}
-        if mesh.vertices.shape[0] not in done_true:  # the true E on this mesh, once
-            done_true.add(mesh.vertices.shape[0])
+        if key not in true_tables:  # the true E on this mesh, once
             thetas["true E"] = (by_region(truth.young[:T], truth.region_names, regions, "truth/material.csv"),
                                 by_region(truth.poisson[:T], truth.region_names, regions, "truth/material.csv"))
         for rule in rules:
@@ -299,10 +311,28 @@ def part_theta(work: Path, case: str, truth_substeps: list[int], adapt_ws: list[
         for label, (y, p) in thetas.items():
             plain = replays(scene, controls, y, p, cap.start, steps, dt, f"{case}, {ws.name}, {label}",
                             work / "cache")
-            rows += method_rows(plain, specs, ref, dt, {**base, "theta": label, "first_change": before,
-                                                         "reference": reference_name(truth_substeps),
-                                                         "adapt": None if label == "true E" else desc}, before)
+            got = method_rows(plain, specs, ref, dt, {**base, "theta": label, "first_change": before,
+                                                       "reference": reference_name(truth_substeps),
+                                                       "adapt": None if label == "true E" else desc}, before,
+                              keep_table=True)
+            if label == "true E":
+                true_tables[key] = {r["replay"]: r["table"] for r in got}
+            for r in got:  # the part of the error the θ rule adds: against the true E replayed the same way
+                if label != "true E" and r["replay"] in true_tables.get(key, {}):
+                    r["vs_true_E"] = errors(r["table"], true_tables[key][r["replay"]], before)
+                del r["table"]
+            rows += got
     return rows
+
+
+def capture_substeps(capture) -> int | None:
+    """[synth] substeps of the capture.toml in folder ``capture`` (the truth's implicit steps per frame); None when
+    it is not there."""
+    path = Path(str(capture)) / "capture.toml" if capture else None
+    if path is None or not path.is_file():
+        return None
+    got = tomllib.loads(path.read_text()).get("synth", {}).get("substeps")
+    return None if got is None else int(got)
 
 
 def _pct(x) -> str:
@@ -320,7 +350,8 @@ TIME_HEAD = ("| capture | replay | implicit steps per frame | vs reference, all 
              "the first change of E (%) | error / plain S = 1 (all frames) | replay CPU (s) | CPU / plain S = 1 |\n"
              "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |")
 THETA_HEAD = ("| capture | adapt.h5 | θ(t) | replay | vs reference, all frames (%) | vs reference, frames before the "
-              "first change of E (%) | replay CPU (s) |\n| --- | --- | --- | --- | ---: | ---: | ---: |")
+              "first change of E (%) | vs the true E replayed alike, all frames (%) | vs the true E replayed alike, "
+              "before the change (%) | replay CPU (s) |\n| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: |")
 
 
 def _before(r: dict) -> str:
@@ -340,8 +371,46 @@ def _time_row(r: dict) -> str:
 
 def _theta_row(r: dict) -> str:
     adapt = "—" if r.get("adapt") is None else r["adapt"].split(":")[0]
+    vs = r.get("vs_true_E") or {}
     return (f"| {r['case']} | {adapt} | {r['theta']} | {r['replay']} | {_pct(r['median_force_error'])} | "
-            f"{_before(r)} | {r['cpu_s']:.1f} |")
+            f"{_before(r)} | {_pct(vs.get('median_force_error'))} | {_pct(vs.get('median_force_error_before_change'))} "
+            f"| {r['cpu_s']:.1f} |")
+
+
+THETA_METRICS = (("median_force_error", None, "vs reference, all frames"),
+                 ("median_force_error_before_change", None, "vs reference, before the first change of E"),
+                 ("median_force_error", "vs_true_E", "vs the true E replayed alike, all frames"),
+                 ("median_force_error_before_change", "vs_true_E", "vs the true E replayed alike, before the change"))
+
+
+def _metric(r: dict, key: str, sub: str | None):
+    return (r.get(sub) or {}).get(key) if sub else r.get(key)
+
+
+def theta_summary(rows: list[dict], challenger: str = "segment", incumbent: str = "online") -> list[str]:
+    """Lines made from the θ rows only: per replay and metric, on how many adapt.h5 the ``challenger`` rule's error
+    is below the ``incumbent``'s, and the rule with the lowest error on each (the metrics before the first change of
+    E only for captures whose E changes)."""
+    th = [r for r in rows if r["part"] == "theta" and r.get("adapt")]
+    out = []
+    for replay in dict.fromkeys(r["replay"] for r in th):
+        for key, sub, what in THETA_METRICS:
+            runs, lower, best = [], 0, []
+            for (case, adapt) in dict.fromkeys((r["case"], r["adapt"]) for r in th if r["replay"] == replay):
+                got = {r["theta"]: _metric(r, key, sub) for r in th
+                       if r["replay"] == replay and r["case"] == case and r["adapt"] == adapt
+                       and not (key.endswith("before_change") and r.get("first_change", 0) >= r.get("frames", 0))}
+                got = {k: v for k, v in got.items() if v is not None}
+                if challenger in got and incumbent in got:
+                    runs.append(case)
+                    lower += got[challenger] < got[incumbent]
+                if got:
+                    rule = min(got, key=got.get)
+                    best.append(f"{case} ({adapt.split(':')[0]}): {rule} {100 * got[rule]:.1f} %")
+            if runs:
+                out.append(f"- {replay}, {what}: '{challenger}' below '{incumbent}' on {lower} of {len(runs)} "
+                           f"adapt.h5; lowest: " + "; ".join(best))
+    return out
 
 
 def summary(rows: list[dict]) -> list[str]:
@@ -412,15 +481,20 @@ def write(rows: list[dict], out: Path, plan: dict, name: str) -> None:
     th = [r for r in rows if r["part"] == "theta"]
     if th:
         ads = dict.fromkeys(r["adapt"] for r in th if r.get("adapt"))
+        subs = sorted({r["adapt_capture_substeps"] for r in th if r.get("adapt_capture_substeps")})
+        made = (f"the truth simulated with {', '.join(map(str, subs))} substep(s) per frame" if subs
+                else "its substeps not recorded")
         parts.append("## Replays of an adapted θ(t)\n\nθ(t) rules: 'online' = as adapt.h5 records it (each frame's "
                      "filter estimate); 'segment' = the last estimate of each segment between the changes the "
                      "estimator detected (stages.forces.smoothed_theta); 'lagL' = the estimate L frames later, "
-                     "within the segment.  The adapt.h5 were made by `rsl adapt` on the captures of the same scenes "
-                     "that bench/accuracy.py uses (the truth simulated with 3 substeps per frame; the same controls "
-                     "and E(t)), each replayed on its own mesh.h5 and compared with the refined reference:\n\n"
+                     "within the segment; 'true E' = the truth's E(t), ν.  The adapt.h5 were made by `rsl adapt` on "
+                     f"captures of the same scenes and controls ({made}), each replayed on its own mesh.h5 and "
+                     "compared with the refined reference, and with the true E(t) replayed on the same mesh with the "
+                     "same replay (the part of the error the adapted θ(t) adds):\n\n"
                      + "\n".join(f"- {a}; detected changes at frames "
                                  f"{next(r['changes'] for r in th if r.get('adapt') == a)}" for a in ads) + "\n\n"
-                     + "\n".join([THETA_HEAD] + [_theta_row(r) for r in th]) + "\n")
+                     + "\n".join([THETA_HEAD] + [_theta_row(r) for r in th]) + "\n\n"
+                     + "\n".join(theta_summary(rows)) + "\n")
     parts.append(default_line() + " "
                  + (f"Rows merged from {len(plan['merged_from'])} runs, ended "
                     + ", ".join(f"{m['date']} (load average {m['load_average_end']:.1f})" for m in plan["merged_from"])
@@ -506,6 +580,7 @@ def main() -> None:
         rows += part_theta(a.work, case, truth_substeps, ws_of[case], rules, specs)
         write(rows, a.out, plan, a.name)
     print("\n".join([THETA_HEAD] + [_theta_row(r) for r in rows]))
+    print("\n".join(theta_summary(rows)))
 
 
 if __name__ == "__main__":

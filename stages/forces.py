@@ -42,10 +42,15 @@ Against a truth made with 3 substeps, plain S = 3 errs ~1 % only because it copi
 (docs/results/forces.md).
 
 θ(t) of the replay (:func:`replay_theta`, ``--force-theta``): "online" = each frame's filter estimate as adapt.h5
-records it (default :data:`FORCE_THETA`); "segment" = within each segment between the material changes adapt's gn
-estimator detected, the segment's last estimate (:func:`smoothed_theta`; it has seen the whole segment), which
-removes the estimate's start transient (frames 0–3 far off) from the replay; measured in
-docs/results/forces_theta.md (bench/forces.py --part theta).
+records it (default :data:`FORCE_THETA`: the force of frame t depends on the estimates of frames ≤ t only);
+"segment" = within each segment between the material changes adapt's gn estimator detected, the segment's last
+estimate (:func:`smoothed_theta`; it has seen the whole segment).  docs/results/forces_theta.md (bench/forces.py
+--part theta; gn, markers, full space, replay Richardson (1, 2), two adapt runs per capture) measured: "segment"
+removes the estimate's start transient — two-region beam 25–26 % → 3.8–3.9 % against the truth refined in time,
+bar with an equilibrium start 7.8 % → 0.7 % before its first step of E — but where the change detector fires
+some frames off a true change, a segment's last estimate carries the later material into the earlier frames: on
+the bar released at rest (changes detected at frames 2, 9, 16 around the step at 12) 18.4 % → 26.0 % before the
+step.  Not lower on every capture, so not the default.
 
 The error against a truth (rows of forces.csv, stages.capture.FORCE_HEADER): per handle / obstacle and frame,
 e_t = ‖F_t − F_t^true‖ / ‖F_t^true‖ on the applied force (N), over the frames where ‖F_t^true‖ is at least
@@ -53,6 +58,7 @@ e_t = ‖F_t − F_t^true‖ / ‖F_t^true‖ on the applied force (N), over the
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Sequence
 
 import numpy as np
@@ -111,8 +117,6 @@ def step_forces(scene, controls, X: np.ndarray, states: Sequence[tuple[np.ndarra
     last step that made X[t] (stages.sim.static.simulate_from_start(states=...)), θ young/poisson (T, R), its
     substeps S (the step is Δt / S).  Returns the rows [(frame, SetForce)], the applied per-vertex force and the
     internal nodal forces, both (T, n, 3) N."""
-    import dataclasses
-
     from stages.sim.scene import frame_inputs, internal_forces
 
     fine = scene if substeps == 1 else dataclasses.replace(scene, dt=scene.dt / substeps)
@@ -195,8 +199,6 @@ def richardson_rows(coarse: Sequence[tuple[int, st.SetForce]], fine: Sequence[tu
     """The rows [(frame, SetForce)] of two replays of the same frames (steps h and h / 2), matched by (frame, name),
     with their forces extrapolated (:func:`richardson`: internal, magnitude sum, applied); the vertex count of the
     fine one.  ValueError when the two do not hold the same (frame, name) rows."""
-    import dataclasses
-
     by_key = {(frame, f.name): f for frame, f in coarse}
     keys = [(frame, f.name) for frame, f in fine]
     if len(by_key) != len(coarse) or sorted(by_key) != sorted(keys):

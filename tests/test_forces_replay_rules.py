@@ -162,3 +162,74 @@ def test_adapted_forces_follows_the_rules(cable):
     want, _, _ = replay_forces(scene, ctl, young, poisson, "equilibrium", 1)
     np.testing.assert_allclose(_applied(rows), _applied(want), rtol=1e-12, atol=1e-12)
     assert "Richardson" not in how and "smoothed" not in how
+
+
+def _theta_rule_errors(cable, online: np.ndarray, true_young: np.ndarray, changes: list[int], step: int) -> dict:
+    """{rule: (median error over all frames, over frames < step)} of adapted_forces' replay (Richardson (1, 2)) of an
+    online θ(t) (T,) under each θ rule, against the true E(t) (T,) replayed the same way (the part of the error the
+    rule adds)."""
+    from types import SimpleNamespace
+
+    from stages.forces import THETA_RULES, adapted_forces, force_errors, force_table, replay_forces
+
+    scene, ctl, _, poisson = cable
+    ad = SimpleNamespace(mode="online", frames=np.arange(FRAMES), young=online[:, None], poisson=poisson,
+                         extra={"estimator": "gn", "material_changes_detected": changes})
+    truth = force_table(replay_forces(scene, ctl, true_young[:, None], poisson, "equilibrium", 1, extrapolate=True)[0],
+                        1.0 / FPS)
+    out = {}
+    for rule in THETA_RULES:
+        rows, _, _ = adapted_forces(scene, ctl, ad, "equilibrium", 1, None, extrapolate=True, theta=rule)
+        got = force_errors(force_table(rows, 1.0 / FPS), truth)["base"]
+        before = [e for t, e in zip(got["frames"], got["rel_error_per_frame"]) if t < step]
+        out[rule] = (got["median_relative_error"], float(np.median(before)))
+    return out
+
+
+def test_segment_theta_removes_a_start_transient_but_carries_a_later_estimate_across_an_early_detected_change(cable):
+    """The two shapes of docs/results/forces_theta.md, against the true E(t) replayed alike (E ×2 at frame 5):
+    (a) the estimate starts far off (0.4 E_true), settles within 2 % and follows the step one frame late (detected
+    at frame 6): 'segment' (each segment's last estimate) removes the transient: frames before the step within 2 %
+    where the recorded θ(t) ('online') errs > 10 %, and half its error over all frames (the beam and the bar with an
+    equilibrium start);  (b) the estimate is settled, but the change detector fires at frame 2, three frames before
+    the true step, and again at 7: the segment [2, 7) takes frame 6's post-step estimate, so frames 2–4 are replayed
+    twice as stiff — 'segment' errs > 10 % before the step where 'online' stays within 2 % (the bar released at
+    rest, detected changes 9 and 16 around its step at 12)."""
+    step = 5
+    true_young = SOFT * np.where(np.arange(FRAMES) < step, 1.0, 2.0)
+    transient = SOFT * np.array([0.4, 0.7, 0.9, 1.02, 0.99, 1.01, 1.5, 1.9, 2.04, 1.98])
+    a = _theta_rule_errors(cable, transient, true_young, [step + 1], step)
+    settled = SOFT * np.array([1.01, 0.99, 1.0, 1.01, 0.99, 1.6, 1.95, 2.01, 1.99, 2.0])
+    b = _theta_rule_errors(cable, settled, true_young, [2, 7], step)
+    print(a, b)
+    assert a["segment"][1] < 0.02 and a["online"][1] > 0.1, a
+    assert a["segment"][0] < 0.5 * a["online"][0], a
+    assert b["online"][1] < 0.02 and b["segment"][1] > 0.1, b
+
+
+def test_default_theta_rule_is_causal(cable):
+    """The default θ(t) rule of the replay (stages.forces.FORCE_THETA, what `rsl export --forces`, `rsl evaluate` and
+    `rsl report` use) is 'online' because 'segment' measured better on the beam and the bar with an equilibrium
+    start but worse on the bar released at rest (docs/results/forces_theta.md): with it, the force of frame t
+    depends on the estimates of frames ≤ t only — changing the estimates from frame 6 on leaves frames 0–5's
+    forces as they were (bit for bit), where 'segment' moves them."""
+    from types import SimpleNamespace
+
+    from stages.forces import FORCE_THETA, adapted_forces
+
+    scene, ctl, _, poisson = cable
+    young = SOFT * np.array([0.4, 0.7, 0.9, 1.02, 0.99, 1.01, 1.0, 0.98, 1.02, 1.0])[:, None]
+    later = young.copy()
+    later[6:] *= 1.7
+    k = 6
+
+    def forces(y, **rule):
+        ad = SimpleNamespace(mode="online", frames=np.arange(FRAMES), young=y, poisson=poisson,
+                             extra={"estimator": "gn", "material_changes_detected": [3]})
+        rows, _, _ = adapted_forces(scene, ctl, ad, "equilibrium", 1, None, **rule)
+        return np.array([f.applied for t, f in rows if t < k])
+
+    assert FORCE_THETA in ("online", "segment")
+    np.testing.assert_array_equal(forces(young), forces(later))  # the default: causal
+    moved = np.linalg.norm(forces(young, theta="segment") - forces(later, theta="segment"), axis=1)
+    assert moved.max() > 0.05 * np.linalg.norm(forces(young), axis=1).max()  # the other rule is not

@@ -79,7 +79,7 @@ class EvaluateConfig:
     force_extrapolate: bool = FORCE_EXTRAPOLATE
     """Richardson-extrapolate the replay's forces in time, 2 F(2S) − F(S) from replays with S and 2S steps per frame: cancels implicit Euler's first-order error, costs 3S steps per frame (docs/results/forces_converged.md)."""
     force_theta: Literal["online", "segment"] = FORCE_THETA
-    """θ(t) of the replay: online = each frame's estimate as adapt.h5 records it; segment = the last estimate of each segment between the material changes adapt's gn estimator detected (docs/results/forces_theta.md)."""
+    """θ(t) of the replay: online = each frame's estimate as adapt.h5 records it (frame t's force uses estimates up to t); segment = the last estimate of each segment between the material changes adapt's gn estimator detected: removes the estimate's start transient (two-region beam 26 → 4 % force error) but moves a later material into earlier frames when a change is detected off the true one (bar released at rest 18 → 26 % before its step), docs/results/forces_theta.md."""
 
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
