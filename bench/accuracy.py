@@ -213,13 +213,21 @@ def _fmt(x, scale: float = 100.0, digits: int = 1) -> str:
 def _row(r: dict) -> str:
     key = f"| {r['case']} | {r['start']} | P{r['order']} | {r['loss']} | {r['space']} |"
     if "error" in r:
-        return key + " — | — | failed | — | — | — | — | — | — |"
-    per = ", ".join(f"{100 * e:.1f}" for e in r["median_error_per_region"])
+        return key + " — | — | — | failed | — | — | — | — | — | — | — |"
+    names = r.get("regions") or []
+    per = ", ".join((f"{names[j]} " if len(names) > 1 and j < len(names) else "") + f"{100 * e:.1f}"
+                    for j, e in enumerate(r["median_error_per_region"]))
     cub = (f"{r['cubature_points'] if r.get('cubature_points') is not None else 'all'} ({r['cubature_tol']:g})"
            if r.get("cubature_tol") is not None else "—")
+    load = f"{r['load_average']:.1f}" if isinstance(r.get("load_average"), (int, float)) else "—"
     return (f"{key} {r['estimator']} | {r['dofs']} | {cub} | {per} | {r['settled_frames']} | "
             f"{_fmt(r['force_error'])} | {_fmt(r['surface_error_mm'], 1.0, 2)} | {r['time_per_frame_s']:.2f} | "
-            f"{r['substeps']} |")
+            f"{load} | {r['substeps']} | {r.get('ended', '—')} |")
+
+
+def _name(r: dict) -> str:
+    """'case start Pk loss space' of a row."""
+    return f"{r['case']} {r['start']} P{r['order']} {r['loss']} {r['space']}"
 
 
 def row_key(r) -> tuple:
@@ -290,8 +298,8 @@ def main() -> None:
 
 HEAD = ("| case | start | adapt mesh | loss | space | estimator | DOFs | cubature points (tol) | "
         "median |E−E_true|/E_true per region (%) | settled frames | force error (%) | surface error (mm) | s / frame | "
-        "adapt substeps |\n"
-        "| --- | --- | --- | --- | --- | --- | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: |")
+        "load average | adapt substeps | ended (UTC) |\n"
+        "| --- | --- | --- | --- | --- | --- | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
 
 
 def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = False) -> None:
@@ -322,8 +330,13 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
     unexported = [r for r in rows if r.get("exported") is False]
     ok = [r for r in rows if "error" not in r]
     n5 = sum(r["median_error_worst"] <= 0.05 for r in ok)
+    red = [r for r in ok if r["space"] == "reduced"]
+    n5_red = [_name(r) for r in red if r["median_error_worst"] <= 0.05]
+    multi = [r for r in ok if len(r["median_error_per_region"]) > 1]
+    n10_multi = [_name(r) for r in multi if r["median_error_worst"] <= 0.10]
     nf = [r for r in ok if r["force_error"] is not None]
     n10 = sum(r["force_error"] <= 0.10 for r in nf)
+    n10_names = [_name(r) for r in nf if r["force_error"] <= 0.10]
     failed = "".join(f"\n- {r['case']} {r['start']} P{r['order']} {r['loss']} {r['space']}: "
                      f"`{r['error'].strip().splitlines()[-1][:200]}`" for r in rows if "error" in r)
     md = (f"# Accuracy on captures rsl did not make\n\nTruth: P2 tets{' on the mesh refined once' if plan['refine'] else ''}, "
@@ -339,8 +352,18 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
           f"{' (' + '; '.join(sources) + ')' if sources else ''}"
           f"{f'; on {len(unexported)} row(s) `rsl export` was skipped and the column is evaluate’s own replay (the same stages/forces.py rule)' if unexported else ''}"
           f".\n\n{table}\n\n"
-          f"{n5} of {len(ok)} rows have every region's median E error ≤ 5 %; {n10} of {len(nf)} rows with a force "
-          f"error have it ≤ 10 %.{' Failed rows:' + failed if failed else ''}\n\n"
+          f"{n5} of {len(ok)} rows have every region's median E error ≤ 5 %; in the reduced space {len(n5_red)} of "
+          f"{len(red)}{' (' + '; '.join(n5_red) + ')' if n5_red else ''}. {len(n10_multi)} of {len(multi)} rows with "
+          f"more than one region have every region within 10 %{' (' + '; '.join(n10_multi) + ')' if n10_multi else ''}. "
+          f"{n10} of {len(nf)} rows with a force error have it ≤ 10 %{' (' + '; '.join(n10_names) + ')' if n10_names else ''}."
+          f"{' Failed rows:' + failed if failed else ''}\n\n"
+          "s / frame: median wall time of one adapt frame in that row's run (adapt.h5 time_total_s) on this shared "
+          "machine, at the load average given (1-minute, when the row ended), on the row's mesh (DOFs column). The "
+          "paper-scale reduced case (≈10K DOFs, r = 30, w = 3, c = 4 at 128², images) is timed by bench/table1.py "
+          "([table1.md](table1.md)) and bench/adapt_speed.py ([adapt_speed.md](adapt_speed.md)); P2 against P1 in the "
+          "reduced space by bench/p2_cost.py ([p2_cost.md](p2_cost.md)). Where each loss is lowest over a grid of fixed "
+          "E on such a capture: bench/loss_sweep.py ([loss_sweep.md](loss_sweep.md)). Hand-written interpretation: "
+          "[accuracy_notes.md](accuracy_notes.md).\n\n"
           + (f"Rows merged from {len(plan['merged_from'])} runs (run side by side), ended "
              + ", ".join(f"{m['date']} (load average {m['load_average_end']:.1f}, code {m.get('code', '?')})"
                          for m in plan["merged_from"])

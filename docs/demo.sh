@@ -40,9 +40,8 @@ step "tetrahedralize";   $RSL tetrahedralize "$CAP" -w "$WS"
 step "segment";          $RSL segment "$CAP" -w "$WS" --method background
 step "fit-gaussians";    $RSL fit-gaussians "$CAP" -w "$WS" --frame 0
 step "generate-data";    $RSL generate-data "$CAP" -w "$WS" --sequences 4 --frames 40 --workers 2
-# r = 12 with the default cubature: on this capture and one fTetWild mesh, with the change test measured against
-# its own baseline (stages/estimator.py ChangeDetector), the median E error was 1.5 % (r = 30 with a tight cubature,
-# --cubature-tol 0.002: 4.8 %); docs/results/reduced_accuracy.md has the subspace and cubature study.
+# r = 12, default cubature (--cubature-tol 0.002, chosen from docs/results/accuracy.md's foreign captures);
+# docs/results/reduced_accuracy.md has the subspace and cubature study.
 step "train-subspace";   $RSL train-subspace -w "$WS" --dim 12
 # Online adaptation from the 40 motion-capture markers with the Gauss-Newton window estimator
 # (E ± σ per frame). The vision loss (--loss vision, Adam) runs on the same workspace: its minimum lies within

@@ -54,11 +54,12 @@ class TrainSubspaceConfig:
     cubature_tets: int = 300
     """Largest number of cubature points for the reduced elastic energy: quadrature points, one per linear
     tet, four per quadratic tet (0: integrate over every point)."""
-    cubature_tol: float = 0.01
-    """Stop adding cubature points once the relative reduced-force error is below this.  0.002 takes about twice the
-    points and follows the all-point reduced model ~4× closer (released bar, r = 30: 1.46 → 0.34 mm RMS, E error
-    25 → 12 %), but on the dinosaur pushed by a sphere the reduced Newton then stalled at contact
-    (docs/results/reduced_accuracy.md)."""
+    cubature_tol: float = 0.002
+    """Stop adding cubature points once the relative reduced-force error is below this.  0.002 (about twice the
+    points of 0.01) measured better in adapt on three of the four foreign captures of docs/results/accuracy.md
+    (median settled E error, r = 30, markers, 0.01 → 0.002: released bar 18.8 → 7.7 %, two-region beam's stiff region
+    12.3 → 2.8 %, dinosaur pushed by a sphere 22.9 → 8.5 %; bar from equilibrium 3.3 → 4.8 %) and follows the
+    all-point reduced model ~4× closer (released bar: 1.46 → 0.34 mm RMS, docs/results/reduced_accuracy.md)."""
     cubature_poses: int = 40
     """Training snapshots the cubature is fitted on."""
     material: str = ""

@@ -1,0 +1,50 @@
+"""bench/accuracy.py's page counts only what its rows measured: fed made-up rows, the ≤ 5 % / two-region / force
+counts and the row names follow them, rows not re-run are listed apart, and a failed row says so."""
+from __future__ import annotations
+
+import copy
+import importlib.util
+import json
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _accuracy():
+    spec = importlib.util.spec_from_file_location("bench_accuracy_text", ROOT / "bench" / "accuracy.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _row(case: str, space: str, errors: list[float], force: float | None) -> dict:
+    young_true = [[1e5] * len(errors)] * 4
+    return {"case": case, "start": "equilibrium", "order": 2, "loss": "markers", "space": space, "estimator": "gn",
+            "dofs": 4914, "settled_frames": 2, "median_error_per_region": errors, "median_error_worst": max(errors),
+            "force_error": force, "force_source": "replay", "surface_error_mm": 1.0, "time_per_frame_s": 0.5,
+            "load_average": 3.0, "substeps": 1, "ended": "2026-01-01T00:00:00+00:00", "exported": True,
+            "young": young_true, "young_true": young_true, "regions": [f"r{j}" for j in range(len(errors))],
+            "cubature_tol": 0.002 if space == "reduced" else None, "cubature_points": 60}
+
+
+def test_accuracy_text_follows_the_rows(tmp_path: Path) -> None:
+    m = _accuracy()
+    rows = [_row("bar", "reduced", [0.04], 0.09), _row("bar", "full", [0.07], 0.12),
+            _row("beam", "reduced", [0.02, 0.12], 0.30), _row("dino", "reduced", [0.2], None)]
+    failed = {**copy.deepcopy(rows[0]), "case": "dino", "space": "full", "error": "rsl adapt failed:\nboom"}
+    old = _row("beam", "full", [0.01, 0.02], 0.05)
+    plan = {"frames": 4, "refine": 0, "rows": [], "adapt_options": [],
+            "previous": {"file": "old.json", "date": "2025-01-01", "merged_from": []}, "previous_rows": [old]}
+    m.write(rows + [failed], tmp_path, False, plan, quiet=True)
+    md = (tmp_path / "accuracy.md").read_text()
+    assert "1 of 4 rows have every region's median E error ≤ 5 %; in the reduced space 1 of 3 " \
+           "(bar equilibrium P2 markers reduced)" in md
+    assert "0 of 1 rows with more than one region have every region within 10 %" in md
+    assert "1 of 3 rows with a force error have it ≤ 10 % (bar equilibrium P2 markers reduced)" in md
+    assert "Failed rows:" in md and "`boom`" in md
+    table, _, rest = md.partition("**Not re-run**")
+    assert "| beam | equilibrium | P2 | markers | full |" not in table  # the old row is listed apart only
+    assert "| beam | equilibrium | P2 | markers | full |" in rest and "r0 1.0, r1 2.0" in rest
+    assert "r0 2.0, r1 12.0" in table and "loss_sweep.md" in md and "accuracy_notes.md" in md
+    data = json.loads((tmp_path / "accuracy.json").read_text())
+    assert len(data["cases"]) == 5 and (tmp_path / "accuracy.png").is_file()
