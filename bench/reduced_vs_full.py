@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT))
 
 import jax.numpy as jnp  # noqa: E402
 
-from stages.domain.rotations import quat_wxyz_to_matrix as quat_to_matrix  # noqa: E402
+from stages.domain.rotations import axis_angle_matrix  # noqa: E402
 from stages.sim import potential as P  # noqa: E402
 from stages.sim.mesh import rest_quantities  # noqa: E402
 from stages.sim.meshgen import box_tets  # noqa: E402
@@ -121,10 +121,7 @@ def sequence(scene: Scene, seed: int, frames: int, scale: float = 1.0) -> list[F
         s = np.sin(0.5 * np.pi * min(f / 10, 1.0))
         R = np.eye(3)
         for k in range(3):
-            a = amp[3 + k] * s
-            q = np.zeros(4)
-            q[0], q[1 + k] = np.cos(a / 2), np.sin(a / 2)
-            R = R @ quat_to_matrix(q)
+            R = R @ axis_angle_matrix(np.eye(3)[k], amp[3 + k] * s)
         target = (scene.rest[hid] - c) @ R.T + c + amp[:3] * s
         out.append(FrameInputs((target,), np.zeros_like(scene.rest), np.zeros((0, 7))))
     return out

@@ -286,8 +286,8 @@ the tiled rasterizer of stages/render/_torch_ref.py — tile binning in torch op
 (tile, depth rank) keys → sort → per-tile ranges; the tests hold its lists equal to the numba binning's),
 then dense maths per 16×16 tile over the tile's list and an autograd backward.  **Lean** is that rasterizer
 on the compiled numba binning (the reference of earlier runs of this benchmark), kept as an extra column.
-The dense pixels × Gaussians twin would hold ≈5 GB in each of several intermediates at 20K/256² and is
-kept for the tests.  Timing is interleaved: each of {repeats} rounds runs every variant once (the fast ones
+The dense pixels × Gaussians twin would hold {big['gaussians'] * big['resolution'] ** 2 * 4 / 1e9:.1f} GB
+(N × pixels float32) in each of several intermediates at 20K/256² and is kept for the tests.  Timing is interleaved: each of {repeats} rounds runs every variant once (the fast ones
 three times), so load from other jobs falls on all alike; the table gives medians, and the ratios are
 reference (or lean) over fast from the same run.  CPU columns are process CPU time (all threads): this
 machine's 2 cores are shared with other jobs (see the load above), so wall times are pessimistic and

@@ -185,7 +185,7 @@ def write(rows: list[dict], out: Path, plan: dict, measured: dict | None = None,
     cost = ""
     if data.get("window_cost"):
         wc = data["window_cost"]
-        cost = ("The wall times above were taken on a shared, loaded machine.  CPU time of one gn window "
+        cost = ("CPU time of one gn window "
                 f"linearisation (forward, 26 sensitivity directions, adjoint; frames 10–12, start {wc[0]['start']}, "
                 f"S values interleaved, median of {data.get('window_cost_reps', 3)}):\n\n| space | --substeps | "
                 "CPU s | CPU / CPU(S=1) |\n| --- | --- | --- | --- |\n"

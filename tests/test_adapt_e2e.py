@@ -14,6 +14,7 @@ import pytest
 from stages.parameters import params_from_theta, theta_from_params
 from stages.artefacts import AdaptArtefact, CamerasArtefact, GaussiansArtefact, MeshArtefact, read_provenance
 from stages.capture import load_capture, read_markers, write_markers
+from stages.domain.rotations import axis_angle_matrix
 
 BEAM = Path(__file__).resolve().parents[2] / "shared" / "data" / "autodef_fulton" / "Coarse_beam.mesh"
 E_TRUE = 1.0e5
@@ -297,7 +298,7 @@ def test_rebound_gaussians_render_as_fitted_at_the_fit_configuration_and_follow_
     assert np.allclose(loss.render(x_f)[0], ref, atol=2e-5)
     c = rest.mean(0)
     ang = 0.15
-    A = 1.05 * np.array([[np.cos(ang), -np.sin(ang), 0], [np.sin(ang), np.cos(ang), 0], [0, 0, 1]])
+    A = 1.05 * axis_angle_matrix([0.0, 0.0, 1.0], ang)
     move = lambda x: (x - c) @ A.T + c + np.array([0.01, -0.005, 0.003]) * size  # noqa: E731
     want = fitted.render(move(rest))[0]
     assert np.allclose(loss.render(move(x_f))[0], want, atol=2e-5)

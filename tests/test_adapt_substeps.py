@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from stages.domain.rotations import axis_angle_matrix
 from stages.sim.mesh import rest_quantities
 from stages.sim.meshgen import box_tets
 from stages.sim.scene import FrameInputs, HandleSpec, Scene, simulate, substep_scene
@@ -39,7 +40,7 @@ def _inputs_at(scene: Scene):
     def at(f: float) -> FrameInputs:
         s = np.sin(0.5 * np.pi * min(f / 6.0, 1.0))
         a = 0.5 * s
-        R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+        R = axis_angle_matrix([1.0, 0.0, 0.0], a)
         target = scene.rest[hid] @ R.T + np.array([0.0, 0.0, 0.01 * s])
         return FrameInputs((target,), np.zeros_like(scene.rest), np.zeros((0, 7)))
     return at

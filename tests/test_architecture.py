@@ -238,6 +238,31 @@ def test_no_rotation_code_outside_the_helpers(path: Path) -> None:
         assert any((rel, n) in ROTATION_TWINS for n in inside), f"{rel}:{line}: a quaternion→matrix formula"
 
 
+# A rotation matrix or an axis-angle quaternion written out by hand: [[1, 0, 0], [0, cos a, −sin a], ...] or
+# [cos(a/2), sin(a/2), 0, 0].  The library, the benchmarks and the tests' helpers build them with
+# stages.domain.rotations (axis_angle_matrix, rotvec_to_matrix); tests/test_domain_rotations.py is the
+# independent oracle the helpers are held to.
+HAND_ROTATION = re.compile(r"(?:np|math|jnp|torch)\.cos\((?P<a>[^()]+)\)\s*,\s*-\s*(?:np|math|jnp|torch)\.sin\((?P=a)\)"
+                           r"|(?:np|math)\.cos\((?P<h>\w+) / 2\)\s*,\s*(?:0\s*,\s*)*(?:np|math)\.sin\((?P=h) / 2\)")
+
+
+@pytest.mark.parametrize("path", _python_files() + sorted((ROOT / "tests").glob("*.py")),
+                         ids=lambda p: str(p.relative_to(ROOT)))
+def test_no_rotation_matrix_written_by_hand(path: Path) -> None:
+    if path.name in ("test_domain_rotations.py", "test_architecture.py"):
+        return
+    src = path.read_text(encoding="utf-8")
+    lines = [src.count("\n", 0, m.start()) + 1 for m in HAND_ROTATION.finditer(src)]
+    assert lines == [], f"{path.relative_to(ROOT)}:{lines}: a rotation written out; use stages.domain.rotations"
+
+
+def test_the_hand_rotation_pattern_matches() -> None:
+    assert HAND_ROTATION.search("R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])")
+    assert HAND_ROTATION.search("q[0], q[1 + k] = np.cos(a / 2), np.sin(a / 2)")
+    assert HAND_ROTATION.search("qy = np.array([np.cos(ry / 2), 0, np.sin(ry / 2), 0])")
+    assert not HAND_ROTATION.search("y, z = y * np.cos(a) - z * np.sin(a), y * np.sin(a) + z * np.cos(a)")
+
+
 # --------------------------------------------------------------------------- pure layers
 FILE_CALLS = {"open", "read_text", "write_text", "read_bytes", "write_bytes", "mkdir", "unlink", "rename"}
 
@@ -257,3 +282,125 @@ def test_domain_and_engines_neither_print_nor_touch_files(name: str) -> None:
     assert "print" not in calls, f"{name} prints"
     if layer(name) == 0:
         assert not calls & FILE_CALLS, f"{name} touches files: {sorted(calls & FILE_CALLS)}"
+
+
+# --------------------------------------------------------------------------- function-local imports
+# Imports are ordinary module-level imports (issue 16).  An import inside a function must earn its place: it
+# loads a package from LAZY that its module does not load at import time (so `rsl --help`, which imports
+# every rsl_cli command module, and `rsl STAGE --help`, which imports the stage, stay light), or it would
+# close an import cycle.  LAZY: heavy to import (JAX, torch, numba kernels, SciPy's big submodules,
+# matplotlib, open3d, h5py, OpenCV, ...) or optional (SAM 2, pycolmap, ray, ezc3d, pytetwild, CHOLMOD), and
+# click (typer vendors its own; the separate package serves only `rsl help-markdown`).
+LAZY = ("jax", "numba", "equinox", "optax", "torch", "scipy.linalg", "scipy.sparse", "scipy.spatial",
+        "scipy.optimize", "matplotlib", "open3d", "trimesh", "meshio", "pytetwild", "h5py", "cv2", "typer", "rich",
+        "click", "sam2", "pycolmap", "ray", "ezc3d", "sksparse")
+LAZY_IMPLIES = {"optax": ("jax",), "equinox": ("jax",)}  # importing the first loads the others
+
+
+def _lazy_key(mod: str) -> str | None:
+    keys = [k for k in LAZY if mod == k or mod.startswith(k + ".")]
+    return max(keys, key=len) if keys else None
+
+
+def _import_targets(node: ast.Import | ast.ImportFrom, name: str, path: Path) -> list[str]:
+    """The module an import statement imports first (for ``from a import b``: a, or a.b when b is a module)."""
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names]
+    if node.level:
+        package = (name if path.name == "__init__.py" else name.rpartition(".")[0]).split(".")
+        mod = ".".join(package[: len(package) - node.level + 1] + ([node.module] if node.module else []))
+    else:
+        mod = node.module or ""
+    return [mod] + [f"{mod}.{a.name}" for a in node.names if f"{mod}.{a.name}" in MODULES]
+
+
+def _module_level_imports(name: str, path: Path) -> list[str]:
+    """Modules imported when ``path`` is imported: top-level statements, inside top-level if/try too, but not
+    under ``if TYPE_CHECKING``."""
+    out: list[str] = []
+
+    def visit(body) -> None:
+        for n in body:
+            if isinstance(n, (ast.Import, ast.ImportFrom)):
+                out.extend(_import_targets(n, name, path))
+            elif isinstance(n, ast.If) and "TYPE_CHECKING" not in ast.unparse(n.test):
+                visit(n.body)
+                visit(n.orelse)
+            elif isinstance(n, ast.Try):
+                visit(n.body)
+                visit(n.orelse)
+                visit(n.finalbody)
+                for h in n.handlers:
+                    visit(h.body)
+
+    visit(ast.parse(path.read_text(encoding="utf-8")).body)
+    return out
+
+
+def _parents(mod: str) -> list[str]:
+    parts = mod.split(".")
+    return [".".join(parts[:i]) for i in range(1, len(parts) + 1)]
+
+
+def _loads_from(imports: list[str]) -> tuple[frozenset[str], frozenset[str]]:
+    """(modules of the tree, LAZY keys) that running these imports loads, following module-level imports."""
+    seen: set[str] = set()
+    keys: set[str] = set()
+    todo = list(imports)
+    while todo:
+        mod = todo.pop()
+        if mod.split(".")[0] in ("stages", "rsl_cli"):
+            for p in _parents(mod):
+                if p in MODULES and p not in seen:
+                    seen.add(p)
+                    todo += _module_level_imports(p, MODULES[p])
+        elif (k := _lazy_key(mod)) is not None:
+            keys.update((k, *LAZY_IMPLIES.get(k, ())))
+    return frozenset(seen), frozenset(keys)
+
+
+@functools.lru_cache(maxsize=None)
+def _loads(mod: str) -> tuple[frozenset[str], frozenset[str]]:
+    return _loads_from([mod])
+
+
+def local_import_problems(name: str, path: Path) -> list[str]:
+    """Function-local imports in ``path`` that load nothing from LAZY the module does not load already and close
+    no import cycle: they belong at the top of the module."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    _, own = _loads_from([name, *_module_level_imports(name, path)])
+    bad = []
+
+    def visit(node, inside: bool) -> None:
+        for ch in ast.iter_child_nodes(node):
+            if inside and isinstance(ch, (ast.Import, ast.ImportFrom)):
+                targets = _import_targets(ch, name, path)  # `from a import b`: a, and a.b when b is a module
+                mods = frozenset().union(*(_loads(t)[0] for t in targets))
+                keys = frozenset().union(*(_loads(t)[1] for t in targets))
+                target = targets[-1]
+                if not keys - own and name not in mods:
+                    bad.append(f"{path.relative_to(ROOT) if path.is_relative_to(ROOT) else path.name}:{ch.lineno} "
+                               f"imports {target} inside a function; it loads nothing heavy: import it at the top")
+            visit(ch, inside or isinstance(ch, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)))
+
+    visit(tree, False)
+    return bad
+
+
+def test_function_local_imports_only_defer_heavy_packages_or_break_cycles() -> None:
+    assert [b for n, p in MODULES.items() for b in local_import_problems(n, p)] == []
+
+
+def test_the_local_import_checker_sees_light_imports(tmp_path: Path) -> None:
+    p = tmp_path / "x.py"
+    p.write_text("import numpy as np\n\n\ndef f():\n    import dataclasses\n    from stages.errors import RslError\n"
+                 "    import torch\n    from stages.sim.scene import step\n    from scipy.spatial import cKDTree\n")
+    got = local_import_problems("stages.x", p)
+    assert [g.split(" imports ")[1].split()[0] for g in got] == ["dataclasses", "stages.errors"]
+    p.write_text("import torch\n\n\ndef f():\n    import torch.nn\n    from stages.render.gaussians import quat_to_rotmat\n"
+                 "    from stages.render import gaussians as g\n    from stages.sim import mesh\n")
+    got = local_import_problems("stages.x", p)  # torch is loaded at the top already; gaussians adds numba
+    assert [g.split(" imports ")[1].split()[0] for g in got] == ["torch.nn", "stages.sim.mesh"]
+    # the cycle sim/mesh -> sim/quadrature -> sim/mesh is allowed (mesh imports quadrature inside a function)
+    assert local_import_problems("stages.sim.mesh", MODULES["stages.sim.mesh"]) == []
+    assert "stages.sim.mesh" in _loads("stages.sim.quadrature")[0]

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from stages.domain.rotations import axis_angle_matrix
 from stages.sim import quadrature as Q
 from stages.sim.meshgen import box_tets
 from stages.sim.mesh import rest_quantities
@@ -159,8 +160,7 @@ def test_p2_reduced_rollout_follows_full_space(p2):
         for f in range(frames):
             s = np.sin(0.5 * np.pi * min(f / 8, 1.0))
             a, b = amp[1] * s, amp[2] * s
-            Rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
-            Rz = np.array([[np.cos(b), -np.sin(b), 0], [np.sin(b), np.cos(b), 0], [0, 0, 1]])
+            Rx, Rz = axis_angle_matrix([1.0, 0.0, 0.0], a), axis_angle_matrix([0.0, 0.0, 1.0], b)
             target = (scene.rest[hid] - c) @ (Rx @ Rz).T + c + np.array([0, 0, amp[0] * s])
             out.append(FrameInputs((target,), np.zeros_like(scene.rest), np.zeros((0, 7))))
         return out

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from stages.capture import quat_to_matrix
+from stages.domain.rotations import rotvec_to_matrix
 from stages.sim import potential as P
 from stages.sim.meshgen import box_tets
 from stages.sim.mesh import rest_quantities
@@ -45,9 +45,7 @@ def sequence_inputs(scene: Scene, seed: int, frames: int = FRAMES) -> list[Frame
     for f in range(frames):
         s = np.sin(0.5 * np.pi * min(f / 10, 1.0))
         rx, ry = amp[1] * s, amp[2] * s
-        qx = np.array([np.cos(rx / 2), np.sin(rx / 2), 0, 0])
-        qy = np.array([np.cos(ry / 2), 0, np.sin(ry / 2), 0])
-        R = quat_to_matrix(qx) @ quat_to_matrix(qy)
+        R = rotvec_to_matrix(np.array([rx, 0.0, 0.0])) @ rotvec_to_matrix(np.array([0.0, ry, 0.0]))
         target = scene.rest[hid] @ R.T + np.array([amp[3] * s, 0, amp[0] * s])
         n_obs = len(scene.obstacles)
         out.append(FrameInputs((target,), np.zeros_like(scene.rest), np.tile([0, 0, 0, 1.0, 0, 0, 0], (n_obs, 1))))

@@ -34,7 +34,6 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import torch
 
 from stages.artefacts import KIND_FILES, CamerasArtefact, GaussiansArtefact, MasksArtefact, MeshArtefact, Provenance
 from stages.capture import load_capture, write_image
@@ -42,9 +41,6 @@ from stages.workspace import prepare_workspace
 from stages.errors import RslError
 from stages.occluders import has_occluders, ignore_mask
 from stages.progress import Reporter, SilentReporter
-from stages.render import gaussians as gauss
-from stages.render import loss as rloss
-from stages.render import projection as proj
 from stages.sim.quadrature import point_map
 
 
@@ -161,6 +157,10 @@ def fit_pose(cap, mesh: MeshArtefact, frame: int) -> tuple[np.ndarray, dict]:
 
 def _sample_colours(centres: np.ndarray, cams: list, images: list, masks: list) -> tuple[np.ndarray, list]:
     """Mean colour of the pixels each centre projects to (inside the mask); (n, 3), seen-count per camera."""
+    import torch  # torch and the numba kernels load when the stage runs: `rsl fit-gaussians --help` stays light
+
+    from stages.render import projection as proj
+
     acc = np.zeros((len(centres), 3))
     cnt = np.zeros(len(centres))
     seen = []
@@ -189,6 +189,8 @@ def run(config: FitGaussiansConfig, reporter: Reporter = SilentReporter()) -> Pa
     """Seed and fit Gaussians to frame ``config.frame``; writes WS/gaussians.h5."""
     # The rasterizer's numba kernels use every core; torch's own thread pool on the small
     # per-Gaussian ops only spins against them (measured: 4-5x slower wall time with both).
+    import torch  # loaded on use, as in _run
+
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -198,6 +200,11 @@ def run(config: FitGaussiansConfig, reporter: Reporter = SilentReporter()) -> Pa
 
 
 def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
+    import torch  # torch and the numba renderer load when the stage runs: `rsl fit-gaussians --help` stays light
+
+    from stages.render import gaussians as gauss
+    from stages.render import loss as rloss
+
     t0 = time.perf_counter()
     if config.gaussians < 1:
         raise RslError(f"--gaussians should be at least 1, found {config.gaussians}.")

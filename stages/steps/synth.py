@@ -186,7 +186,7 @@ def prepare_mesh(vertices: np.ndarray, tets: np.ndarray, size: float, region: st
         v *= size / ext.max()
     if tilt_deg:
         a = np.radians(tilt_deg)
-        v = v @ np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]]).T
+        v = v @ _axis_angle([1.0, 0.0, 0.0], a).T
     v -= 0.5 * (v.max(0) + v.min(0))
     t, _ = orient_tets(v, tets)
     try:

@@ -35,6 +35,7 @@ and returns dL/dz of the two states before the window, −Σ_k (∂h_k/∂z_befo
 """
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
 from typing import Callable, NamedTuple, Sequence
 
@@ -109,8 +110,6 @@ class ReducedModel:
             # of ~1e-10 at a still hard handle's vertices: they sit at their targets for every z and the spring
             # is inert.  For a moving hard handle a stiffer spring pins the vertices closer but the rest of the
             # body follows the full space less well (docs/results/reduced_accuracy.md), so it is not stiffened.
-            import dataclasses
-
             scene = dataclasses.replace(scene, handles=tuple(dataclasses.replace(h, hard=False)
                                                              for h in scene.handles))
         full = P.scene_data(scene)
