@@ -69,7 +69,8 @@ def command_parameters(config_cls: type, arguments: tuple[str, ...] = (),
         else:
             names = flags.get(name) or (("-w", "--workspace") if name == "workspace" else
                                         ("--" + name.replace("_", "-") + ("/--no-" + name.replace("_", "-")
-                                                                          if hint is bool else ""),))
+                                                                          if hint in (bool, Optional[bool])
+                                                                          else ""),))
             extra = {"file_okay": False} if name == "workspace" else {}
             info = typer.Option(default, *names, help=help_text, show_default=default is not ..., **extra)
         params.append(inspect.Parameter(name, inspect.Parameter.POSITIONAL_OR_KEYWORD, default=info,

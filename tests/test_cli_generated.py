@@ -211,3 +211,27 @@ def test_cli_reference_is_generated_from_the_cli() -> None:
     assert p.returncode == 0, p.stderr
     doc = (Path(__file__).resolve().parents[1] / "docs" / "cli.md").read_text()
     assert p.stdout == doc, "docs/cli.md is out of date: run `rsl help-markdown > docs/cli.md`"
+
+
+def test_export_products_switched_off_alone_leave_the_others_made(tmp_path) -> None:
+    """`rsl export --no-forces`: every product whose inputs exist except forces (a `bool | None` field is a
+    --x/--no-x flag pair, unset when not given); `--stress` alone: stress only."""
+    from stages.artefacts import KIND_FILES
+    from stages.steps.export import PRODUCTS, ExportConfig, chosen_products
+
+    got = []
+    app = typer.Typer()
+    app.command("export")(config_command(ExportConfig, got.append, (), {}))
+    app.command("other")(lambda: None)
+    runner = CliRunner()
+    for args in (["--no-forces"], ["--stress"], []):
+        r = runner.invoke(app, ["export", "-w", str(tmp_path), *args])
+        assert r.exit_code == 0, r.output
+    no_forces, stress_only, plain = got
+    assert no_forces.forces is False and all(getattr(no_forces, p) is None for p in PRODUCTS if p != "forces")
+    everything = {"stress", "forces", "vtk", "plots"}
+    assert chosen_products(plain, tmp_path) == everything
+    assert chosen_products(no_forces, tmp_path) == everything - {"forces"}
+    assert chosen_products(stress_only, tmp_path) == {"stress"}
+    (tmp_path / KIND_FILES["gaussians"]).write_bytes(b"")  # with Gaussians, PLY and renders too
+    assert chosen_products(no_forces, tmp_path) == everything - {"forces"} | {"ply", "render"}

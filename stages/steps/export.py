@@ -69,18 +69,18 @@ class ExportConfig:
     source: Literal["adapt", "partial", "rollout"] = "adapt"
     """Which trajectory to export: adapt.h5 (the adapted sequence), adapt.partial.h5 (the frames an interrupted or
     failed `rsl adapt` kept; refused unless asked for this way) or rollout.h5 (a prediction)."""
-    stress: bool = False
-    """Cauchy and von Mises stress per tet and vertex (stress.h5) with a per-frame summary CSV."""
-    forces: bool = False
-    """Per frame and handle/obstacle: sum of internal nodal forces and of their magnitudes (forces.csv)."""
-    vtk: bool = False
-    """A VTU per frame and a PVD time series for ParaView."""
-    ply: bool = False
-    """3DGS PLY files of the deformed Gaussians for the chosen frames (needs gaussians.h5)."""
-    render: bool = False
-    """PNG frames and MP4s from the capture cameras and orbit views, appearance and stress (needs gaussians.h5)."""
-    plots: bool = False
-    """PNG plots: E(t) per region, loss, time per frame, handle forces, stress."""
+    stress: bool | None = None
+    """Cauchy and von Mises stress per tet and vertex (stress.h5) with a per-frame summary CSV (unset: made when no product is flagged on)."""
+    forces: bool | None = None
+    """Per frame and handle/obstacle: sum of internal nodal forces and of their magnitudes (forces.csv) (unset: made when no product is flagged on)."""
+    vtk: bool | None = None
+    """A VTU per frame and a PVD time series for ParaView (unset: made when no product is flagged on)."""
+    ply: bool | None = None
+    """3DGS PLY files of the deformed Gaussians for the chosen frames (needs gaussians.h5) (unset: made when no product is flagged on)."""
+    render: bool | None = None
+    """PNG frames and MP4s from the capture cameras and orbit views, appearance and stress (needs gaussians.h5) (unset: made when no product is flagged on)."""
+    plots: bool | None = None
+    """PNG plots: E(t) per region, loss, time per frame, handle forces, stress (unset: made when no product is flagged on)."""
     colmap: Path | None = None
     """Also write the cameras as a COLMAP text model into this folder."""
     scan: Path | None = None
@@ -778,14 +778,15 @@ PRODUCTS = ("stress", "forces", "vtk", "ply", "render", "plots")
 
 
 def chosen_products(config: ExportConfig, ws: Path) -> set[str]:
-    """The products to make: those flagged, or with no flag at all every one whose inputs exist."""
+    """The products to make: those flagged on (--stress, ...); with none flagged on (and no --scan, --colmap),
+    every one whose inputs exist except those flagged off (--no-forces, ...)."""
     chosen = {p for p in PRODUCTS if getattr(config, p)}
     if chosen or config.scan is not None or config.colmap is not None:
         return chosen
     chosen = {"stress", "forces", "vtk", "plots"}
     if (ws / KIND_FILES["gaussians"]).exists():
         chosen |= {"ply", "render"}  # render: the capture cameras when cameras.h5 exists, orbit views always
-    return chosen
+    return {p for p in chosen if getattr(config, p) is not False}
 
 
 def run(config: ExportConfig, reporter: Reporter = SilentReporter()) -> Path:
