@@ -320,14 +320,13 @@ def _project_one(g, m0, m1, m2, M, cam, Rc, jw0, jw1, means2d, conics, depths, v
 
 
 @nb.njit(inline="always")
-def _project_back(g, m0, m1, m2, M, cam, Rc, n0, n1, jw0, jw1, t0, t1, gM, g_m2d, g_con):  # pragma: no cover
-    """Backward of :func:`_project_one` for a visible Gaussian: fills gM = ∂L/∂M, returns ∂L/∂μ."""
+def _screen_terms(xn, yn, z, M, cam, Rc, n0, n1, jw0, jw1, t0, t1):  # pragma: no cover
+    """The terms of :func:`_project_one`'s Σ₂ = T Tᵀ + lp I that its derivatives need, at normalised coordinates
+    (xn, yn) and depth z (m) of a Gaussian with factor M (3, 3): fills n0, n1 (rows of ∂(x/z, y/z)/∂p at the clamped
+    coordinates, per unit of R_c), jw0, jw1 (J R_c) and t0, t1 (T = J R_c M), each (3,); returns
+    (x_free, y_free — xn, yn inside the clamp —, a, b, c of Σ₂ = [[a, b], [b, c]], det)."""
     fx, sk, fy = cam[0], cam[1], cam[3]
     lx, ly, lp = cam[17], cam[18], cam[22]
-    p0 = Rc[0, 0] * m0 + Rc[0, 1] * m1 + Rc[0, 2] * m2 + cam[14]
-    p1 = Rc[1, 0] * m0 + Rc[1, 1] * m1 + Rc[1, 2] * m2 + cam[15]
-    z = Rc[2, 0] * m0 + Rc[2, 1] * m1 + Rc[2, 2] * m2 + cam[16]
-    xn, yn = p0 / z, p1 / z
     x_free = -lx < xn < lx
     y_free = -ly < yn < ly
     xc = min(max(xn, -lx), lx)
@@ -346,7 +345,18 @@ def _project_back(g, m0, m1, m2, M, cam, Rc, n0, n1, jw0, jw1, t0, t1, gM, g_m2d
         a += t0[j] * t0[j]
         b += t0[j] * t1[j]
         c += t1[j] * t1[j]
-    det = a * c - b * b
+    return x_free, y_free, a, b, c, a * c - b * b
+
+
+@nb.njit(inline="always")
+def _project_back(g, m0, m1, m2, M, cam, Rc, n0, n1, jw0, jw1, t0, t1, gM, g_m2d, g_con):  # pragma: no cover
+    """Backward of :func:`_project_one` for a visible Gaussian: fills gM = ∂L/∂M, returns ∂L/∂μ."""
+    fx, sk, fy = cam[0], cam[1], cam[3]
+    p0 = Rc[0, 0] * m0 + Rc[0, 1] * m1 + Rc[0, 2] * m2 + cam[14]
+    p1 = Rc[1, 0] * m0 + Rc[1, 1] * m1 + Rc[1, 2] * m2 + cam[15]
+    z = Rc[2, 0] * m0 + Rc[2, 1] * m1 + Rc[2, 2] * m2 + cam[16]
+    xn, yn = p0 / z, p1 / z
+    x_free, y_free, a, b, c, det = _screen_terms(xn, yn, z, M, cam, Rc, n0, n1, jw0, jw1, t0, t1)
     # ---- conic = (c, −b, a)/det → (a, b, c)
     gA, gB, gC = g_con[g, 0], g_con[g, 1], g_con[g, 2]
     d2 = det * det

@@ -27,7 +27,7 @@ import numba as nb
 import numpy as np
 import torch
 
-from stages.render.bind_project import camera_array
+from stages.render.bind_project import _screen_terms, camera_array
 from stages.render.projection import CameraTensors
 from stages.render.rasterize import (ALPHA_MAX, ALPHA_MIN, TILE, _bin_ranked, _exp_neg, _forward, _pack, _schedule,
                                      exp_coefficients)
@@ -200,7 +200,7 @@ def _project_jvp(mu, M, d_mu, d_M, cam, d_m2d, d_con):  # pragma: no cover - com
     """Tangents of bind_project._project_one's outputs (means2d, conics) along (d_mu (k, G, 3), d_M (k, G, 3, 3))
     at centres mu (G, 3) and covariance factors M (G, 3, 3); zero for a Gaussian behind the near plane."""
     fx, sk, fy = cam[0], cam[1], cam[3]
-    lx, ly, near, lp = cam[17], cam[18], cam[21], cam[22]
+    near = cam[21]
     Rc = cam[5:14].reshape(3, 3)
     n = mu.shape[0]
     nt = d_mu.shape[0]
@@ -218,31 +218,13 @@ def _project_jvp(mu, M, d_mu, d_M, cam, d_m2d, d_con):  # pragma: no cover - com
                 d_con[j, g, 2] = 0.0
             continue
         xn, yn = p0 / z, p1 / z
-        x_free = -lx < xn < lx
-        y_free = -ly < yn < ly
-        xc = min(max(xn, -lx), lx)
-        yc = min(max(yn, -ly), ly)
         n0 = np.empty(3)
         n1 = np.empty(3)
         jw0 = np.empty(3)
         jw1 = np.empty(3)
         t0 = np.empty(3)
         t1 = np.empty(3)
-        for d in range(3):
-            n0[d] = (Rc[0, d] - xc * Rc[2, d]) / z
-            n1[d] = (Rc[1, d] - yc * Rc[2, d]) / z
-            jw0[d] = fx * n0[d] + sk * n1[d]
-            jw1[d] = fy * n1[d]
-        a = lp
-        b = 0.0
-        c = lp
-        for jj in range(3):
-            t0[jj] = jw0[0] * M[g, 0, jj] + jw0[1] * M[g, 1, jj] + jw0[2] * M[g, 2, jj]
-            t1[jj] = jw1[0] * M[g, 0, jj] + jw1[1] * M[g, 1, jj] + jw1[2] * M[g, 2, jj]
-            a += t0[jj] * t0[jj]
-            b += t0[jj] * t1[jj]
-            c += t1[jj] * t1[jj]
-        det = a * c - b * b
+        x_free, y_free, a, b, c, det = _screen_terms(xn, yn, z, M[g], cam, Rc, n0, n1, jw0, jw1, t0, t1)
         if not det > 0:
             det = 1.0
         for j in range(nt):
