@@ -57,15 +57,14 @@ def stretch_controls(stretches, l2s):
     return {"handles": [left, right]}
 
 
-@pytest.fixture(scope="module")
-def stretch_ws(tmp_path_factory):
-    """Workspace: block mesh, adapt.h5 of a uniaxial stretch ramp (homogeneous F), capture folder."""
-    root = tmp_path_factory.mktemp("export")
+def stretch_workspace(root: Path, stretches: np.ndarray, mode: str, loss_kind: str, window: int,
+                      extra: dict | None = None) -> dict:
+    """Workspace ROOT/ws: block mesh, adapt.h5 (``mode``, ``loss_kind``, ``window``, ``extra``) of a uniaxial
+    stretch ramp (homogeneous F) by ``stretches`` (T,), capture folder ROOT/capture."""
     mesh = block_artefact(SIZE, (5, 2, 2), density=1000.0)
     ws = root / "ws"
-    ws.mkdir()
+    ws.mkdir(parents=True)
     mesh.save(ws / "mesh.h5")
-    stretches = np.linspace(1.0, 1.2, 5)
     mu, lam = lame(E, NU)
     l2s = np.array([snh_uniaxial(l1, mu, lam)[0] for l1 in stretches])
     cap = write_capture(root / "capture", mesh, stretch_controls(stretches, l2s))
@@ -75,9 +74,17 @@ def stretch_ws(tmp_path_factory):
         frames=np.arange(T), young=np.full((T, 1), E), poisson=np.full((T, 1), NU), z=np.zeros((T, 0)),
         positions=pos, loss=np.linspace(1.0, 0.1, T), time_forward_s=np.full(T, 0.1),
         time_backward_s=np.full(T, 0.2), time_render_s=np.full(T, 0.05), time_total_s=np.full(T, 0.4),
-        region_names=["body"], mode="offline", space="full", loss_kind="markers", window=T,  # one trajectory: forces from its positions
+        region_names=["body"], mode=mode, space="full", loss_kind=loss_kind, window=window, extra=extra or {},
     ).save(ws / "adapt.h5", Provenance.make({"capture": str(cap), "workspace": str(ws)}))
-    return {"ws": ws, "cap": cap, "mesh": mesh, "stretches": stretches, "l2s": l2s, "root": root}
+    return {"ws": ws, "cap": cap, "mesh": mesh, "stretches": stretches, "l2s": l2s, "root": root, "positions": pos}
+
+
+@pytest.fixture(scope="module")
+def stretch_ws(tmp_path_factory):
+    """Workspace: block mesh, adapt.h5 of a uniaxial stretch ramp (homogeneous F), capture folder."""
+    stretches = np.linspace(1.0, 1.2, 5)
+    # offline, window T: one trajectory, so the forces come from its positions
+    return stretch_workspace(tmp_path_factory.mktemp("export"), stretches, "offline", "markers", len(stretches))
 
 
 def read_csv(path: Path) -> list[dict]:

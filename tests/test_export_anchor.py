@@ -9,8 +9,7 @@ import pytest
 from stages.artefacts import (AdaptArtefact, Camera, CamerasArtefact, GaussiansArtefact, Provenance,
                               read_provenance)
 from stages.steps.export import ExportConfig, run
-from test_export import E, NU, SIZE, snh_uniaxial, stretch_controls, write_capture
-from test_stress_meshes import block_artefact
+from test_export import stretch_workspace
 
 FIT_FRAME = 2
 SHRINK = 0.85  # the fitted shape: the adapted fit-frame shape shrunk about its centre (inside it everywhere)
@@ -20,25 +19,9 @@ def _workspace(root, anchor_kind: str) -> dict:
     """Block stretched over 4 frames (adapt.h5 with extra gaussian_anchor = ``anchor_kind``), Gaussians fitted at
     frame FIT_FRAME with the mesh posed at fit_positions ≠ the adapted x_f, one camera."""
     from stages.render.mesh_raster import look_at
-    from stages.sim.materials import lame
 
-    mesh = block_artefact(SIZE, (5, 2, 2), density=1000.0)
-    ws = root / "ws"
-    ws.mkdir(parents=True)
-    mesh.save(ws / "mesh.h5")
-    stretches = np.linspace(1.0, 1.15, 4)
-    mu, lam = lame(E, NU)
-    l2s = np.array([snh_uniaxial(l1, mu, lam)[0] for l1 in stretches])
-    cap = write_capture(root / "capture", mesh, stretch_controls(stretches, l2s))
-    pos = np.stack([mesh.vertices * np.array([l1, l2, l2]) for l1, l2 in zip(stretches, l2s)])
-    T = len(stretches)
-    AdaptArtefact(
-        frames=np.arange(T), young=np.full((T, 1), E), poisson=np.full((T, 1), NU), z=np.zeros((T, 0)),
-        positions=pos, loss=np.linspace(1.0, 0.1, T), time_forward_s=np.full(T, 0.1),
-        time_backward_s=np.full(T, 0.2), time_render_s=np.full(T, 0.05), time_total_s=np.full(T, 0.4),
-        region_names=["body"], mode="online", space="full", loss_kind="images", window=2,
-        extra={"gaussian_anchor": anchor_kind},
-    ).save(ws / "adapt.h5", Provenance.make({"capture": str(cap), "workspace": str(ws)}))
+    w = stretch_workspace(root, np.linspace(1.0, 1.15, 4), "online", "images", 2, {"gaussian_anchor": anchor_kind})
+    ws, mesh, pos = w["ws"], w["mesh"], w["positions"]
     x_f = pos[FIT_FRAME]
     centre = x_f.mean(0)
     fit_x = centre + SHRINK * (x_f - centre)
