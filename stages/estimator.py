@@ -212,11 +212,10 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
         n_eval += 1
         c = cost(p, r)
     # the covariance at the last linearisation (the final step is small: the same to first order)
-    JW = J_lin * W[:, None]
-    cov = _sym_inv(JW.T @ J_lin / s2 + info)
+    cov = posterior_cov(J_lin, W, s2, prior)
     k2 = (residual_scale2(r_lin, sigma, huber, len(p)) if clusters is None else
           cluster_scale2(r_lin, J_lin, sigma, huber, clusters))
-    cov_scaled = _sym_inv(JW.T @ J_lin / (float(sigma) ** 2 * k2) + info) if np.isfinite(k2) else cov
+    cov_scaled = posterior_cov(J_lin, W, float(sigma) ** 2 * k2, prior) if np.isfinite(k2) else cov
     return GNResult(p=p, cov=cov, cost=c, iterations=it, evaluations=n_eval, residuals=r_lin, jacobian=J_lin,
                     p_lin=p_lin, weights=W, scale2=k2, cov_scaled=cov_scaled)
 
