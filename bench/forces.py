@@ -18,7 +18,9 @@ truths, frame by frame (2 F_{2N} − F_N), or the single truth when only one is 
                        ``--substeps``: error against the reference vs CPU.
     --part theta   θ(t) of existing adapt.h5 (``--adapt-ws case=WS,...``; their mesh.h5 is used) under each θ
                    rule (online = as recorded; segment = the last estimate of each segment between the changes the
-                   estimator detected; lagL = the estimate L frames later, within the segment), replayed with each
+                   estimator detected; lagL = the estimate L frames later, within the segment; smoothed = the
+                   Rauch–Tung–Striebel smoother under the gn filter's random walk, stages.forces.rts_theta;
+                   smoothedE = its E with ν as recorded), replayed with each
                    of ``--replays`` (S = plain S substeps, rS = Richardson (S, 2S)); the true E alongside, and
                    each rule's forces also against the true E replayed the same way (the part of the error the
                    adapted θ(t) adds, free of the replay's own time-step error).
@@ -33,8 +35,8 @@ case and θ, measured in the same run.
     # per case (its own --truth-substeps), then --merge; each WS made by `rsl adapt CAP -w WS --space full
     # --loss markers --estimator gn --window 3 --young-init 5e4` on the bench/accuracy.py capture of the case
     nice -n 5 .venv/bin/python bench/forces.py --part theta --cases bar_equilibrium --truth-substeps 12,24,48 \\
-        --replays 1,r1,3 --work /tmp/rsl_forces_conv --adapt-ws bar_equilibrium=WS1,bar_equilibrium=WS2 \\
-        --out OUT --name theta_bar_eq
+        --replays 1,r1 --work /tmp/rsl_forces_conv --cache /tmp/rsl_forces_cache \\
+        --adapt-ws bar_equilibrium=WS1,bar_equilibrium=WS2 --out OUT --name theta_bar_eq
     .venv/bin/python bench/forces.py --merge OUT/theta_bar_eq.json OUT/theta_beam.json ... --name forces_theta
 
 With RSL_BENCH_REUSE=1, captures and meshes already in --work are reused (bench/_pipeline.py).
@@ -71,6 +73,7 @@ CASES = {  # name -> (scene, start): the accuracy captures (bench/accuracy.py sc
     "dino_equilibrium": (lambda: acc.scene_args("dino", FRAMES), "equilibrium"),
 }
 APPLIED = ("applied_fx_N", "applied_fy_N", "applied_fz_N")
+CACHE: dict = {}  # "dir": the replay cache folder (--cache; default WORK/cache)
 
 
 def pooled(per: dict) -> float | None:
@@ -191,7 +194,9 @@ def errors(estimated: list[dict], ref: list[dict], before: int) -> dict:
     early = [e for v in per.values() for t, e in zip(v["frames"], v["rel_error_per_frame"]) if t < before]
     return {"median_force_error": pooled(per),
             "median_force_error_before_change": float(np.median(early)) if early else None,
-            "per_set": {k: v["median_relative_error"] for k, v in per.items()}}
+            "per_set": {k: v["median_relative_error"] for k, v in per.items()},
+            "per_frame": {k: [[int(t), float(e)] for t, e in zip(v["frames"], v["rel_error_per_frame"])]
+                          for k, v in per.items()}}
 
 
 def method_rows(plain: dict[int, tuple[list, float]], specs: list[str], ref: list[dict], dt: float, base: dict,
@@ -248,7 +253,8 @@ def part_time(work: Path, case: str, truth_substeps: list[int], substeps: list[i
     poisson = by_region(truth.poisson[:FRAMES], truth.region_names, regions, "truth/material.csv")
     before = first_change(young)
     rows = [{**r, "reference": reference_name(truth_substeps)} for r in truth_rows(case, trows, ref, before)]
-    plain = replays(scene, controls, young, poisson, cap.start, substeps, dt, f"{case}, true E", work / "cache")
+    plain = replays(scene, controls, young, poisson, cap.start, substeps, dt, f"{case}, true E",
+                    CACHE.get("dir", work / "cache"))
     specs = [str(S) for S in substeps] + [f"r{S}" for S in substeps if 2 * S in substeps]
     base = {"part": "replay", "case": case, "theta": "true E", "adapt": None, "frames": FRAMES, "fps": float(cap.fps),
             "dofs": 3 * int(mesh.vertices.shape[0]), "first_change": before,
@@ -266,16 +272,19 @@ def part_theta(work: Path, case: str, truth_substeps: list[int], adapt_ws: list[
                specs: list[str]) -> list[dict]:
     from stages.artefacts import AdaptArtefact, MeshArtefact, read_provenance
     from stages.capture import load_capture, read_truth
-    from stages.forces import replay_theta, smoothed_theta
+    from stages.forces import filter_model, replay_theta, smoothed_theta
     from stages.sim.scene import make_scene
 
-    caps, _, ref = truths(work, case, truth_substeps)
+    caps, trows, ref = truths(work, case, truth_substeps)
     cap = load_capture(caps[max(caps)])
     truth = read_truth(cap)
+    # the truths against the reference and each other: where they converge in time, the force is defined
+    rows_truth = [{**r, "reference": reference_name(truth_substeps)}
+                  for r in truth_rows(case, trows, ref, first_change(np.asarray(truth.young[:FRAMES])))]
     controls = cap.controls()
     dt = float(cap.dt)
     steps = sorted({int(s.lstrip("r")) * m for s in specs for m in ((1, 2) if s.startswith("r") else (1,))})
-    rows: list[dict] = []
+    rows: list[dict] = rows_truth
     true_tables: dict = {}  # (vertices, T) -> {replay label: forces.csv rows of the true E}
     for ws in adapt_ws:
         mesh = MeshArtefact.load(ws / "mesh.h5")
@@ -302,15 +311,21 @@ def part_theta(work: Path, case: str, truth_substeps: list[int], adapt_ws: list[
         if key not in true_tables:  # the true E on this mesh, once
             thetas["true E"] = (by_region(truth.young[:T], truth.region_names, regions, "truth/material.csv"),
                                 by_region(truth.poisson[:T], truth.region_names, regions, "truth/material.csv"))
+        sy = by_region(np.asarray(ad.young_sigma), list(ad.region_names), regions, "adapt.h5")
+        sp = by_region(np.broadcast_to(np.asarray(ad.poisson_sigma), np.shape(ad.poisson)), list(ad.region_names),
+                       regions, "adapt.h5")
+        model = filter_model(cfg, cap.material.poisson_range)
         for rule in rules:
             if rule.startswith("lag"):
                 thetas[rule] = smoothed_theta(young, poisson, changes, lag_of(rule))
+            elif rule == "smoothedE":  # E smoothed as "smoothed" does, ν as recorded
+                thetas[rule] = (replay_theta(young, poisson, ad.extra, "smoothed", sy, sp, model)[0], poisson)
             else:
-                thetas[rule] = replay_theta(young, poisson, ad.extra, rule)[:2]
+                thetas[rule] = replay_theta(young, poisson, ad.extra, rule, sy, sp, model)[:2]
         before = first_change(by_region(truth.young[:T], truth.region_names, regions, "truth/material.csv"))
         for label, (y, p) in thetas.items():
             plain = replays(scene, controls, y, p, cap.start, steps, dt, f"{case}, {ws.name}, {label}",
-                            work / "cache")
+                            CACHE.get("dir", work / "cache"))
             got = method_rows(plain, specs, ref, dt, {**base, "theta": label, "first_change": before,
                                                        "reference": reference_name(truth_substeps),
                                                        "adapt": None if label == "true E" else desc}, before,
@@ -377,39 +392,47 @@ def _theta_row(r: dict) -> str:
             f"| {r['cpu_s']:.1f} |")
 
 
-THETA_METRICS = (("median_force_error", None, "vs reference, all frames"),
+THETA_METRICS = (("converged", None, "vs reference, frames where the truths converge in time (before the first "
+                                     "change of E; all frames when E is constant)"),
+                 ("median_force_error", None, "vs reference, all frames"),
                  ("median_force_error_before_change", None, "vs reference, before the first change of E"),
                  ("median_force_error", "vs_true_E", "vs the true E replayed alike, all frames"),
                  ("median_force_error_before_change", "vs_true_E", "vs the true E replayed alike, before the change"))
 
 
 def _metric(r: dict, key: str, sub: str | None):
+    if key == "converged":  # frames < first change: every frame when E is constant (first_change = T)
+        key = "median_force_error_before_change"
     return (r.get(sub) or {}).get(key) if sub else r.get(key)
 
 
-def theta_summary(rows: list[dict], challenger: str = "segment", incumbent: str = "online") -> list[str]:
-    """Lines made from the θ rows only: per replay and metric, on how many adapt.h5 the ``challenger`` rule's error
-    is below the ``incumbent``'s, and the rule with the lowest error on each (the metrics before the first change of
-    E only for captures whose E changes)."""
+def theta_summary(rows: list[dict], incumbent: str = "online") -> list[str]:
+    """A Markdown table made from the θ rows only: per replay and metric, for each other rule, on how many adapt.h5
+    its error is below the ``incumbent``'s and on which it is not (the metrics before the first change of E only
+    for captures whose E changes)."""
     th = [r for r in rows if r["part"] == "theta" and r.get("adapt")]
-    out = []
+    rules = [k for k in dict.fromkeys(r["theta"] for r in th) if k != incumbent]
+    if not rules:
+        return []
+    out = ["| replay | error | " + " | ".join(f"'{k}' below '{incumbent}'" for k in rules) + " |",
+           "| --- | --- | " + " | ".join("---" for _ in rules) + " |"]
     for replay in dict.fromkeys(r["replay"] for r in th):
         for key, sub, what in THETA_METRICS:
-            runs, lower, best = [], 0, []
-            for (case, adapt) in dict.fromkeys((r["case"], r["adapt"]) for r in th if r["replay"] == replay):
-                got = {r["theta"]: _metric(r, key, sub) for r in th
-                       if r["replay"] == replay and r["case"] == case and r["adapt"] == adapt
-                       and not (key.endswith("before_change") and r.get("first_change", 0) >= r.get("frames", 0))}
-                got = {k: v for k, v in got.items() if v is not None}
-                if challenger in got and incumbent in got:
-                    runs.append(case)
-                    lower += got[challenger] < got[incumbent]
-                if got:
-                    rule = min(got, key=got.get)
-                    best.append(f"{case} ({adapt.split(':')[0]}): {rule} {100 * got[rule]:.1f} %")
-            if runs:
-                out.append(f"- {replay}, {what}: '{challenger}' below '{incumbent}' on {lower} of {len(runs)} "
-                           f"adapt.h5; lowest: " + "; ".join(best))
+            cells = []
+            for rule in rules:
+                runs, not_lower = 0, []
+                for (case, adapt) in dict.fromkeys((r["case"], r["adapt"]) for r in th if r["replay"] == replay):
+                    got = {r["theta"]: _metric(r, key, sub) for r in th
+                           if r["replay"] == replay and r["case"] == case and r["adapt"] == adapt
+                           and not (key.endswith("before_change") and r.get("first_change", 0) >= r.get("frames", 0))}
+                    if got.get(rule) is None or got.get(incumbent) is None:
+                        continue
+                    runs += 1
+                    if not got[rule] < got[incumbent]:
+                        not_lower.append(f"{adapt.split(':')[0]} {100 * got[rule]:.1f} vs {100 * got[incumbent]:.1f} %")
+                cells.append(f"{runs - len(not_lower)} of {runs}" + (f" (not: {'; '.join(not_lower)})" if not_lower
+                                                                     else ""))
+            out.append(f"| {replay} | {what} | " + " | ".join(cells) + " |")
     return out
 
 
@@ -487,7 +510,9 @@ def write(rows: list[dict], out: Path, plan: dict, name: str) -> None:
         parts.append("## Replays of an adapted θ(t)\n\nθ(t) rules: 'online' = as adapt.h5 records it (each frame's "
                      "filter estimate); 'segment' = the last estimate of each segment between the changes the "
                      "estimator detected (stages.forces.smoothed_theta); 'lagL' = the estimate L frames later, "
-                     "within the segment; 'true E' = the truth's E(t), ν.  The adapt.h5 were made by `rsl adapt` on "
+                     "within the segment; 'smoothed' = the Rauch–Tung–Striebel smoother of the recorded E ± σ, ν ± σ "
+                     "under the gn filter's own random walk (stages.forces.rts_theta); 'smoothedE' = its E with ν as "
+                     "recorded; 'true E' = the truth's E(t), ν.  The adapt.h5 were made by `rsl adapt` on "
                      f"captures of the same scenes and controls ({made}), each replayed on its own mesh.h5 and "
                      "compared with the refined reference, and with the true E(t) replayed on the same mesh with the "
                      "same replay (the part of the error the adapted θ(t) adds):\n\n"
@@ -495,6 +520,9 @@ def write(rows: list[dict], out: Path, plan: dict, name: str) -> None:
                                  f"{next(r['changes'] for r in th if r.get('adapt') == a)}" for a in ads) + "\n\n"
                      + "\n".join([THETA_HEAD] + [_theta_row(r) for r in th]) + "\n\n"
                      + "\n".join(theta_summary(rows)) + "\n")
+    if plan.get("cache"):
+        parts.append(f"Each replay (its forces and CPU seconds, as measured when made) is read from the cache "
+                     f"{plan['cache']} when an earlier run made it for the same mesh, controls, θ(t), start and S.\n")
     parts.append(default_line() + " "
                  + (f"Rows merged from {len(plan['merged_from'])} runs, ended "
                     + ", ".join(f"{m['date']} (load average {m['load_average_end']:.1f})" for m in plan["merged_from"])
@@ -536,8 +564,10 @@ def main() -> None:
                     help="substeps per frame of the truths (synth --substeps); the two finest make the reference")
     ap.add_argument("--substeps", default="1,2,3,6,12", help="--part time: plain replay substeps S (include 1)")
     ap.add_argument("--adapt-ws", default="", help="--part theta: CASE=WORKSPACE,... holding adapt.h5 and mesh.h5")
-    ap.add_argument("--rules", default="online,segment,lag3", help="--part theta: θ(t) rules")
+    ap.add_argument("--rules", default="online,segment,smoothed,smoothedE", help="--part theta: θ(t) rules")
     ap.add_argument("--replays", default="3,r1,r3", help="--part theta: S (plain) or rS (Richardson (S, 2S))")
+    ap.add_argument("--cache", type=Path, default=None,
+                    help="folder of the replay cache (default WORK/cache; a new folder re-measures every replay)")
     ap.add_argument("--name", default="forces_converged", help="file stem of the report in --out (NAME.md/.json/.png)")
     ap.add_argument("--merge", nargs="+", type=Path, default=None,
                     help="only write the report from the rows of these NAME.json files (runs split by case)")
@@ -549,6 +579,8 @@ def main() -> None:
                                 for f, run in zip(a.merge, runs)]}
         write([r for run in runs for r in run["cases"]], a.out, plan, a.name)
         return
+    if a.cache is not None:
+        CACHE["dir"] = a.cache
     truth_substeps = sorted({int(s) for s in a.truth_substeps.split(",")})
     cases = a.cases.split(",")
     unknown = [c for c in cases if c not in CASES]
@@ -556,7 +588,7 @@ def main() -> None:
         raise SystemExit(f"unknown case(s) {unknown}; known: {', '.join(CASES)}")
     a.work.mkdir(parents=True, exist_ok=True)
     plan = {"part": a.part, "cases": cases, "frames": FRAMES, "max_tets": MAX_TETS, "work": str(a.work),
-            "truth_substeps": truth_substeps}
+            "truth_substeps": truth_substeps, "cache": str(CACHE.get("dir", a.work / "cache"))}
     rows: list[dict] = []
     if a.part == "time":
         substeps = sorted({int(s) for s in a.substeps.split(",")})
@@ -579,7 +611,7 @@ def main() -> None:
             raise SystemExit(f"--adapt-ws names no workspace for {case}")
         rows += part_theta(a.work, case, truth_substeps, ws_of[case], rules, specs)
         write(rows, a.out, plan, a.name)
-    print("\n".join([THETA_HEAD] + [_theta_row(r) for r in rows]))
+    print("\n".join([THETA_HEAD] + [_theta_row(r) for r in rows if r["part"] == "theta"]))
     print("\n".join(theta_summary(rows)))
 
 

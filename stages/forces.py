@@ -42,15 +42,25 @@ Against a truth made with 3 substeps, plain S = 3 errs ~1 % only because it copi
 (docs/results/forces.md).
 
 θ(t) of the replay (:func:`replay_theta`, ``--force-theta``): "online" = each frame's filter estimate as adapt.h5
-records it (default :data:`FORCE_THETA`: the force of frame t depends on the estimates of frames ≤ t only);
-"segment" = within each segment between the material changes adapt's gn estimator detected, the segment's last
-estimate (:func:`smoothed_theta`; it has seen the whole segment).  docs/results/forces_theta.md (bench/forces.py
---part theta; gn, markers, full space, replay Richardson (1, 2), two adapt runs per capture) measured: "segment"
-removes the estimate's start transient — two-region beam 25–26 % → 3.8–3.9 % against the truth refined in time,
-bar with an equilibrium start 7.8 % → 0.7 % before its first step of E — but where the change detector fires
-some frames off a true change, a segment's last estimate carries the later material into the earlier frames: on
-the bar released at rest (changes detected at frames 2, 9, 16 around the step at 12) 18.4 % → 26.0 % before the
-step.  Not lower on every capture, so not the default.
+records it (the force of frame t depends on the estimates of frames ≤ t only); "segment" = within each segment
+between the material changes adapt's gn estimator detected, the segment's last estimate (:func:`smoothed_theta`; it
+has seen the whole segment); "smoothed" (default :data:`FORCE_THETA`) = the fixed-interval (Rauch–Tung–Striebel)
+smoother of the recorded E ± σ, ν ± σ under the random walk the gn filter itself assumed (:func:`rts_theta`: its
+process noise per frame, none between frames that shared a window, its change σ at a detected change — the settings
+come from adapt.h5's provenance, :func:`filter_model`); a run without σ or change detector (Adam) keeps its
+recorded θ(t).  Export runs after adapt, so the replay need not be causal.  docs/results/forces_theta.md
+(bench/forces.py --part theta; gn, markers, full space, replay Richardson (1, 2), two adapt runs per capture)
+measured against the truth refined in time.  The default is chosen on the frames where the truth's force is defined
+— converged in time: every frame of the two-region beam (constant E) and every capture's frames before its first
+step of E (docs/results/forces_converged.md) — where "smoothed" is lower than "online" on every capture: beam
+25.2 / 26.0 % → 5.0 / 4.6 %, bar with an equilibrium start 7.8 % → 1.1 %, bar released at rest 18.4 % → 17.6 %
+(and over all 40 frames of `make demo`'s capture, against its truth made with 2 substeps per frame: 11.4 % →
+2.0 %; "segment" 1.7 %, the true E(t) replayed alike 1.8 %; measured by hand on the demo's workspace).  Over all
+frames of the bars no replay is meaningful: after an instantaneous step of E the truths themselves do not converge
+and the true E(t) replayed alike errs 51.3 % (equilibrium start) and 64.9 % (released at rest); there "online"
+happens to read 60.0 % and "smoothed" 67.2 % on the bar released at rest, whose change detector fired at frame 9,
+three frames before the true step, so the smoother carries the later material into frames 9–11 (as "segment" does,
+68.1 %).
 
 The error against a truth (rows of forces.csv, stages.capture.FORCE_HEADER): per handle / obstacle and frame,
 e_t = ‖F_t − F_t^true‖ / ‖F_t^true‖ on the applied force (N), over the frames where ‖F_t^true‖ is at least
@@ -62,7 +72,9 @@ import dataclasses
 from typing import Sequence
 
 import numpy as np
+from scipy.special import expit, logit
 
+from stages.estimator import process_noise
 from stages.progress import Reporter, SilentReporter
 from stages.results import previous_states
 from stages.sim import stress as st
@@ -70,8 +82,8 @@ from stages.sim import stress as st
 APPLIED = ("applied_fx_N", "applied_fy_N", "applied_fz_N")
 FORCE_SUBSTEPS = 1  # default implicit-Euler steps per frame S of the replay (docs/results/forces_converged.md)
 FORCE_EXTRAPOLATE = True  # default: Richardson-extrapolate the replay over S and 2S substeps (module doc)
-FORCE_THETA = "online"  # default θ(t) of the replay: "online" (as adapt.h5 records it) | "segment" (module doc)
-THETA_RULES = ("online", "segment")
+FORCE_THETA = "smoothed"  # default θ(t) of the replay: "smoothed" | "online" (as adapt.h5 records it) | "segment"
+THETA_RULES = ("online", "segment", "smoothed")
 
 
 def replay_substeps(requested: int, adapt) -> int:
@@ -135,15 +147,20 @@ def step_forces(scene, controls, X: np.ndarray, states: Sequence[tuple[np.ndarra
 
 def adapted_forces(scene, controls, adapt, start: str | None, substeps: int, internal, contact_distance: float = 1.0e-3,
                    reporter: Reporter = SilentReporter(), extrapolate: bool = FORCE_EXTRAPOLATE,
-                   theta: str = FORCE_THETA) -> tuple[list[tuple[int, st.SetForce]], np.ndarray, str]:
+                   theta: str = FORCE_THETA, model: FilterModel | None = None
+                   ) -> tuple[list[tuple[int, st.SetForce]], np.ndarray, str]:
     """The forces ``rsl export --forces``, ``rsl evaluate`` and ``rsl report`` give for an adapt.h5 trajectory, one
     rule for all three: an online run that starts at frame 0 (a splice of windows) is replayed in the full space
     (:func:`replay_forces`, from the capture's ``start`` with ``substeps`` per frame); an offline or static run,
     one that does not start at frame 0, or one whose capture is unknown (``start`` None) uses its recorded
-    positions (:func:`trajectory_forces`; ``internal()`` gives their internal forces (T, n, 3) N).
+    positions (:func:`trajectory_forces`; ``internal()`` gives their internal forces (T, n, 3) N).  θ(t) of the
+    replay: :func:`replay_theta` with rule ``theta``, adapt.h5's young_sigma / poisson_sigma and ``model`` (the gn
+    filter's random walk, :func:`filter_model`; without it "smoothed" keeps the recorded θ(t)).
     Returns (rows, applied (T, n, 3) N, a phrase naming the source)."""
     if getattr(adapt, "mode", "online") == "online" and start is not None and replayable(adapt.frames):
-        young, poisson, how = replay_theta(adapt.young, adapt.poisson, getattr(adapt, "extra", None), theta)
+        young, poisson, how = replay_theta(adapt.young, adapt.poisson, getattr(adapt, "extra", None), theta,
+                                           getattr(adapt, "young_sigma", None), getattr(adapt, "poisson_sigma", None),
+                                           model)
         rows, applied, _ = replay_forces(scene, controls, young, poisson, start, substeps, contact_distance, reporter,
                                          extrapolate)
         steps = (f"Richardson-extrapolated from {substeps} and {2 * substeps} substeps per frame" if extrapolate
@@ -232,13 +249,119 @@ def smoothed_theta(young: np.ndarray, poisson: np.ndarray, changes: Sequence[int
     return young[idx], poisson[idx]
 
 
-def replay_theta(young: np.ndarray, poisson: np.ndarray, extra: dict | None, rule: str = FORCE_THETA
-                 ) -> tuple[np.ndarray, np.ndarray, str]:
+@dataclasses.dataclass(frozen=True)
+class FilterModel:
+    """The random walk adapt's gn filter assumed (its AdaptConfig) and the capture's ν range: σ per frame of the
+    walk of log E and of ν's parameter s (``process_noise``; ``process_noise_change`` during the window + 5 frames
+    after a detected change, stages.estimator.process_noise), the σ added to log E at a detected change
+    (``change_sigma``), the window w, the model-error floors the reported σ carry (``model_error`` relative for E,
+    ``model_error_poisson`` for ν; stages.windows.sigma_from_cov) and ν = lo + (hi − lo) sigmoid(s)."""
+
+    window: int
+    process_noise: float
+    process_noise_change: float
+    change_sigma: float
+    model_error: float
+    model_error_poisson: float
+    poisson_range: tuple[float, float]
+
+
+def filter_model(config: dict | None, poisson_range) -> FilterModel | None:
+    """The FilterModel of an adapt.h5 from its provenance config (stages.artefacts.read_provenance(...)["config"])
+    and the capture's [material] poisson_range; None when the config lacks one of the filter's settings (a run not
+    made by the gn estimator can lack them).  A config from before --process-noise-change had one σ for all frames."""
+    config = config or {}
+    keys = ("window", "process_noise", "change_sigma", "model_error", "model_error_poisson")
+    if any(config.get(k) is None for k in keys) or poisson_range is None:
+        return None
+    change = config.get("process_noise_change")
+    lo, hi = (float(v) for v in np.ravel(poisson_range)[:2])
+    return FilterModel(int(config["window"]), float(config["process_noise"]),
+                       float(config["process_noise"] if change is None else change), float(config["change_sigma"]),
+                       float(config["model_error"]), float(config["model_error_poisson"]), (lo, hi))
+
+
+def rts_smooth(mean: np.ndarray, var: np.ndarray, q_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fixed-interval (Rauch–Tung–Striebel) smoother of a random walk x_{t+1} = x_t + w_t, w_t ~ N(0, q_var[t]),
+    from the filtered means (T,) and variances var (T,) (Gaussian posteriors of x_t given frames ≤ t):
+
+        x_s(T−1) = m(T−1),   x_s(t) = m(t) + C_t (x_s(t+1) − m(t)),   C_t = P(t) / (P(t) + q_t)
+        P_s(t) = P(t) + C_t² (P_s(t+1) − P(t) − q_t)
+
+    (the walk predicts x_{t+1} by m(t) with variance P(t) + q_t); C_t = 0 where P(t) + q_t = 0.  q_var (T − 1,):
+    the walk's variance from frame t to t + 1.  Returns the smoothed means and variances (T,), each the posterior
+    of x_t given all frames."""
+    m, P, q = (np.asarray(a, np.float64) for a in (mean, var, q_var))
+    T = len(m)
+    if P.shape != (T,) or q.shape != (max(T - 1, 0),):
+        raise ValueError(f"rts_smooth needs mean and var of one length T and q_var of T − 1, found {m.shape}, "
+                         f"{P.shape}, {q.shape}")
+    xs, Ps = m.copy(), P.copy()
+    for t in range(T - 2, -1, -1):
+        pred = P[t] + q[t]
+        C = P[t] / pred if pred > 0 else 0.0
+        xs[t] = m[t] + C * (xs[t + 1] - m[t])
+        Ps[t] = P[t] + C * C * (Ps[t + 1] - pred)
+    return xs, Ps
+
+
+def walk_variances(frames: np.ndarray, changes: Sequence[int], model: FilterModel) -> tuple[np.ndarray, np.ndarray]:
+    """The variance (T − 1,) of the gn filter's random walk from each recorded frame to the next, for log E and for
+    ν's parameter s, as stages.steps.adapt._online_gn adds it: after the solve of the window ending at frame t, a
+    FULL window (w frames since the later of the first frame and the last detected change ≤ t) folds its oldest
+    frame into the arrival cost with process noise q(t)² (stages.estimator.process_noise); a window still growing
+    adds none (its frames share one θ); a change detected at frame t + 1 adds change_sigma² to log E (not to s)."""
+    frames = np.asarray(frames)
+    found = sorted(int(c) for c in changes)
+    first = int(frames[0]) if len(frames) else 0
+    qe, qs = np.zeros(max(len(frames) - 1, 0)), np.zeros(max(len(frames) - 1, 0))
+    for i, t in enumerate(frames[:-1]):
+        t = int(t)
+        seen = [c for c in found if c <= t]
+        start = max([first, *seen])
+        if t - start + 1 >= model.window:
+            q = process_noise(t, seen, model.window, model.process_noise, model.process_noise_change)
+            qe[i] = qs[i] = q * q
+        if int(frames[i + 1]) in found:
+            qe[i] += model.change_sigma ** 2
+    return qe, qs
+
+
+def rts_theta(young: np.ndarray, young_sigma: np.ndarray, poisson: np.ndarray, poisson_sigma: np.ndarray,
+              frames: np.ndarray, changes: Sequence[int], model: FilterModel) -> tuple[np.ndarray, np.ndarray]:
+    """θ(t) (T, R) of a gn online run smoothed over the whole run under the filter's own random walk
+    (:func:`rts_smooth` per region, log E and s = logit((ν − lo) / (hi − lo)) apart — the filter's covariance
+    between them is not recorded): the means and σ adapt.h5 records per frame (young, young_sigma Pa, poisson,
+    poisson_sigma), their model-error floor taken out (P = σ² − e², the filter's own variance: the floor is a bias
+    that more frames do not average), the walk of :func:`walk_variances`.  ν with σ at the floor (held, or not
+    fitted) and a fixed ν range keep their recorded values."""
+    young, poisson = np.asarray(young, np.float64), np.asarray(poisson, np.float64)
+    sy, sp = np.asarray(young_sigma, np.float64), np.asarray(poisson_sigma, np.float64)
+    qe, qs = walk_variances(frames, changes, model)
+    log_e = np.log(young)
+    var_e = np.maximum(np.nan_to_num((sy / young) ** 2, nan=0.0) - model.model_error ** 2, 0.0)
+    out_e = np.exp(np.stack([rts_smooth(log_e[:, r], var_e[:, r], qe)[0] for r in range(young.shape[1])], axis=1))
+    lo, hi = model.poisson_range
+    if hi - lo <= 1e-9:
+        return out_e, poisson.copy()
+    u = np.clip((poisson - lo) / (hi - lo), 1e-9, 1 - 1e-9)
+    s = logit(u)
+    ds = u * (1 - u) * (hi - lo)  # dν/ds
+    var_s = np.maximum(np.nan_to_num(sp ** 2, nan=0.0) - model.model_error_poisson ** 2, 0.0) / ds ** 2
+    out_s = np.stack([rts_smooth(s[:, r], var_s[:, r], qs)[0] for r in range(poisson.shape[1])], axis=1)
+    return out_e, lo + (hi - lo) * expit(out_s)
+
+
+def replay_theta(young: np.ndarray, poisson: np.ndarray, extra: dict | None, rule: str = FORCE_THETA,
+                 young_sigma: np.ndarray | None = None, poisson_sigma: np.ndarray | None = None,
+                 model: FilterModel | None = None) -> tuple[np.ndarray, np.ndarray, str]:
     """θ(t) the replay uses for an online adapt.h5 (module doc) from its young/poisson (T, R) and extra: (young,
     poisson (T, R), a phrase).
     "online": as recorded (each frame's filter estimate).  "segment": :func:`smoothed_theta` with the changes the
-    gn estimator detected (extra['material_changes_detected']); a run without a change detector (Adam) keeps its
-    recorded θ(t).  ValueError for an unknown rule."""
+    gn estimator detected (extra['material_changes_detected']).  "smoothed": :func:`rts_theta` from the recorded σ
+    (young_sigma, poisson_sigma (T, R)) under the filter's random walk ``model`` (:func:`filter_model`).  A run
+    without a change detector (Adam: no σ either) keeps its recorded θ(t), and so does "smoothed" without σ or
+    model.  ValueError for an unknown rule."""
     if rule not in THETA_RULES:
         raise ValueError(f"the replay's θ rule should be one of {', '.join(THETA_RULES)}, found {rule!r}")
     young, poisson = np.asarray(young, np.float64), np.asarray(poisson, np.float64)
@@ -248,6 +371,13 @@ def replay_theta(young: np.ndarray, poisson: np.ndarray, extra: dict | None, rul
     if extra.get("estimator") != "gn":
         return young, poisson, "θ(t) of adapt.h5 (no change detector in this run: not smoothed)"
     changes = [int(c) for c in extra.get("material_changes_detected", []) or []]
+    if rule == "smoothed":
+        if young_sigma is None or poisson_sigma is None or model is None or np.size(young_sigma) != young.size:
+            return young, poisson, "θ(t) of adapt.h5 (its σ or its filter settings not recorded: not smoothed)"
+        y, p = rts_theta(young, young_sigma, poisson, np.broadcast_to(poisson_sigma, poisson.shape),
+                         np.arange(len(young)), changes, model)
+        return y, p, (f"θ(t) of adapt.h5 smoothed over the run (Rauch–Tung–Striebel, the filter's random walk, "
+                      f"{len(changes)} detected change(s))")
     y, p = smoothed_theta(young, poisson, changes)
     n = len(segments(changes, len(young)))
     return y, p, f"θ(t) of adapt.h5 smoothed per segment ({n} segment(s) between detected changes)"

@@ -207,29 +207,81 @@ def test_segment_theta_removes_a_start_transient_but_carries_a_later_estimate_ac
     assert b["online"][1] < 0.02 and b["segment"][1] > 0.1, b
 
 
-def test_default_theta_rule_is_causal(cable):
+def test_default_theta_rule_carries_a_later_estimate_across_a_detected_change_only_by_the_smoothers_gain(cable):
     """The default θ(t) rule of the replay (stages.forces.FORCE_THETA, what `rsl export --forces`, `rsl evaluate` and
-    `rsl report` use) is 'online' because 'segment' measured better on the beam and the bar with an equilibrium
-    start but worse on the bar released at rest (docs/results/forces_theta.md): with it, the force of frame t
-    depends on the estimates of frames ≤ t only — changing the estimates from frame 6 on leaves frames 0–5's
-    forces as they were (bit for bit), where 'segment' moves them."""
+    `rsl report` use) is 'smoothed' (docs/results/forces_theta.md: lower than 'online' on every capture over the
+    frames where the truth's force converges in time).  It is not causal — frame t's θ uses the later estimates —
+    but across a material change the gn estimator detected at frame c it carries a later estimate back only by the
+    Rauch–Tung–Striebel gain: moving every estimate from c on by a factor k moves frame t < c's E by exactly
+    k^(Π_{j=t}^{c−1} C_j), C_j = P_j / (P_j + q_j), where q_{c−1} holds the change σ² (here Π < 1 %), so frames
+    before c keep their forces within 1 %; without the detected change the same move is carried back (> 5 %)."""
     from types import SimpleNamespace
 
-    from stages.forces import FORCE_THETA, adapted_forces
+    from stages.forces import FORCE_THETA, FilterModel, adapted_forces, replay_theta, walk_variances
 
     scene, ctl, _, poisson = cable
+    model = FilterModel(3, 0.005, 0.02, 0.5, 0.02, 0.02, (0.3, 0.49))
     young = SOFT * np.array([0.4, 0.7, 0.9, 1.02, 0.99, 1.01, 1.0, 0.98, 1.02, 1.0])[:, None]
+    rel = np.array([0.5, 0.3, 0.1, 0.04, 0.03, 0.03, 0.06, 0.04, 0.03, 0.03])[:, None]
     later = young.copy()
-    later[6:] *= 1.7
-    k = 6
+    c, k = 6, 1.7
+    later[c:] *= k
 
-    def forces(y, **rule):
-        ad = SimpleNamespace(mode="online", frames=np.arange(FRAMES), young=y, poisson=poisson,
-                             extra={"estimator": "gn", "material_changes_detected": [3]})
-        rows, _, _ = adapted_forces(scene, ctl, ad, "equilibrium", 1, None, **rule)
-        return np.array([f.applied for t, f in rows if t < k])
+    def run(y, changes):
+        ad = SimpleNamespace(mode="online", frames=np.arange(FRAMES), young=y, poisson=poisson, young_sigma=y * rel,
+                             poisson_sigma=np.full_like(poisson, 0.02),
+                             extra={"estimator": "gn", "material_changes_detected": changes})
+        rows, _, how = adapted_forces(scene, ctl, ad, "equilibrium", 1, None, model=model)
+        assert "Rauch–Tung–Striebel" in how
+        return np.array([f.applied for t, f in rows if t < c])
 
-    assert FORCE_THETA in ("online", "segment")
-    np.testing.assert_array_equal(forces(young), forces(later))  # the default: causal
-    moved = np.linalg.norm(forces(young, theta="segment") - forces(later, theta="segment"), axis=1)
-    assert moved.max() > 0.05 * np.linalg.norm(forces(young), axis=1).max()  # the other rule is not
+    assert FORCE_THETA == "smoothed"
+    # the gain, from the recorded σ (model error taken out) and the filter's walk
+    qe, _ = walk_variances(np.arange(FRAMES), [c], model)
+    P = rel[:, 0] ** 2 - 0.02 ** 2
+    gain = P[:-1] / (P[:-1] + qe)
+    base = replay_theta(young, poisson, {"estimator": "gn", "material_changes_detected": [c]}, "smoothed",
+                        young * rel, np.full_like(poisson, 0.02), model)[0]
+    moved = replay_theta(later, poisson, {"estimator": "gn", "material_changes_detected": [c]}, "smoothed",
+                         later * rel, np.full_like(poisson, 0.02), model)[0]
+    carried = np.log(moved[:c, 0] / base[:c, 0]) / np.log(k)
+    np.testing.assert_allclose(carried, [np.prod(gain[t:c]) for t in range(c)], rtol=1e-9, atol=1e-15)
+    assert carried.max() < 0.01
+    top = np.linalg.norm(run(young, [c]), axis=1).max()
+    assert np.linalg.norm(run(young, [c]) - run(later, [c]), axis=1).max() < 0.01 * top
+    assert np.linalg.norm(run(young, []) - run(later, []), axis=1).max() > 0.05 * top  # no change detected: carried
+
+
+def test_smoothed_theta_rule_replays_the_rts_estimate_and_removes_a_start_transient(cable):
+    """adapted_forces with theta="smoothed" replays stages.forces.rts_theta of adapt.h5's E ± σ under the filter's
+    random walk (FilterModel); on shape (a) of the test above (a start transient, the step detected one frame
+    late) the frames before the step come within 2 % of the true E(t) replayed alike where 'online' errs > 10 %."""
+    from types import SimpleNamespace
+
+    from stages.forces import FilterModel, adapted_forces, force_errors, force_table, replay_forces, rts_theta
+
+    scene, ctl, _, poisson = cable
+    step = 5
+    model = FilterModel(3, 0.005, 0.02, 0.5, 0.02, 0.02, (0.3, 0.49))
+    online = SOFT * np.array([0.4, 0.7, 0.9, 1.02, 0.99, 1.01, 1.5, 1.9, 2.04, 1.98])[:, None]
+    rel = np.array([0.5, 0.3, 0.1, 0.03, 0.025, 0.025, 0.1, 0.04, 0.03, 0.025])[:, None]
+    ad = SimpleNamespace(mode="online", frames=np.arange(FRAMES), young=online, poisson=poisson,
+                         young_sigma=online * rel, poisson_sigma=np.full_like(poisson, 0.02),
+                         extra={"estimator": "gn", "material_changes_detected": [step + 1]})
+    rows, _, how = adapted_forces(scene, ctl, ad, "equilibrium", 1, None, extrapolate=True, theta="smoothed",
+                                  model=model)
+    assert "Rauch–Tung–Striebel" in how
+    y, p = rts_theta(online, online * rel, poisson, np.full_like(poisson, 0.02), np.arange(FRAMES), [step + 1],
+                     model)
+    want = replay_forces(scene, ctl, y, p, "equilibrium", 1, extrapolate=True)[0]
+    np.testing.assert_allclose(_applied(rows), _applied(want), rtol=1e-12, atol=1e-12)
+    true_young = SOFT * np.where(np.arange(FRAMES) < step, 1.0, 2.0)[:, None]
+    truth = force_table(replay_forces(scene, ctl, true_young, poisson, "equilibrium", 1, extrapolate=True)[0],
+                        1.0 / FPS)
+
+    def before(r):
+        got = force_errors(force_table(r, 1.0 / FPS), truth)["base"]
+        return float(np.median([e for t, e in zip(got["frames"], got["rel_error_per_frame"]) if t < step]))
+
+    plain = adapted_forces(scene, ctl, ad, "equilibrium", 1, None, extrapolate=True, theta="online")[0]
+    assert before(rows) < 0.02 and before(plain) > 0.1, (before(rows), before(plain))

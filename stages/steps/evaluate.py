@@ -31,11 +31,12 @@ from typing import Literal
 import numpy as np
 
 from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, CamerasArtefact, GaussiansArtefact,
-                              MasksArtefact, MeshArtefact, Provenance, _jsonable, check_same_mesh)
+                              MasksArtefact, MeshArtefact, Provenance, _jsonable, check_same_mesh,
+                              read_provenance)
 from stages.capture import load_capture, read_forces_csv, read_truth
 from stages.errors import RslError
-from stages.forces import (FORCE_EXTRAPOLATE, FORCE_SUBSTEPS, FORCE_THETA, adapted_forces, force_errors, force_table,
-                           replay_substeps, replayable)
+from stages.forces import (FORCE_EXTRAPOLATE, FORCE_SUBSTEPS, FORCE_THETA, adapted_forces, filter_model, force_errors,
+                           force_table, replay_substeps, replayable)
 from stages.observations import render_backgrounds, target_image
 from stages.progress import Reporter, SilentReporter
 from stages.render.image_loss import ImageLoss
@@ -78,8 +79,8 @@ class EvaluateConfig:
     """Implicit-Euler steps per frame S of the full-space replay the forces are computed on; 0 = adapt's --substeps (docs/results/forces_converged.md)."""
     force_extrapolate: bool = FORCE_EXTRAPOLATE
     """Richardson-extrapolate the replay's forces in time, 2 F(2S) − F(S) from replays with S and 2S steps per frame: cancels implicit Euler's first-order error, costs 3S steps per frame (docs/results/forces_converged.md)."""
-    force_theta: Literal["online", "segment"] = FORCE_THETA
-    """θ(t) of the replay: online = each frame's estimate as adapt.h5 records it (frame t's force uses estimates up to t); segment = the last estimate of each segment between the material changes adapt's gn estimator detected: removes the estimate's start transient (two-region beam 26 → 4 % force error) but moves a later material into earlier frames when a change is detected off the true one (bar released at rest 18 → 26 % before its step), docs/results/forces_theta.md."""
+    force_theta: Literal["online", "segment", "smoothed"] = FORCE_THETA
+    """θ(t) of the replay: smoothed (the default) = adapt.h5's E ± σ and ν ± σ smoothed over the whole run (Rauch–Tung–Striebel) under the gn filter's own random walk (its --process-noise, --change-sigma at each detected change); online = each frame's estimate as adapt.h5 records it (frame t's force uses estimates up to t); segment = the last estimate of each segment between the material changes adapt's gn estimator detected.  On the frames where the truth's force converges in time (a constant E; before a step of E) smoothed erred less than online on every capture measured (two-region beam 26 → 5 %, bar before its step 7.8 → 1.1 %, docs/results/forces_theta.md); it carries a later material into earlier frames when a change is detected a few frames before the true one.  A run without σ or change detector (adam) keeps its recorded θ(t)."""
 
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -201,14 +202,15 @@ def _adapt_errors(config, ws, capture, truth, adapt_path, mesh_path, reporter) -
         "bbox_diagonal_m": diag,
         "psnr_mean": float(np.mean(psnr)) if psnr else None,
         "psnr_per_frame": dict(zip(map(str, psnr_frames), psnr)),
-        "forces": _forces(config, capture, adapt, mesh, reporter),
+        "forces": _forces(config, capture, adapt, mesh, reporter,
+                          filter_model(read_provenance(adapt_path).get("config"), capture.material.poisson_range)),
     }
     if config.plot:
         _plot(ws / "evaluation_young.png", frames, adapt, truth, idx, vert_err)
     return out
 
 
-def _forces(config, capture, adapt, mesh, reporter) -> dict | None:
+def _forces(config, capture, adapt, mesh, reporter, walk=None) -> dict | None:
     """Force errors against truth/forces.csv (stages.forces.force_errors), None without the file or --forces."""
     from stages.sim.scene import make_scene  # JAX and numba physics: loaded on use (rsl evaluate --help)
 
@@ -228,7 +230,7 @@ def _forces(config, capture, adapt, mesh, reporter) -> dict | None:
     rows, _, source = adapted_forces(scene, controls, adapt, capture.start, substeps,
                                      lambda: compute_stress(adapt, mesh, model, reporter, sigma=False).forces,
                                      reporter=reporter, extrapolate=config.force_extrapolate,
-                                     theta=config.force_theta)
+                                     theta=config.force_theta, model=walk)
     per = force_errors(force_table(rows, dt), truth_rows)
     pooled = [e for v in per.values() for e in v["rel_error_per_frame"]]
     return {"truth": str(path), "median_relative_error": float(np.median(pooled)) if pooled else None,

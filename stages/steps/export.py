@@ -43,8 +43,8 @@ from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, CamerasA
 from stages.capture import FORCE_HEADER, Capture, CaptureError, Controls, load_capture, load_controls, write_image
 from stages.domain.cameras import Camera
 from stages.errors import RslError
-from stages.forces import (FORCE_EXTRAPOLATE, FORCE_SUBSTEPS, FORCE_THETA, adapted_forces, replay_substeps,
-                           trajectory_forces)
+from stages.forces import (FORCE_EXTRAPOLATE, FORCE_SUBSTEPS, FORCE_THETA, adapted_forces, filter_model,
+                           replay_substeps, trajectory_forces)
 from stages.progress import Reporter, SilentReporter
 from stages.render.ply import covariance_to_scale_rotation, write_ply
 from stages.results import StressField, gaussian_anchor, material_setting, previous_states, recorded_capture
@@ -107,8 +107,8 @@ class ExportConfig:
     """Implicit-Euler steps per frame S of the full-space replay the forces are computed on; 0 = adapt's --substeps (docs/results/forces_converged.md)."""
     force_extrapolate: bool = FORCE_EXTRAPOLATE
     """Richardson-extrapolate the replay's forces in time, 2 F(2S) − F(S) from replays with S and 2S steps per frame: cancels implicit Euler's first-order error, costs 3S steps per frame (docs/results/forces_converged.md)."""
-    force_theta: Literal["online", "segment"] = FORCE_THETA
-    """θ(t) of the replay: online = each frame's estimate as adapt.h5 records it (frame t's force uses estimates up to t); segment = the last estimate of each segment between the material changes adapt's gn estimator detected: removes the estimate's start transient (two-region beam 26 → 4 % force error) but moves a later material into earlier frames when a change is detected off the true one (bar released at rest 18 → 26 % before its step), docs/results/forces_theta.md."""
+    force_theta: Literal["online", "segment", "smoothed"] = FORCE_THETA
+    """θ(t) of the replay: smoothed (the default) = adapt.h5's E ± σ and ν ± σ smoothed over the whole run (Rauch–Tung–Striebel) under the gn filter's own random walk (its --process-noise, --change-sigma at each detected change); online = each frame's estimate as adapt.h5 records it (frame t's force uses estimates up to t); segment = the last estimate of each segment between the material changes adapt's gn estimator detected.  On the frames where the truth's force converges in time (a constant E; before a step of E) smoothed erred less than online on every capture measured (two-region beam 26 → 5 %, bar before its step 7.8 → 1.1 %, docs/results/forces_theta.md); it carries a later material into earlier frames when a change is detected a few frames before the true one.  A run without σ or change detector (adam) keeps its recorded θ(t)."""
 
 
 # =========================================================================== small file helpers
@@ -320,9 +320,11 @@ def compute_forces(seq: Sequence, field: StressField, config: ExportConfig, repo
         # replayed in the full space, as truth/forces.csv defines them (stages.forces module doc)
         substeps = replay_substeps(config.force_substeps, seq.adapt)
         start = seq.capture.start if seq.capture is not None else None
+        walk = (filter_model(read_provenance(seq.source_path).get("config"), seq.capture.material.poisson_range)
+                if seq.capture is not None else None)  # the gn filter's random walk (--force-theta smoothed)
         rows, applied, _ = adapted_forces(scene, controls, seq.adapt, start, substeps, lambda: field.forces,
                                           config.contact_distance, reporter, config.force_extrapolate,
-                                          config.force_theta)
+                                          config.force_theta, walk)
     else:
         rows, applied = trajectory_forces(scene, controls, seq.adapt.frames, seq.adapt.positions, field.forces,
                                           config.contact_distance, reporter)

@@ -34,7 +34,7 @@ from stages.artefacts import (KIND_FILES, AdaptArtefact, ArtefactError, CamerasA
                               MeshArtefact, describe, read_provenance)
 from stages.capture import Capture, CaptureError, load_capture, read_forces_csv, read_material_csv
 from stages.errors import RslError
-from stages.forces import FORCE_SUBSTEPS, adapted_forces, replay_substeps
+from stages.forces import FORCE_SUBSTEPS, adapted_forces, filter_model, replay_substeps
 from stages.progress import Reporter, SilentReporter
 from stages.render.image_loss import ImageLoss
 from stages.results import compute_stress, gaussian_anchor, material_setting, recorded_capture
@@ -409,8 +409,10 @@ def _compute_forces(ctx: Context) -> dict:
         raise SectionMissing(f"{ctx.capture.controls_path}: no handle and no obstacle.")
     scene = make_scene(mesh, controls, ctx.model, ctx.dt, ctx.gravity)
     substeps = replay_substeps(FORCE_SUBSTEPS, ad)  # rsl export --forces' default replay
+    walk = filter_model(read_provenance(ctx.ws / KIND_FILES["adapt"]).get("config"),
+                        ctx.capture.material.poisson_range)  # the gn filter's random walk (θ rule "smoothed")
     rows, _, _ = adapted_forces(scene, controls, ad, ctx.capture.start, substeps, ctx.internal_forces,
-                                ctx.config.contact_distance)
+                                ctx.config.contact_distance, model=walk)
     out: dict = {}
     for frame, sf in rows:
         d = out.setdefault(sf.name, {"t": [], "internal": [], "applied": []})
