@@ -64,6 +64,8 @@ class GNResult:
     weights: np.ndarray  # (m,) the IRLS weights used there
     scale2: float = 1.0  # s² (:func:`residual_scale2` / :func:`cluster_scale2`) there: 1 when they fit the assumed σ
     cov_scaled: np.ndarray | None = None  # (k, k) (Jᵀ W J / (σ² s²) + P⁻¹)⁻¹: the covariance with σ from the data
+    checked: bool = True  # the last step was evaluated (False: taken on the quadratic model, gauss_newton's skip_trial)
+    jtwj: np.ndarray | None = None  # (k, k) Jᵀ W J at the last linearisation, as (J W)ᵀ J
 
 
 def huber_weights(r: np.ndarray, sigma: float, delta: float | None) -> np.ndarray:
@@ -99,7 +101,8 @@ def residual_scale2(r: np.ndarray, sigma: float, delta: float | None, k: int) ->
     return max(float(psi @ psi) / (m - k) / mean_d ** 2, 0.25)
 
 
-def cluster_scale2(r: np.ndarray, J: np.ndarray, sigma: float, delta: float | None, clusters: np.ndarray) -> float:
+def cluster_scale2(r: np.ndarray, J: np.ndarray, sigma: float, delta: float | None, clusters: np.ndarray,
+                   jtwj: np.ndarray | None = None) -> float:
     """s² of residuals whose errors are correlated within clusters (e.g. blocks of neighbouring pixels): the
     cluster-robust (sandwich) covariance of the M-estimate, expressed as a variance factor of the assumed σ².
 
@@ -110,7 +113,8 @@ def cluster_scale2(r: np.ndarray, J: np.ndarray, sigma: float, delta: float | No
     per cluster and no Huber this is the residual variance against σ² (White's estimator; ≈ RSS/((m − k) σ²), as
     :func:`residual_scale2`); with correlated errors it also counts how many residuals carry one independent
     error — an image's misfit is spatially correlated, and ~10⁵ pixels taken as independent give a covariance
-    far too small.  Falls back to :func:`residual_scale2` with fewer than 4k informative clusters."""
+    far too small.  Falls back to :func:`residual_scale2` with fewer than 4k informative clusters.  ``jtwj``: Jᵀ W J
+    (k, k) when already formed (W = :func:`huber_weights`; as (J W)ᵀ J, the same floats)."""
     r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
     m, k = J.shape
     if m <= k or sigma <= 0 or k == 0:
@@ -128,7 +132,7 @@ def cluster_scale2(r: np.ndarray, J: np.ndarray, sigma: float, delta: float | No
     A = (J * dpsi[:, None]).T @ J
     Ainv = np.linalg.pinv(0.5 * (A + A.T))
     V = G / (G - 1) * Ainv @ (g.T @ g) @ Ainv
-    AW = (J * huber_weights(r, sigma, delta)[:, None]).T @ J
+    AW = (J * huber_weights(r, sigma, delta)[:, None]).T @ J if jtwj is None else jtwj
     s2 = float(np.trace(V @ AW)) / (k * sigma ** 2)
     return s2 if np.isfinite(s2) and s2 > 0 else residual_scale2(r, sigma, delta, k)
 
@@ -145,7 +149,8 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
                  max_iterations: int = 5, huber: float | None = None, tol: float = 1e-3,
                  max_rejections: int = 4, max_step: np.ndarray | float | None = None,
                  lower: np.ndarray | None = None, upper: np.ndarray | None = None, scale: float = 1.0,
-                 clusters: np.ndarray | None = None) -> GNResult:
+                 clusters: np.ndarray | None = None,
+                 skip_trial: Callable[[np.ndarray, float], bool] | None = None) -> GNResult:
     """Minimise C(p) (module docstring) from p0.
 
     evaluate(p, need_jacobian) → (r (m,), J (m, k) or None) or, with the Jacobian, (r, J, jtw) where jtw(W)
@@ -159,6 +164,10 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
     of earlier windows) when σ is a robust per-residual noise level that correlated residuals exceed.  ``clusters``
     (m,) ids of residuals with correlated errors: ``GNResult.scale2`` is then :func:`cluster_scale2`, else
     :func:`residual_scale2`.
+    ``skip_trial(step, size)``: asked for the undamped step of the last iteration (``size`` = √(δᵀ N δ), the step
+    in units of the posterior σ); True takes it without evaluating r there — on the quadratic model, whose cost
+    C + gᵀδ + ½ δᵀ N δ goes into ``GNResult.cost`` (``checked`` False) — instead of the Levenberg–Marquardt
+    acceptance test (one evaluation, of r and J, per iteration instead of two).
     """
     p = np.asarray(p0, np.float64).copy()
     info = prior.info
@@ -178,9 +187,10 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
         p_lin, r_lin, J_lin = p.copy(), r, J
         W = huber_weights(r, sigma, huber)
         JW = J * W[:, None]
-        N = JW.T @ J / s2 + info
+        JWJ = JW.T @ J
+        N = JWJ / s2 + info
         g = (JW.T @ r if jtw is None else jtw(W)) / s2 + info @ (p - prior.mean)
-        accepted = False
+        accepted = checked = False
         for _ in range(max_rejections + 1):
             A = N + lam * np.diag(np.diag(N))
             step = -np.linalg.solve(A, g)
@@ -194,6 +204,13 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
             if upper is not None:
                 p_new = np.where(np.isfinite(upper), np.minimum(p_new, np.nan_to_num(upper, nan=np.inf)), p_new)
             step = p_new - p
+            if skip_trial is not None and it == max_iterations and lam == 0.0:
+                size = float(np.sqrt(max(step @ N @ step, 0.0)))
+                if skip_trial(step, size):  # the model's cost at p_new (C's quadratic model about p)
+                    c_new = c + float(g @ step) + 0.5 * float(step @ N @ step)
+                    accepted = True
+                    break
+            checked = True
             r_new = evaluate(p_new, False)[0]
             n_eval += 1
             c_new = cost(p_new, r_new)
@@ -212,12 +229,13 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
         n_eval += 1
         c = cost(p, r)
     # the covariance at the last linearisation (the final step is small: the same to first order)
-    cov = posterior_cov(J_lin, W, s2, prior)
+    JWJ = None if it == 0 else JWJ  # (Jᵀ W J at the last linearisation, formed in the loop)
+    cov = posterior_cov(J_lin, W, s2, prior, JWJ)
     k2 = (residual_scale2(r_lin, sigma, huber, len(p)) if clusters is None else
-          cluster_scale2(r_lin, J_lin, sigma, huber, clusters))
-    cov_scaled = posterior_cov(J_lin, W, float(sigma) ** 2 * k2, prior) if np.isfinite(k2) else cov
+          cluster_scale2(r_lin, J_lin, sigma, huber, clusters, JWJ))
+    cov_scaled = posterior_cov(J_lin, W, float(sigma) ** 2 * k2, prior, JWJ) if np.isfinite(k2) else cov
     return GNResult(p=p, cov=cov, cost=c, iterations=it, evaluations=n_eval, residuals=r_lin, jacobian=J_lin,
-                    p_lin=p_lin, weights=W, scale2=k2, cov_scaled=cov_scaled)
+                    p_lin=p_lin, weights=W, scale2=k2, cov_scaled=cov_scaled, checked=checked or it == 0, jtwj=JWJ)
 
 
 def _unpack(out: tuple) -> tuple:
@@ -286,10 +304,14 @@ def condition(prior: Prior, i: int, value: float, hold: float = 1e-10) -> Prior:
     return Prior(mean, 0.5 * (cov + cov.T))
 
 
-def posterior_cov(J: np.ndarray, weights: np.ndarray, sigma2: float, prior: Prior) -> np.ndarray:
-    """(Jᵀ W J / σ² + P⁻¹)⁻¹ (k, k): the Laplace covariance of one linearisation J (m, k) under ``prior``."""
-    JW = np.asarray(J, np.float64) * np.asarray(weights, np.float64)[:, None]
-    return _sym_inv(JW.T @ J / float(sigma2) + prior.info)
+def posterior_cov(J: np.ndarray, weights: np.ndarray, sigma2: float, prior: Prior,
+                  jtwj: np.ndarray | None = None) -> np.ndarray:
+    """(Jᵀ W J / σ² + P⁻¹)⁻¹ (k, k): the Laplace covariance of one linearisation J (m, k) under ``prior``; ``jtwj``
+    (k, k): Jᵀ W J when already formed (as (J W)ᵀ J: the same floats)."""
+    if jtwj is None:
+        JW = np.asarray(J, np.float64) * np.asarray(weights, np.float64)[:, None]
+        jtwj = JW.T @ J
+    return _sym_inv(jtwj / float(sigma2) + prior.info)
 
 
 def bounded_sigma(value: np.ndarray, sd: np.ndarray, lower, upper, pinned: float = 0.02) -> np.ndarray:

@@ -9,7 +9,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from stages.errors import RslError
-from stages.estimator import bounded_sigma
+from stages.estimator import bounded_sigma, robust_cost
 from stages.parameters import chain_params, theta_from_params
 from stages.window_model import Observation, Window, WindowBackend
 
@@ -27,16 +27,60 @@ class StartWindow:
             raise RslError(f"the start state should be 'rest' or 'equilibrium', found '{kind}'.")
         self.backend, self.kind = backend, kind
         self._x0 = None  # the last x_0: the warm start of the next static solve
+        # ``memo`` (GNWindow.memo): frames of the last trajectory simulated with θ from two known states are taken
+        # from it instead of being simulated again — x_t depends on θ, x_{t−2}, x_{t−1} and frame t's controls
+        # alone, so the same states come out (up to the tolerance of the step's solve).  Not with substeps
+        # (window_backends.Substepped): there the window's sensitivities need the substep trajectory that only a
+        # forward of that very window leaves, and would simulate it anyway
+        self.memo = False
+        self._traj: tuple[np.ndarray, np.ndarray, dict] | None = None  # (E, ν, {frame: state})
 
     @staticmethod
     def _tile(a, k):
         return np.tile(np.asarray(a, float), (k, 1))
 
+    def remember(self, frames: Sequence[int], E, nu, before, states) -> None:
+        """Make (``before`` at frames[0] − 2, frames[0] − 1; ``states`` at ``frames``) the trajectory of θ = (E, ν)
+        that :meth:`forward` continues (``memo``); GNWindow.extrapolate gives it the window's states to first order."""
+        t0 = int(frames[0])
+        traj = {t0 - 2: np.asarray(before[0]), t0 - 1: np.asarray(before[1])} if t0 >= 2 else {}
+        traj.update({int(t): np.asarray(x) for t, x in zip(frames, states)})
+        self._traj = (np.array(E, float), np.array(nu, float), traj)
+
+    def _memo_forward(self, frames: list, E, nu, before) -> np.ndarray | None:
+        """:meth:`forward` continuing the remembered trajectory, or None when it does not pass through ``before``
+        with this θ: the frames it holds are taken, the rest simulated from it (and remembered)."""
+        if self._traj is None or frames[0] < 2:
+            return None
+        tE, tn, traj = self._traj
+        t0 = frames[0]
+        if not (np.array_equal(tE, E) and np.array_equal(tn, nu) and t0 - 2 in traj and t0 - 1 in traj
+                and np.array_equal(traj[t0 - 2], before[0]) and np.array_equal(traj[t0 - 1], before[1])):
+            return None
+        out = []
+        for i, t in enumerate(frames):
+            if t not in traj:  # the rest from the two states before it
+                rest = self.backend.forward(frames[i:], self._tile(E, len(frames) - i), self._tile(nu, len(frames) - i),
+                                            np.stack([traj[t - 2], traj[t - 1]]))
+                traj.update({int(u): x for u, x in zip(frames[i:], rest)})
+                out.extend(rest)
+                break
+            out.append(traj[t])
+        return np.stack(out)
+
     def forward(self, frames: Sequence[int], E, nu, before) -> np.ndarray:
         """States (w, …) of ``frames``; ``before`` = [state t0−2, state t0−1] (unused when frames[0] = 0)."""
         b, w = self.backend, len(frames)
         if frames[0] != 0:
-            return b.forward(list(frames), self._tile(E, w), self._tile(nu, w), before)
+            memo = self.memo and getattr(b, "S", 1) == 1
+            if memo:
+                X = self._memo_forward(list(frames), E, nu, before)
+                if X is not None:
+                    return X.copy()
+            X = b.forward(list(frames), self._tile(E, w), self._tile(nu, w), before)
+            if memo:
+                self.remember(frames, E, nu, before, X.copy())
+            return X
         x0 = b.start(E, nu, self.kind, self._x0)
         self._x0 = x0
         if w == 1:
@@ -158,8 +202,11 @@ class WindowObjective:
         """The anchor frame (0 for markers, the Gaussians' fit frame for images) simulated with θ under the start
         convention (frame 0 = x_0(θ)), positions (n, 3)."""
         k = self.anchor_frame + 1
-        X = self.win.forward(list(range(k)), E, nu, None)
-        self._anchor_states = (np.array(E, float), np.array(nu, float), X)  # reused by the anchor's adjoint
+        aE, anu, X = getattr(self, "_anchor_states", (None, None, None))
+        if not (getattr(self.win, "memo", False) and X is not None and np.array_equal(aE, E)
+                and np.array_equal(anu, nu)):  # (memo: the last anchor of this θ, the same floats to rebind at)
+            X = self.win.forward(list(range(k)), E, nu, None)
+            self._anchor_states = (np.array(E, float), np.array(nu, float), X)  # reused by the anchor's adjoint
         return self.backend.decode(X[-1:])[0]
 
     def _anchor_adjoint(self, E: np.ndarray, nu: np.ndarray, ga: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -226,6 +273,13 @@ class GNWindow:
     stages.subspace.sensitivity): ∂X/∂log E = E ∂X/∂E, ∂X/∂s = ν'(s) ∂X/∂ν.
     """
 
+    #: StartWindow.memo: the change test's one-frame forward, the linearisation's window (the frames the last
+    #: evaluation simulated at this θ from the same states) and the anchor of the last θ are not simulated again.
+    #: None: on with the one-evaluation path (:attr:`trust` > 0: the window continues the states extrapolate left),
+    #: off otherwise (with --substeps 3 it measured no faster, docs/results/adapt_speed.md); True / False: forced
+    #: (False: every evaluation simulates its window and anchor — the slow twin)
+    memo: bool | None = None
+
     def __init__(self, objective: "WindowObjective", fit_poisson: bool, s_fixed: np.ndarray):
         self.obj, self.fit_poisson, self.s_fixed = objective, fit_poisson, s_fixed
         self.young_range: tuple[float, float] | None = None  # bounds of E (Pa), [material] young_range
@@ -237,6 +291,11 @@ class GNWindow:
         self.R = objective.R
         self.k_theta = self.R * (2 if fit_poisson else 1)
         self.times = [0.0, 0.0, 0.0]  # forward, sensitivity, residuals/render
+        # AdaptConfig.gn_trust: a last Gauss–Newton step of at most this many posterior σ is taken without
+        # evaluating the window there (:meth:`extrapolate`; 0: every step is evaluated, Levenberg–Marquardt)
+        self.trust = 0.0
+        self.prediction: tuple[dict, float] | None = None  # ({frame: r̂ at the last estimate}, s² σ²) of extrapolate
+        self.last_prediction_error: float | None = None  # its prediction_error, where the last solve checked one
         self.last_states = None
         self.last_frames: list[np.ndarray] = []  # per frame residuals of the last evaluation
         self.last_jac: list[np.ndarray] = []
@@ -256,6 +315,8 @@ class GNWindow:
         E, nu, s = self.theta(p)
         c = p[self.k_theta:]
         b = before if D is None or not len(c) else before + np.tensordot(c, D, axes=1)
+        if hasattr(obj.win, "memo"):  # the windows continue the trajectories they remember (StartWindow.memo)
+            obj.win.memo = self.trust > 0 if self.memo is None else bool(self.memo)
         t0 = time.perf_counter()
         anchored = rebind and obj.rebind and self.rebind_anchor
         smooth = getattr(obj.obs, "binding_jacobian", None) is not None  # markers: d binding/dθ goes into J
@@ -331,6 +392,55 @@ class GNWindow:
             self.times[2] += time.perf_counter() - t5
             return g
         return np.concatenate(rs), np.concatenate(Js, axis=0), jtw
+
+    def extrapolate(self, frames: Sequence[int], p: np.ndarray, before: np.ndarray, D: np.ndarray | None,
+                    scale2: float, r_lin: np.ndarray | None = None, J_lin: np.ndarray | None = None) -> None:
+        """Take the window to the unknowns p from the last linearisation p_l by first order instead of simulating
+        and rendering it there (the one-evaluation path, :attr:`trust`):
+
+            X_t(p) = X_t(p_l) + S_t (p − p_l),   r_t(p) = r_t(p_l) + J_t (p − p_l),   before(p) = before + Σ c_j D_j
+
+        (S the window's state sensitivities, J the residuals' Jacobian; the corrected states before the window are
+        exact, linear in c).  ``last_*`` then describe the window at p, the window's trajectory is remembered for
+        the next frame's (StartWindow.remember), and the predicted residuals are kept in :attr:`prediction` for
+        :meth:`prediction_error` (``scale2`` = σ² s², the data term's variance).  ``r_lin`` (m,), ``J_lin`` (m, k): the
+        last evaluation's residuals and Jacobian concatenated, when at hand (one product instead of one per frame)."""
+        dp = np.asarray(p, float) - self.last_p
+        S = self.last_state_sens  # (k, w, …)
+        states = self.last_states + np.tensordot(dp, S, axes=1)
+        c = p[self.k_theta:]
+        b = before if D is None or not len(c) else before + np.tensordot(c, D, axes=1)
+        if r_lin is None:
+            rs = [r + J @ dp for r, J in zip(self.last_frames, self.last_jac)]
+        else:
+            rs = np.split(r_lin + J_lin @ dp, np.cumsum([len(r) for r in self.last_frames])[:-1])
+        self.last_states, self.last_before, self.last_p, self.last_rs = states, b, np.array(p, float), rs
+        E, nu, _ = self.theta(p)
+        if hasattr(self.obj.win, "remember"):
+            self.obj.win.remember(list(frames), E, nu, b, states)
+        obj = self.obj
+        if obj.rebind and self.rebind_anchor and getattr(obj.obs, "binding_jacobian", None) is not None:
+            # the observations anchored at the estimate, as an evaluation there leaves them (what the next frame's
+            # change test renders with; its linearisation then finds this anchor remembered, StartWindow.memo)
+            obj.obs.rebind(obj.anchor_positions(E, nu))
+        self.prediction = ({int(t): r for t, r in zip(frames, rs)}, float(scale2))
+
+    def prediction_error(self, frames: Sequence[int], sigma: float, huber: float | None) -> float:
+        """How far the last :meth:`extrapolate`'s first-order residuals missed: over the frames of the last
+        evaluation (now at that estimate, simulated and rendered) that it predicted, (C_data(r) − C_data(r̂)) / (σ² s²)
+        — the data term's cost at the actual residuals less that at the predicted ones (estimator.robust_cost), in
+        the units of the Gauss–Newton cost (a step's decrease there is ½ its size² in posterior σ).  0 when nothing
+        was predicted; the prediction is used once."""
+        pred, self.prediction = self.prediction, None
+        if pred is None:
+            return 0.0
+        got = dict(zip((int(t) for t in frames), self.last_frames))
+        common = [t for t in pred[0] if t in got and len(got[t]) == len(pred[0][t])]
+        if not common:
+            return 0.0
+        a = sum(robust_cost(got[t], sigma, huber) for t in common)
+        b = sum(robust_cost(pred[0][t], sigma, huber) for t in common)
+        return (a - b) / pred[1]
 
 
 def sigma_from_cov(gn: GNWindow, p: np.ndarray, cov: np.ndarray, model_error: float = 0.0,
