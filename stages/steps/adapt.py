@@ -160,9 +160,13 @@ class AdaptConfig:
     state_prior: float = 0.5
     """gn, --state-correction past: prior σ of the correction coefficients (in log E units: the past may look
     as if simulated with E off by this factor's exponent)."""
-    substeps: int = 1
+    substeps: int = 6
     """Implicit-Euler substeps per frame: each frame is S steps of Δt = 1/(fps·S) s, substep k taking the controls
-    at the fractional frame t − 1 + k/S and θ of frame t (for a capture whose truth is finer in time)."""
+    at the fractional frame t − 1 + k/S and θ of frame t.  One step per frame damps the motion (implicit Euler's
+    numerical damping, first order in Δt) and biases E on dynamic captures, most right after a change of the
+    material.  On the bar whose E steps, against truths simulated with 3, 12 and 24 substeps per frame, the settled
+    median error of E is 4.3–47 % with S = 1, 1.9–12 % with S = 3 and 2.2–3.9 % with S = 6, the default
+    (docs/results/time_step.md, which also gives the per-frame time)."""
     model_error: float = 0.02
     """gn: relative σ of E that the discretisation itself adds to the reported E ± σ (σ_E = E √(σ²_logE + e²)): the
     error of rsl's mesh and time step against the material, which more frames do not average out (quadratic tets:
@@ -170,21 +174,30 @@ class AdaptConfig:
     model_error_poisson: float = 0.02
     """gn: σ of ν that the discretisation itself adds to the reported ν ± σ (in quadrature; ν is weakly identified
     and absorbs model error, calibrated in docs/results/estimator.md)."""
+    gn_trust: float = 0.0
+    """gn: a frame's (last) Gauss–Newton step of at most this many posterior σ is taken on the quadratic model: the
+    window's states and residuals at the new estimate by first order along their sensitivities and Jacobian, not
+    simulated and rendered there (one evaluation per frame instead of two; with one substep per frame the next
+    window continues these first-order states, with more it simulates its frames again); the next frame's
+    linearisation renders that estimate, and when its data cost exceeds the prediction by more than 1 (a 1-σ step
+    lowers the cost by ½) that frame's step is tested again; larger steps are always tested (Levenberg–Marquardt).
+    0: every step is tested.  Images, Bar-like case: 5 moves E by < 0.1 σ_E; markers, bar with E steps: up to 1 σ_E
+    after a change (docs/results/adapt_speed.md)."""
     vision_anchor: Literal["estimated", "simulated"] = "estimated"
     """adam, images: the material θ_a the Gaussians' anchor x_f (their fit frame f, simulated from the start) is
     simulated with.  estimated: the fit frame's own material — the window's θ until a change of material is seen
     (--anchor-change), then its own unknown that stays at the old material while the window's θ follows the new
     one; simulated: always the window's current θ (wrong once E has changed since f: E collapses).  Cable bar with
-    E ×2, ×4 steps, median settled E error: estimated 7.9 % full / 7.0 % reduced, simulated 39 % / 40 %; constant
-    E: 5.7 % both (docs/results/vision_bias.md)."""
+    E ×2, ×4 steps, median settled E error: estimated 3.6 % full / 7.9 % reduced, simulated 39 % / 40 %; constant
+    E: 5.4 % estimated, 5.7 % simulated (docs/results/vision_bias.md)."""
     anchor_change: float = 0.4
     """adam, images, --vision-anchor estimated: the anchor's material is the window's θ until a change of material
-    since the fit frame is confirmed: the window's log E has moved more than this from its level (the median over
-    frames T−6..T−3) in 2 frames in a row (0.4 is a factor 1.5), AND that level explains the frames after the fit
-    frame better than the window's θ does (both simulated from the start: a convergence from a far-off start, which
-    moves E as much, is explained better by the current θ).  From then on it is its own unknown, started at that
-    level and moved by the anchor's part of the gradient alone (0: its own unknown as soon as the window no longer
-    holds the fit frame, untested).  The rule: stages/vision_anchor.py."""
+    since the fit frame is confirmed: the window's log E has moved more than half this from its level (the median
+    over frames T−6..T−3) in 2 frames in a row, more than this in one of them (0.4 is a factor 1.5), AND that level
+    explains the frames after the fit frame better than the window's θ does (both simulated from the start: a
+    convergence from a far-off start, which moves E as much, is explained better by the current θ).  From then on
+    it is its own unknown, started at that level and moved by the anchor's part of the gradient alone (0: its own
+    unknown as soon as the window no longer holds the fit frame, untested).  The rule: stages/vision_anchor.py."""
 
 
 def resolve_estimator(config: AdaptConfig) -> str:
@@ -322,6 +335,8 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     if not (config.process_noise >= 0 and config.process_noise_change >= 0):
         raise RslError(f"{capture.toml_path}: --process-noise and --process-noise-change must be 0 or more, found "
                        f"{config.process_noise} and {config.process_noise_change}.")
+    if not config.gn_trust >= 0:
+        raise RslError(f"{capture.toml_path}: --gn-trust must be 0 or more, found {config.gn_trust}.")
     if config.iters_per_frame < 1 or config.offline_iters < 1:
         raise RslError(f"{capture.toml_path}: --iters-per-frame and --offline-iters must be at least 1.")
     if config.refine and config.space != "full":
@@ -592,12 +607,21 @@ def _gn_solve(gn: GNWindow, frames, p0, prior, before, D, sigma, obs, iterations
     cap[:kt] = 0.5
     gn.rebind_next = True
     first = [True]
+    # the one-evaluation path (gn.trust > 0, AdaptConfig.gn_trust): the last step, when at most gn.trust posterior
+    # σ, is taken on the quadratic model without simulating the window there — unless the last frame's such step
+    # missed its predicted residuals by more than GN_PREDICTION_SLACK in the cost's units (checked at this frame's
+    # linearisation, which simulates and renders that estimate): then this frame's step is tested (two evaluations)
+    trusted = [gn.trust > 0]
 
     def evaluate(pp, nj):
         # a trial step whose simulation collapses (inverted elements, a failed solve) is a rejected step: the
         # damping grows and a shorter step is tried; the first evaluation (the starting point) still raises
         try:
-            return gn.evaluate(frames, pp, before, D, nj)
+            out = gn.evaluate(frames, pp, before, D, nj)
+            if first[0] and nj and gn.prediction is not None:
+                gn.last_prediction_error = gn.prediction_error(frames, sigma, obs.huber)
+                trusted[0] = trusted[0] and gn.last_prediction_error <= GN_PREDICTION_SLACK
+            return out
         except SolveCollapsed:
             if nj or first[0]:
                 raise
@@ -607,12 +631,22 @@ def _gn_solve(gn: GNWindow, frames, p0, prior, before, D, sigma, obs, iterations
             first[0] = False
 
     clusters = obs.clusters(frames) if hasattr(obs, "clusters") else None
+    skip = (lambda step, size: trusted[0] and size <= gn.trust) if gn.trust > 0 else None
     res = gauss_newton(evaluate, p0, prior, sigma, max_iterations=iterations, huber=obs.huber, max_step=cap,
-                       lower=lower, upper=upper, scale=scale, clusters=clusters)
+                       lower=lower, upper=upper, scale=scale, clusters=clusters, skip_trial=skip)
     lin = (list(gn.last_frames), list(gn.last_jac))  # per-frame residuals and Jacobians at res.p_lin
-    if not np.array_equal(gn.last_p, res.p):
+    gn.prediction = None
+    if not res.checked:  # the window at the estimate to first order (GNWindow.extrapolate)
+        gn.extrapolate(frames, res.p, before, D, float(sigma) ** 2 * float(scale), res.residuals, res.jacobian)
+    elif not np.array_equal(gn.last_p, res.p):
         gn.evaluate(frames, res.p, before, D, False)
     return res, lin
+
+
+GN_PREDICTION_SLACK = 1.0
+"""--gn-trust: how far (in units of the Gauss–Newton cost, where a step of 1 posterior σ lowers it by ½) the data term
+at an estimate taken without evaluation may exceed its first-order prediction, checked when the next frame
+simulates and renders it, before that frame's step must again pass the Levenberg–Marquardt test."""
 
 
 def _correction_kind(option: str, obs_kind: str, restart: bool, modes_failed: bool) -> str | None:
@@ -641,6 +675,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     w = config.window
     gn = GNWindow(objective, config.fit_poisson, s_nu)
     gn.young_range = loop.young_range
+    gn.trust = float(config.gn_trust)
     k_th = gn.k_theta
     p_th = np.concatenate([log_e, s_nu]) if config.fit_poisson else log_e.copy()
     filt = WindowFilter(_gn_prior(p_th), np.full(k_th, float(config.process_noise)))
@@ -726,7 +761,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                 res.cov_scaled = posterior_cov(res.jacobian, res.weights, sigma ** 2 * res.scale2, prior)
             held_now = hold_nu.copy()
             if config.fit_poisson and config.poisson_information > 0 and len(frames) > 1:
-                n_data = (res.jacobian * res.weights[:, None]).T @ res.jacobian / (sigma ** 2 * scale)
+                n_data = res.jtwj / (sigma ** 2 * scale)  # Jᵀ W J at the last linearisation
                 hold_nu = weakly_informed(n_data, prior.info, np.diag(filt.prior.cov), R + np.arange(R),
                                           config.poisson_information)
             if hasattr(obs, "clusters") and len(frames) > 1:  # (the fit frame alone carries no information)
@@ -916,7 +951,7 @@ def _young_meaning(config: AdaptConfig, mesh: MeshArtefact) -> str:
     if mesh.order == 2:
         return (f"E is the modulus of the material as quadratic (10-node) tets resolve it ({m} tets; on the "
                 f"sample bar their static sag is within 2.4 % of a fine reference, docs/results/convergence.md), "
-                f"under the declared start state; fast motion at one implicit step per frame can still bias it.")
+                f"under the declared start state; fast motion the time step does not resolve can still bias it.")
     return (f"E is the effective modulus of the linear-tet discretisation used ({m} tets"
             + (f", mesh.h5 refined {config.refine}x" if config.refine else "")
             + "): coarse linear tets are too stiff (they lock as ν → 0.5), so the adapted E is lower than the "
