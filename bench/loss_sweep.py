@@ -13,9 +13,14 @@ through the grid minimum and its neighbours; its ratio to E_true is the loss's b
     .venv/bin/python bench/loss_sweep.py [--quick] [--no-vision] [--out docs/results]
 
 --quick: P2 truth on the shipped mesh (no refinement); full: P2 on the once-refined mesh; both 20
-frames and 9 grid points.  --starts equilibrium / --starts rest run one start state (two processes can share
-the work), --rows picks the rows, --merge A.json B.json writes the report of separate runs.  With
-RSL_BENCH_REUSE=1 in the environment, captures already in --work are reused.
+frames and 9 grid points (--scales: other E/E_true values).  --starts equilibrium / --starts rest run one start
+state (two processes can share the work), --rows picks the rows, --merge A.json B.json writes the report of
+separate runs (a row of a later file replaces the same start/loss/mesh row of an earlier one).  With
+RSL_BENCH_REUSE=1 in the environment, captures, meshes and Gaussians already in --work are reused.
+
+Two vision rows test a cause of the vision loss's bias each, on the same workspace: "visions3" simulates 3
+implicit substeps per frame (the truth's time step), "visionanchor" binds the Gaussians, for every E of the grid,
+to the fit frame simulated with E_true (the anchor's own dependence on E switched off).
 """
 from __future__ import annotations
 
@@ -63,9 +68,9 @@ def shipped_mesh(density: float, order: int):
 
 
 def pipeline(cap: Path, ws: Path) -> None:
-    """cameras, masks, mesh and Gaussians for the vision loss (made afresh on every run)."""
-    pl.mesh(cap, ws, reuse=False)
-    pl.gaussians(cap, ws, frame=0, segment_method="background", reuse=False)
+    """cameras, masks, mesh and Gaussians for the vision loss (made afresh on every run unless RSL_BENCH_REUSE)."""
+    pl.mesh(cap, ws)
+    pl.gaussians(cap, ws, frame=0, segment_method="background")
 
 
 def main() -> None:
@@ -77,16 +82,27 @@ def main() -> None:
     ap.add_argument("--starts", default="equilibrium,rest", help="start states to run, comma-separated")
     ap.add_argument("--rows", default="p1,p1r,p2,p2s3,wrongstart,vision",
                     help="rows to compute: p1, p1r (P1 refined once), p2, p2s3 (P2 with 3 substeps per frame), "
-                         "wrongstart (P1 assuming the other start), vision")
+                         "wrongstart (P1 assuming the other start), vision, visions3 (vision, 3 substeps per "
+                         "frame), visionanchor (vision, Gaussians bound to the fit frame simulated with E_true)")
+    ap.add_argument("--scales", default="", help="grid of E / E_true, comma-separated (default: 9 values, "
+                                                "0.55-1.4)")
     ap.add_argument("--merge", type=Path, nargs="*", default=None,
                     help="only merge the loss_sweep.json files of separate runs (e.g. one per start) into --out")
     a = ap.parse_args()
     if a.merge is not None:
         parts = [json.loads(p.read_text()) for p in a.merge]
-        cases = [c for d in parts for c in d["cases"]]
-        for c in cases:  # runs made before the label named the element order: read it from the workspace
-            if c["loss"] == "vision" and (a.work / f"ws_{c['start']}" / "mesh.h5").is_file():
-                c["adapt_mesh"] = _vision_label(a.work / f"ws_{c['start']}")
+        merged: dict = {}  # a later file's row replaces an earlier one with the same start, loss and mesh
+        for d in parts:  # rows measured before each row had its date: their file's
+            for c in d["cases"]:
+                c.setdefault("date", str(d.get("date", "—"))[:16].replace("T", " "))
+        for c in (c for d in parts for c in d["cases"]):
+            ws = a.work / f"ws_{c['start']}"  # runs made before the label named the element order: read it
+            if c["loss"] == "vision" and "tetrahedralize" not in c["adapt_mesh"] and (ws / "mesh.h5").is_file():
+                c["adapt_mesh"] = _vision_label(ws)
+            merged[(c["start"], c["loss"], c["adapt_mesh"])] = c
+        cases = list(merged.values())
+        starts = list(dict.fromkeys(c["start"] for c in cases))
+        cases.sort(key=lambda c: starts.index(c["start"]))  # new rows beside their start's
         write(cases, a.out, parts[0]["mode"] == "quick")
         return
 
@@ -97,6 +113,8 @@ def main() -> None:
     frames, refine = (20, 0) if a.quick else (20, 1)
     scales = (np.array([0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.25, 1.4]) if a.quick else
               np.array([0.55, 0.65, 0.75, 0.85, 0.92, 1.0, 1.08, 1.2, 1.4]))
+    if a.scales:
+        scales = np.array(sorted(float(x) for x in a.scales.split(",")))
     grid = E_TRUE * scales
     a.work.mkdir(parents=True, exist_ok=True)
     cases = []
@@ -126,17 +144,22 @@ def main() -> None:
                                time.perf_counter() - t0))
             print(_row(cases[-1]), flush=True)
             _partial(cases, a.out, a.quick)
-        if not a.no_vision and "vision" in rows:
+        for key, suffix, kw in (("vision", "", {}), ("visionanchor", ", Gaussians bound to frame 0 simulated with "
+                                                                  "E_true", {"anchor_young": E_TRUE}),
+                                ("visions3", ", 3 substeps per frame", {"substeps": 3})):
+            if a.no_vision or key not in rows:
+                continue
             ws = a.work / f"ws_{start}"
             try:
                 pipeline(cap_dir, ws)
                 mesh = MeshArtefact.load(ws / KIND_FILES["mesh"])
                 t0 = time.perf_counter()
-                res = sweep(cap, mesh, grid, "vision", workspace=ws, poisson=POISSON)
+                res = sweep(cap, mesh, grid, "vision", workspace=ws, poisson=POISSON, **kw)
             except (SystemExit, Exception) as e:  # the pipeline is another helper's: report, keep the markers
                 print(f"vision sweep for start = {start} failed: {e}", flush=True)
                 continue
-            cases.append(_case(start, truth_desc, "vision", _vision_label(ws), res, time.perf_counter() - t0))
+            cases.append(_case(start, truth_desc, "vision", _vision_label(ws) + suffix, res,
+                               time.perf_counter() - t0))
             print(_row(cases[-1]), flush=True)
             _partial(cases, a.out, a.quick)
     write(cases, a.out, a.quick)
@@ -161,14 +184,17 @@ def _case(start, truth, loss, adapt_mesh, res, seconds) -> dict:
             "n_vertices": res.info["n_vertices"], "n_elements": res.info["n_elements"],
             "frames": res.info["frames"], "young_true": E_TRUE, "young_min": res.young_min,
             "ratio": res.young_min / E_TRUE, "interior": res.interior, "grid": res.young.tolist(),
-            "loss_values": res.loss.tolist(), "seconds": seconds}
+            "loss_values": res.loss.tolist(), "seconds": seconds,
+            "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M")}
 
 
 def _row(c: dict) -> str:
     edge = "" if c["interior"] else " (grid end)"
+    g = np.asarray(c["grid"]) / c["young_true"]
     return (f"| {c['start']} | {c['loss']} | {c['adapt_mesh']} | {c['n_vertices']} | "
+            f"{len(g)}: {g.min():.2f}–{g.max():.2f} | "
             f"{c['young_min']:.4g}{edge} | {c['ratio']:.3f} | {100 * (c['ratio'] - 1):+.1f} % | "
-            f"{c['seconds']:.0f} |")
+            f"{c['seconds']:.0f} | {c.get('date', '—')} |")
 
 
 def write(cases: list[dict], out: Path, quick: bool) -> None:
@@ -182,17 +208,16 @@ def write(cases: list[dict], out: Path, quick: bool) -> None:
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "mode": "quick" if quick else "full", "cases": cases}
     (out / "loss_sweep.json").write_text(json.dumps(data, indent=1))
-    head = ("| start | loss | rsl's mesh | vertices | E at the minimum (Pa) | E_min / E_true | bias | time (s) |\n"
-            "| --- | --- | --- | --- | --- | --- | --- | --- |")
+    head = ("| start | loss | rsl's mesh | vertices | grid: points, E/E_true | E at the minimum (Pa) | E_min / E_true "
+            "| bias | time (s) | measured (UTC) |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     table = "\n".join([head] + [_row(c) for c in cases])
     within = [c for c in cases if abs(c["ratio"] - 1) <= 0.03]
     md = (f"# Loss sweep: where each loss is lowest\n\n"
           f"Truth: {cases[0]['truth']} (`rsl synth --truth-order 2 --substeps 3 --handles hard`), "
           f"sample_data/bar pulled by a cable, E_true = {E_TRUE:g} Pa, ν = {POISSON}; frames "
           f"{cases[0]['frames'][0]}–{cases[0]['frames'][1] - 1}; mode {data['mode']}.  Whole-sequence loss over a "
-          f"grid of fixed E ({len(cases[0]['grid'])} values, {min(cases[0]['grid']):g}–{max(cases[0]['grid']):g} "
-          f"Pa), full-space simulation from the capture's declared start, minimum refined by a parabola in "
-          f"log E.\n\n{table}\n\n"
+          f"grid of fixed E (per row), full-space simulation from the capture's declared start, minimum refined by "
+          f"a parabola in log E.\n\n{table}\n\n"
           f"{len(within)} of {len(cases)} minima lie within 3 % of E_true.\n\n"
           f"Machine: {data['machine']}; date {data['date']}.  Produced by `bench/loss_sweep.py"
           f"{' --quick' if quick else ''}`.\n\n![loss over E](loss_sweep.png)\n")

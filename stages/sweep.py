@@ -92,13 +92,16 @@ def marker_loss_curve(X_of: Callable[[float], np.ndarray], faces: np.ndarray, ma
 
 
 def vision_loss_curve(X_of: Callable[[float], np.ndarray], image_loss, targets: Callable[[int], list],
-                      grid: Sequence[float], frames: Sequence[int], fit_frame: int = 0) -> np.ndarray:
+                      grid: Sequence[float], frames: Sequence[int], fit_frame: int = 0,
+                      anchor_young: float | None = None) -> np.ndarray:
     """Per grid value, the per-frame L1 image loss (K, T) of stages.render.image_loss.ImageLoss with the Gaussians
-    re-bound to the simulated fit frame (adapt's ``rebind`` anchor)."""
+    re-bound to the simulated fit frame (adapt's ``rebind`` anchor); with ``anchor_young`` (Pa), to the fit frame
+    simulated with that E for every grid value (the anchor's dependence on E switched off)."""
     out = np.zeros((len(grid), len(frames)))
+    anchor = None if anchor_young is None else np.array(X_of(anchor_young)[fit_frame])
     for k, e in enumerate(grid):
         X = X_of(e)
-        image_loss.rebind(X[fit_frame])
+        image_loss.rebind(X[fit_frame] if anchor is None else anchor)
         for j, t in enumerate(frames):
             out[k, j] = image_loss(X[t], targets(t))[0]
     return out
@@ -134,13 +137,15 @@ def silhouette_loss_curve(X_of: Callable[[float], np.ndarray], faces: np.ndarray
 def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: tuple[int, int] | None = None,
           workspace: Path | None = None, cameras: Sequence[str] | None = None, poisson: float | None = None,
           start: str | None = None, refine: int = 0, substeps: int = 1,
-          reporter: Callable[[str], None] | None = None, base_young: Sequence[float] | None = None) -> SweepResult:
+          reporter: Callable[[str], None] | None = None, base_young: Sequence[float] | None = None,
+          anchor_young: float | None = None) -> SweepResult:
     """The loss of ``capture`` (stages.capture.Capture) on ``mesh`` (a MeshArtefact: P1 or P2; ``refine``
     splits its tets 8-fold that many times) over the grid of E (Pa; every region's E scaled with region 0's
     ``base_young`` value (R,) Pa, default capture.toml's; one region: E itself) with ν fixed (``poisson`` or
     capture.toml's), frames
     [a, b) (default all), start (default capture.start).  loss "vision" needs ``workspace`` with cameras.h5
-    and gaussians.h5 (masks.h5 when there); "silhouette" cameras.h5 and masks.h5."""
+    and gaussians.h5 (masks.h5 when there); "silhouette" cameras.h5 and masks.h5.  ``anchor_young`` (Pa,
+    vision): the Gaussians bound to the fit frame simulated with this E for every grid value (None: with each)."""
     from stages.sim.scene import make_scene  # JAX and numba physics: loaded on use
 
     start = start or getattr(capture, "start", "equilibrium")
@@ -187,7 +192,7 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
             raise ValueError("surface faces index beyond the mesh's vertices")
         per = marker_loss_curve(X_of, faces, P, grid, fr)
     elif loss == "vision":
-        per = _vision(capture, workspace, cameras, mesh, X_of, grid, fr)
+        per = _vision(capture, workspace, cameras, mesh, X_of, grid, fr, anchor_young)
     elif loss == "silhouette":
         per = _silhouette(capture, workspace, cameras, mesh, X_of, grid, fr)
     else:
@@ -201,7 +206,7 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
                         "refine": int(refine), "loss": loss})
 
 
-def _vision(capture, workspace, cameras, mesh, X_of, grid, frames) -> np.ndarray:
+def _vision(capture, workspace, cameras, mesh, X_of, grid, frames, anchor_young=None) -> np.ndarray:
     ws = Path(workspace)
     cams_art = CamerasArtefact.load(ws / KIND_FILES["cameras"])
     gauss = GaussiansArtefact.load(ws / KIND_FILES["gaussians"])
@@ -218,7 +223,7 @@ def _vision(capture, workspace, cameras, mesh, X_of, grid, frames) -> np.ndarray
             cache[t] = [target_image(read_frame(capture, c, t), masks, c, t, il.background) for c in names]
         return cache[t]
 
-    return vision_loss_curve(X_of, il, targets, grid, frames, fit_frame)
+    return vision_loss_curve(X_of, il, targets, grid, frames, fit_frame, anchor_young)
 
 
 def _silhouette(capture, workspace, cameras, mesh, X_of, grid, frames) -> np.ndarray:

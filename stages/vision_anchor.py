@@ -8,10 +8,13 @@ frame f with the new material moves the anchor and holds E back: docs/results/vi
 keeps p_a and decides, frame by frame, by this rule (p_T: the window's parameters after frame T's update):
 
 1. **tied** — while the window holds f, and until a change of material is confirmed: p_a = p.
-2. **candidate** — the window's log E has moved more than c (``--anchor-change``) from its *level*, the median of
-   p over frames T−6..T−3, in 2 frames in a row (any region).  Converging from a far-off start, Adam moves as far
-   and as fast as after a change (from 4x too soft: log E +0.8 in 4 frames after a 4-frame plateau), so this
-   alone cannot tell them apart.
+2. **candidate** — the window's log E (in one region) has been more than c/2 from its *level*, the median of p
+   over frames T−6..T−3, on the same side in each of the last 2 frames, and more than c (``--anchor-change``) in
+   at least one of them: a threshold with hysteresis, so that an estimate hovering at c (log E − level 0.466
+   then 0.398 around c = 0.4: held back by the tied anchor itself, it falls again) is still a candidate, while
+   one frame's excursion past c alone is not.  Converging from a far-off start, Adam moves as far and as fast
+   as after a change (from 4x too soft: log E +0.8 in 4 frames after a 4-frame plateau), so this alone cannot
+   tell them apart.
 3. **test** — which material explains the frames after the fit frame better, the level p_L or the current p_T:
    the loss Σ_{t∈F} loss_t(X_t(θ(p))) of the frames F = f+1 .. T−3 (at most 4w of them, those the level was
    estimated from), simulated from the start with θ(p), the anchor at θ(p) too.  A change since f leaves them
@@ -32,7 +35,8 @@ import numpy as np
 from stages.parameters import Adam
 
 LEVEL = (3, 6)  # the level: the median of p over frames T−6..T−3
-AWAY = 2  # frames in a row the window's log E must stay more than c from the level
+AWAY = 2  # the candidate's frames in a row: log E more than HOLD·c from the level in each, more than c in one
+HOLD = 0.5  # the hysteresis: the fraction of c the window's log E must stay beyond in each of the AWAY frames
 TEST_WINDOWS = 4  # the test's frames F: at most this many windows' worth
 
 
@@ -51,8 +55,8 @@ class AnchorMaterial:
         self.R, self.change, self.window = n_regions, float(change), window
         self.fit_frame, self.first = fit_frame, first
         self.apart_from: int | None = None
-        self.away = 0
         self.hist: list[np.ndarray] = []  # p per frame since the level's history (re)started
+        self.devs: list[np.ndarray] = []  # log E − level (R,) per untied frame with a level, since the restart
         self.tests: list[tuple[int, float, float, bool]] = []
         self._held = False
 
@@ -85,6 +89,15 @@ class AnchorMaterial:
             return None
         return np.median(np.stack(self.hist[-(b + 1):-a]), axis=0)
 
+    def candidate(self) -> bool:
+        """Whether the last AWAY deviations d = log E − level (R,) make a candidate: in some region r, |d_r| > HOLD·c
+        with one sign in each of them and |d_r| > c in at least one (rule 2 of the module's docstring)."""
+        if len(self.devs) < AWAY:
+            return False
+        d = np.stack(self.devs[-AWAY:])  # (AWAY, R)
+        held = np.all(d > HOLD * self.change, axis=0) | np.all(d < -HOLD * self.change, axis=0)
+        return bool(np.any(held & (np.max(np.abs(d), axis=0) > self.change)))
+
     def test_frames(self, T: int) -> list[int]:
         """F: the frames after the fit frame the level was estimated from, f+1 .. T−3, at most 4w of them."""
         lo = max(self.fit_frame + 1, self.first)
@@ -103,8 +116,8 @@ class AnchorMaterial:
         if level is None:
             return False
         R = self.R
-        self.away = self.away + 1 if np.max(np.abs(p[:R] - level[:R])) > self.change else 0
-        if self.away < AWAY:
+        self.devs.append(np.asarray(p[:R], float) - level[:R])
+        if not self.candidate():
             return False
         F = self.test_frames(T)
         if not F:
@@ -115,5 +128,5 @@ class AnchorMaterial:
         if changed:
             self.apart_from, self.p = T, level
         else:  # a convergence: the level's history restarts here
-            self.hist, self.away = [np.array(p, float)], 0
+            self.hist, self.devs = [np.array(p, float)], []
         return changed
