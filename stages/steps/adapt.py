@@ -181,8 +181,9 @@ class AdaptConfig:
     window continues these first-order states, with more it simulates its frames again); the next frame's
     linearisation renders that estimate, and when its data cost exceeds the prediction by more than 1 (a 1-σ step
     lowers the cost by ½) that frame's step is tested again; larger steps are always tested (Levenberg–Marquardt).
-    0: every step is tested.  Images, Bar-like case: 5 moves E by < 0.1 σ_E; markers, bar with E steps: up to 1 σ_E
-    after a change (docs/results/adapt_speed.md)."""
+    0: every step is tested.  Images, Bar-like case: 5 moves E by < 0.1 σ_E; markers, bar with E steps (3 substeps
+    per frame, measured by hand on bench/accuracy.py's capture): up to 3.1 σ_E right after a change, ≤ 0.2 σ_E
+    elsewhere (docs/results/adapt_speed.md: the images)."""
     vision_anchor: Literal["estimated", "simulated"] = "estimated"
     """adam, images: the material θ_a the Gaussians' anchor x_f (their fit frame f, simulated from the start) is
     simulated with.  estimated: the fit frame's own material — the window's θ until a change of material is seen
