@@ -205,13 +205,14 @@ def write(rows: list[dict], out: Path, plan: dict, measured: dict | None = None)
     (out / "time_step.md").write_text(md)
     ok = [r for r in rows if "error" not in r]
     keys = sorted({(r["truth_substeps"], r["start"], r["space"]) for r in ok})
+    colour = {S: f"C{i}" for i, S in enumerate(sorted({r["substeps"] for r in ok}))}  # one colour per S
     n = max(1, len(keys))
     fig, axes = plt.subplots(1, n, figsize=(3.3 * n, 3.4), squeeze=False)
     for ax, key in zip(axes[0], keys):
         sub = [r for r in ok if (r["truth_substeps"], r["start"], r["space"]) == key]
         ax.plot(sub[0]["young_true"], "k-", lw=2, label="truth")
         for r in sub:
-            ax.plot(r["young"], label=f"S = {r['substeps']}")
+            ax.plot(r["young"], color=colour[r["substeps"]], label=f"S = {r['substeps']}")
         ax.set_title(f"truth N = {key[0]}, start {key[1]}, {key[2]}", fontsize=8)
         ax.set_xlabel("frame")
         ax.set_ylabel("E (Pa)")
