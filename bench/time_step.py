@@ -38,10 +38,9 @@ os.environ.setdefault("JAX_ENABLE_X64", "1")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 import _pipeline as pl  # noqa: E402
+from accuracy import E0, WINDOW, scene_args, settled_mask  # noqa: E402  (the captures and settled frames of that bench)
 
-E0 = 1.0e5
 POISSON = 0.45
-WINDOW = 3
 FRAMES = 36
 MAX_TETS = 1500
 DIM = 30
@@ -53,21 +52,12 @@ def steps_of(young_true: np.ndarray) -> list[int]:
     return [t for t in range(1, len(young_true)) if np.any(young_true[t] != young_true[t - 1])]
 
 
-def settled_mask(young_true: np.ndarray) -> np.ndarray:
-    """(T,) True at frames ≥ w + 5 after the start and after every change of E_true."""
-    ok = np.ones(len(young_true), bool)
-    for s in [0] + steps_of(young_true):
-        ok[s: s + WINDOW + 5] = False
-    return ok
-
-
 def run_case(work: Path, start: str, truth_substeps: int, spaces, substeps) -> list[dict]:
     from stages.artefacts import AdaptArtefact
     from stages.capture import load_capture, read_truth
 
-    scene = pl.bar_cable(schedule=f"{E0:g}@0,{2 * E0:g}@{FRAMES // 3},{4 * E0:g}@{2 * FRAMES // 3}")
-    cap = pl.foreign_capture(work / f"bar_{start}_truth{truth_substeps}", scene, start=start, frames=FRAMES,
-                             poisson=POISSON, substeps=truth_substeps)
+    cap = pl.foreign_capture(work / f"bar_{start}_truth{truth_substeps}", scene_args("bar", FRAMES), start=start,
+                             frames=FRAMES, poisson=POISSON, substeps=truth_substeps)
     # one mesh and subspace per start state, made from the capture with the fewest truth substeps: the object, the
     # controls and the start are the same for every N, so adapt's model is the same for every truth
     ws = work / f"ws_bar_{start}"

@@ -5,6 +5,7 @@ and the sweep's minimum lies at E_true."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import meshio
 import numpy as np
@@ -18,12 +19,15 @@ FRAMES = 6
 
 @pytest.fixture(scope="module")
 def same_model(tmp_path_factory):
-    """A stretched bar (hard handles, start = equilibrium, P1 truth) and a workspace whose mesh.h5 is the
-    truth's own mesh."""
+    return same_model_capture(tmp_path_factory.mktemp("same"))
+
+
+def same_model_capture(root: Path) -> tuple[Path, Path]:
+    """In ``root``: a stretched bar (hard handles, start = equilibrium, P1 truth, E_TRUE, FRAMES frames) and a
+    workspace whose mesh.h5 is the truth's own mesh; returns (capture, workspace)."""
     from conftest import run_rsl
     from stages.sim.meshgen import box_tets
 
-    root = tmp_path_factory.mktemp("same")
     v, t = box_tets((6, 2, 2), (0.2, 0.04, 0.04))
     meshio.write(str(root / "bar.mesh"), meshio.Mesh(v, [("tetra", t)]), file_format="medit")
     cap = root / "cap"

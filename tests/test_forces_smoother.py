@@ -177,28 +177,14 @@ def test_evaluate_and_export_replay_the_smoothed_theta_when_asked(tmp_path, rsl)
     evaluate's numbers."""
     import json
 
-    import meshio
-
-    from conftest import run_rsl
     from stages.artefacts import AdaptArtefact, MeshArtefact, Provenance
     from stages.capture import load_capture, read_forces_csv
     from stages.forces import force_errors
-    from stages.sim.meshgen import box_tets
     from stages.sim.scene import make_scene
     from stages.sweep import simulate_fixed
+    from test_evaluate_sweep_forces import E_TRUE as e_true, FRAMES as T, same_model_capture
 
-    e_true, T = 6.0e4, 6
-    v, t = box_tets((6, 2, 2), (0.2, 0.04, 0.04))
-    meshio.write(str(tmp_path / "bar.mesh"), meshio.Mesh(v, [("tetra", t)]), file_format="medit")
-    cap, ws = tmp_path / "cap", tmp_path / "ws"
-    p = run_rsl("synth", tmp_path / "bar.mesh", cap, "--scenario", "stretch", "--cameras", "1", "--frames", str(T),
-                "--resolution", "32", "--markers", "12", "--calib-views", "0", "--young", str(e_true),
-                "--handles", "hard", "--start", "equilibrium", "--amplitude", "0.4")
-    assert p.returncode == 0, p.stderr[-2000:]
-    toml = cap / "capture.toml"
-    toml.write_text(toml.read_text().replace('mesh = "object.obj"', 'mesh = "truth/object.mesh"'))
-    p = run_rsl("tetrahedralize", cap, "-w", ws, "--order", "1", "--no-preview")
-    assert p.returncode == 0, p.stderr[-2000:]
+    cap, ws = same_model_capture(tmp_path)
     capture, mesh = load_capture(cap), MeshArtefact.load(ws / "mesh.h5")
     scene = make_scene(mesh, capture.controls(), capture.material.model, capture.dt, capture.gravity)
     X = simulate_fixed(scene, capture.controls(), np.array([e_true]), np.array([0.45]), T, capture.start)
