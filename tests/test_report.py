@@ -53,6 +53,18 @@ def console_errors(stderr: str) -> list[str]:
     return [ln for ln in stderr.splitlines() if "CONSOLE" in ln and ("Uncaught" in ln or "Error" in ln)]
 
 
+def assert_page_loads(page: Path, tmp: Path, n_images: int | None = None) -> str:
+    """Load ``page`` in headless Chromium and hold it to a clean load: status ok, no broken image, no page error,
+    no console error (and ``n_images`` images, when given).  Returns the DOM after the load event."""
+    dom, stderr = load_in_chromium(page, tmp)
+    status = status_of(dom)
+    assert status["status"] == "ok" and status["broken"] == "0" and status["errors"] == "0", status
+    if n_images is not None:
+        assert int(status["images"]) == n_images, status
+    assert not console_errors(stderr), console_errors(stderr)
+    return dom
+
+
 def images(page_html: str) -> list[tuple[str, bytes]]:
     """(alt, PNG bytes) of every <img> of the page; each must be an inline data: URI."""
     out = []
@@ -113,11 +125,7 @@ def test_report_loads_in_headless_chromium_with_every_plot(full_ws, rsl, tmp_pat
         a = mpimg.imread(io.BytesIO(png), format="png")
         assert a.shape[0] > 0 and a.shape[1] > 0 and np.ptp(a[..., :3]) > 0.05, alt
 
-    dom, stderr = load_in_chromium(page, tmp_path)
-    status = status_of(dom)
-    assert status["status"] == "ok", status
-    assert int(status["images"]) == len(alts) and status["broken"] == "0" and status["errors"] == "0"
-    assert not console_errors(stderr), console_errors(stderr)
+    dom = assert_page_loads(page, tmp_path, len(alts))
     assert "Not made" not in dom
     # provenance of every artefact, with the hashed inputs
     for name in ("mesh.h5", "cameras.h5", "masks.h5", "gaussians.h5", "adapt.h5", "export/stress.h5"):
