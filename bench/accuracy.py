@@ -236,6 +236,7 @@ def row_key(r) -> tuple:
 
 
 def main() -> None:
+    global EXTRA, EXPORT, TRUTH_SUBSTEPS
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
@@ -255,6 +256,8 @@ def main() -> None:
                          "apart, labelled as not re-run, with their date")
     ap.add_argument("--estimator", default="", help="rsl adapt --estimator (default: adapt's own default)")
     ap.add_argument("--substeps", type=int, default=0, help="rsl adapt --substeps (default: adapt's own default)")
+    ap.add_argument("--truth-substeps", type=int, default=TRUTH_SUBSTEPS,
+                    help="rsl synth --substeps of the truth (its implicit-Euler steps per frame)")
     a = ap.parse_args()
     if a.merge:
         runs = [json.loads(f.read_text()) for f in a.merge]
@@ -263,6 +266,7 @@ def main() -> None:
                                                     "code": run.get("code", "?")}
                                                    for f, run in zip(a.merge, runs)]}
         rows = [r for run in runs for r in run["cases"]]
+        TRUTH_SUBSTEPS = int(runs[0]["plan"].get("truth_substeps", TRUTH_SUBSTEPS))
         if a.previous:
             old = json.loads(a.previous.read_text())
             done = {row_key(r) for r in rows}
@@ -283,12 +287,12 @@ def main() -> None:
         if unknown:
             ap.error(f"--rows: {unknown} not in the plan")
         plan = want
-    global EXTRA, EXPORT
+    TRUTH_SUBSTEPS = a.truth_substeps
     EXPORT = not a.no_export
     EXTRA = (["--estimator", a.estimator] if a.estimator else []) + (["--substeps", a.substeps] if a.substeps else [])
     print(HEAD, flush=True)
     rows = []
-    meta = {"frames": frames, "refine": refine, "rows": plan, "adapt_options": EXTRA}
+    meta = {"frames": frames, "refine": refine, "rows": plan, "adapt_options": EXTRA, "truth_substeps": TRUTH_SUBSTEPS}
     for row in plan:
         rows.append(run_row(a.work, row, frames, refine))
         print(_row(rows[-1]), flush=True)
