@@ -236,7 +236,7 @@ def row_key(r) -> tuple:
 
 
 def main() -> None:
-    global EXTRA, EXPORT, TRUTH_SUBSTEPS
+    global EXTRA, EXPORT, TRUTH_SUBSTEPS, SUBSPACE_DIM
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
@@ -256,6 +256,7 @@ def main() -> None:
                          "apart, labelled as not re-run, with their date")
     ap.add_argument("--estimator", default="", help="rsl adapt --estimator (default: adapt's own default)")
     ap.add_argument("--substeps", type=int, default=0, help="rsl adapt --substeps (default: adapt's own default)")
+    ap.add_argument("--dim", type=int, default=SUBSPACE_DIM, help="train-subspace --dim, r of the reduced rows")
     ap.add_argument("--truth-substeps", type=int, default=TRUTH_SUBSTEPS,
                     help="rsl synth --substeps of the truth (its implicit-Euler steps per frame)")
     a = ap.parse_args()
@@ -267,6 +268,7 @@ def main() -> None:
                                                    for f, run in zip(a.merge, runs)]}
         rows = [r for run in runs for r in run["cases"]]
         TRUTH_SUBSTEPS = int(runs[0]["plan"].get("truth_substeps", TRUTH_SUBSTEPS))
+        SUBSPACE_DIM = int(runs[0]["plan"].get("dim", SUBSPACE_DIM))
         if a.previous:
             old = json.loads(a.previous.read_text())
             done = {row_key(r) for r in rows}
@@ -287,12 +289,13 @@ def main() -> None:
         if unknown:
             ap.error(f"--rows: {unknown} not in the plan")
         plan = want
-    TRUTH_SUBSTEPS = a.truth_substeps
+    TRUTH_SUBSTEPS, SUBSPACE_DIM = a.truth_substeps, a.dim
     EXPORT = not a.no_export
     EXTRA = (["--estimator", a.estimator] if a.estimator else []) + (["--substeps", a.substeps] if a.substeps else [])
     print(HEAD, flush=True)
     rows = []
-    meta = {"frames": frames, "refine": refine, "rows": plan, "adapt_options": EXTRA, "truth_substeps": TRUTH_SUBSTEPS}
+    meta = {"frames": frames, "refine": refine, "rows": plan, "adapt_options": EXTRA, "truth_substeps": TRUTH_SUBSTEPS,
+            "dim": SUBSPACE_DIM}
     for row in plan:
         rows.append(run_row(a.work, row, frames, refine))
         print(_row(rows[-1]), flush=True)
@@ -330,6 +333,8 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
         table += (f"\n\n**Not re-run** — these rows are the PREVIOUS table's numbers (runs ended "
                   f"{', '.join(prev['merged_from']) or prev['date']}, code of that time, before that session's "
                   f"fixes), not measured with the code above:\n\n" + "\n".join([HEAD] + [_row(r) for r in previous]))
+    up = Path(os.path.relpath(ROOT / "docs" / "results", out)).as_posix() + "/"  # links to the other pages
+    up = "" if up == "./" else up
     sources = sorted({r["force_source"] for r in rows if r.get("force_source")})
     unexported = [r for r in rows if r.get("exported") is False]
     ok = [r for r in rows if "error" not in r]
@@ -364,10 +369,10 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
           "s / frame: median wall time of one adapt frame in that row's run (adapt.h5 time_total_s) on this shared "
           "machine, at the load average given (1-minute, when the row ended), on the row's mesh (DOFs column). The "
           "paper-scale reduced case (≈10K DOFs, r = 30, w = 3, c = 4 at 128², images) is timed by bench/table1.py "
-          "([table1.md](table1.md)) and bench/adapt_speed.py ([adapt_speed.md](adapt_speed.md)); P2 against P1 in the "
-          "reduced space by bench/p2_cost.py ([p2_cost.md](p2_cost.md)). Where each loss is lowest over a grid of fixed "
-          "E on such a capture: bench/loss_sweep.py ([loss_sweep.md](loss_sweep.md)). Hand-written interpretation: "
-          "[accuracy_notes.md](accuracy_notes.md).\n\n"
+          f"([table1.md]({up}table1.md)) and bench/adapt_speed.py ([adapt_speed.md]({up}adapt_speed.md)); P2 against P1 in the "
+          f"reduced space by bench/p2_cost.py ([p2_cost.md]({up}p2_cost.md)). Where each loss is lowest over a grid of fixed "
+          f"E on such a capture: bench/loss_sweep.py ([loss_sweep.md]({up}loss_sweep.md)). Hand-written interpretation: "
+          f"[accuracy_notes.md]({up}accuracy_notes.md).\n\n"
           + (f"Rows merged from {len(plan['merged_from'])} runs (run side by side), ended "
              + ", ".join(f"{m['date']} (load average {m['load_average_end']:.1f}, code {m.get('code', '?')})"
                          for m in plan["merged_from"])
