@@ -156,6 +156,30 @@ def test_quasi_newton_and_newton_reach_the_same_state(data, ae):
     assert out[True][1] < out[False][1]
 
 
+def test_quasi_newton_cut_short_goes_on_as_newton_to_the_same_state(data, pca):
+    """Quasi-Newton that has not converged after max_iterations (here 5; it takes 8–12 on this sequence, plain
+    Newton 4–5) goes on as plain Newton: every frame still converges, to plain Newton's state."""
+    scene, seqs, _ = data
+    inp = seqs[6][0]
+    rtol = 1e-9
+    out, fallbacks = {}, 0
+    for reuse in (True, False):
+        model = ReducedModel(pca, scene)
+        z1 = z2 = model.z_rest
+        zs = []
+        for t in range(8):
+            z, info = model.step(inp[t], YOUNG, POISSON, z1, z2, rtol=rtol, reuse_hessian=reuse,
+                                 max_iterations=5 if reuse else 200)
+            assert info["residual_rel"] <= rtol
+            assert info["newton_fallback"] == (reuse and info["iterations"] > 5)
+            fallbacks += info["newton_fallback"]
+            zs.append(z)
+            z2, z1 = z1, z
+        out[reuse] = np.stack(zs)
+    assert fallbacks > 0
+    np.testing.assert_allclose(out[True], out[False], atol=1e-6 * np.abs(out[False]).max())
+
+
 @pytest.mark.slow
 def test_reduced_hessian_against_dense_JtHJ(data, ae):
     """∂²E/∂z² = Jᵀ H J + Σ_i r_i ∂²φ_i/∂z² with H, r the dense full-space Hessian and residual."""
