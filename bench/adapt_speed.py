@@ -10,21 +10,22 @@ Variants (switched in this process only, VisionObservation.jacobian_mode):
   autograd through the rasterizer — the slow twin;
 - gn jvp: the exact forward mode through the projection and the rasterizer (stages/render/rasterize_jvp.py: every
   column in one pass per frame and camera; the residuals come from the same pass, Jᵀ W r from the exact J) —
-  the default;
-- gn jvp memo: the same with GNWindow.memo on (the change test's one-frame forward, the linearisation's window and
-  the anchor of the last θ taken from the last trajectory of the same θ and states, StartWindow.memo; by default
-  only with --gn-trust);
+  the default, with GNWindow.memo on (the change test's one-frame forward, the linearisation's window — with
+  substeps, its substeps stitched from the forwards that simulated its frames, Substepped._stitch — and the anchor
+  of the last θ taken from the last trajectory of the same θ and states, StartWindow.memo);
+- gn jvp no-memo: the same with GNWindow.memo off (every evaluation simulates its window and anchor: the slow twin);
 - gn jvp, --gn-trust 5 (row "jvp 1-eval"): the same, with a step of at most 5 posterior σ taken on the quadratic model
-  (one evaluation per frame: the window's states at the estimate to first order, GNWindow.extrapolate, and the
-  window's frames remembered from the last trajectory, StartWindow.memo) instead of simulated and rendered there.
+  (one evaluation per frame: the window's states at the estimate to first order, GNWindow.extrapolate, continued by
+  the next window with one substep per frame, simulated again from them with more) instead of simulated and
+  rendered there.
 
 Each run adapts frames 0..w+timed; the values are medians over the frames after the first whose window starts
 from stored states (frame > w: no first call's compilation; bench/table1.py takes the same frames): adapt.h5's
 wall times (time_forward_s, time_backward_s, time_render_s, time_total_s) and the process CPU time per frame
 (all threads, measured here between the reporter's per-frame calls).  Runs are interleaved (rounds × variants),
 so load from other jobs falls on all alike; ratios are against adam within this run (issue 13's target: gn's
-per-frame time no higher than adam's) and fd / jvp.  The E trajectories of gn jvp and gn fd are compared
-(relative difference and in units of the reported σ_E).
+per-frame time no higher than adam's) and fd / jvp.  The E trajectories of gn jvp against gn fd, gn jvp no-memo and
+gn jvp 1-eval are compared (relative difference and in units of the reported σ_E).
 
     nice python bench/adapt_speed.py              # 2 rounds, 4 timed frames per run
     nice python bench/adapt_speed.py --quick      # table1's --quick Bar (64², 2000 Gaussians), 1 round
@@ -58,7 +59,7 @@ from stages.observations import VisionObservation  # noqa: E402
 from stages.steps import adapt  # noqa: E402
 
 RESULTS = ROOT / "docs" / "results"
-VARIANTS = (("adam", "default"), ("gn", "fd"), ("gn", "jvp"), ("gn", "jvp memo"), ("gn", "jvp 1-eval"))
+VARIANTS = (("adam", "default"), ("gn", "fd"), ("gn", "jvp"), ("gn", "jvp no-memo"), ("gn", "jvp 1-eval"))
 TRUST = {"jvp 1-eval": 5.0}
 # with rsl adapt's default substeps S (every variant), and with 1 substep per frame — the discretisation the capture was
 # synthesised with (bench/table1.py), where E is not biased by the model's time step (the main variants)
@@ -89,12 +90,12 @@ class _CpuClock(SilentReporter):
 
 @contextlib.contextmanager
 def variant(name: str):
-    """gn's image Jacobian: "fd" (central differences) or "jvp" (forward mode), "memo": GNWindow.memo on;
+    """gn's image Jacobian: "fd" (central differences) or "jvp" (forward mode), "no-memo": GNWindow.memo off;
     "default" changes nothing."""
     from stages.windows import GNWindow
 
     saved, saved_memo = VisionObservation.jacobian_mode, GNWindow.memo
-    GNWindow.memo = True if "memo" in name else None
+    GNWindow.memo = False if "no-memo" in name else saved_memo
     if name.split()[0] in ("fd", "jvp"):
         VisionObservation.jacobian_mode = name.split()[0]
     try:
@@ -146,7 +147,9 @@ def markdown(data: dict) -> str:
     cmp_ = data["jvp_vs_fd"]
     lines += ["", f"gn with the forward-mode J against gn with central differences, the same frames (round 1): E "
               f"differs by at most {100 * cmp_['max_rel']:.2f} % (median {100 * cmp_['median_rel']:.2f} %), at most "
-              f"{cmp_['max_in_sigma']:.2f} σ_E (σ_E as gn fd reports it).  gn jvp 1-eval against gn jvp: E differs by "
+              f"{cmp_['max_in_sigma']:.2f} σ_E (σ_E as gn fd reports it).  gn jvp (memo) against gn jvp no-memo, "
+              f"S = {s['substeps']}: E differs by at most {100 * data['memo_vs_no_memo']['max_rel']:.2g} %, at most "
+              f"{data['memo_vs_no_memo']['max_in_sigma']:.2g} σ_E.  gn jvp 1-eval against gn jvp: E differs by "
               + "; ".join(f"at most {100 * one['max_rel']:.2f} % (median {100 * one['median_rel']:.2f} %), at most "
                           f"{one['max_in_sigma']:.3f} σ_E with S = {S}" for S, one in data["one_vs_two"].items())
               + ".  Per round (CPU s / frame, " + " / ".join(f"S={S} {e} {v}" for S, e, v in data["plan"]) + "): "
@@ -207,6 +210,7 @@ def main() -> None:
 
     jvp_vs_fd = compare(runs[(S0, "gn", "fd")][0], runs[(S0, "gn", "jvp")][0])
     one_vs_two = {S: compare(runs[(S, "gn", "jvp")][0], runs[(S, "gn", "jvp 1-eval")][0]) for S in sorted({S0, 1})}
+    memo_vs_not = compare(runs[(S0, "gn", "jvp no-memo")][0], runs[(S0, "gn", "jvp")][0])
     per_round = [[runs[v][i]["cpu_s"] for v in plan] for i in range(rounds)]
     from stages.artefacts import MeshArtefact
 
@@ -214,7 +218,7 @@ def main() -> None:
     data = {"machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs, {platform.python_version()}, "
                        f"load average {os.getloadavg()[0]:.1f} at the end (a shared machine)",
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "wall_s": time.perf_counter() - t0, "jvp_vs_fd": jvp_vs_fd,
+            "wall_s": time.perf_counter() - t0, "jvp_vs_fd": jvp_vs_fd, "memo_vs_no_memo": memo_vs_not,
             "one_vs_two": {str(k): v for k, v in one_vs_two.items()}, "plan": [list(x) for x in plan],
             "per_round_cpu": per_round,
             "settings": {"case": f"Bar, {case.shape}, {3 * mesh.n_vertices} DOFs, {mesh.n_tets} tets of order "

@@ -65,7 +65,7 @@ class GNResult:
     scale2: float = 1.0  # s² (:func:`residual_scale2` / :func:`cluster_scale2`) there: 1 when they fit the assumed σ
     cov_scaled: np.ndarray | None = None  # (k, k) (Jᵀ W J / (σ² s²) + P⁻¹)⁻¹: the covariance with σ from the data
     checked: bool = True  # the last step was evaluated (False: taken on the quadratic model, gauss_newton's skip_trial)
-    jtwj: np.ndarray | None = None  # (k, k) Jᵀ W J at the last linearisation, as (J W)ᵀ J
+    jtwj: np.ndarray | None = None  # (k, k) Jᵀ W J at the last linearisation, as (J W)ᵀ J over J's non-zero rows
 
 
 def huber_weights(r: np.ndarray, sigma: float, delta: float | None) -> np.ndarray:
@@ -102,7 +102,7 @@ def residual_scale2(r: np.ndarray, sigma: float, delta: float | None, k: int) ->
 
 
 def cluster_scale2(r: np.ndarray, J: np.ndarray, sigma: float, delta: float | None, clusters: np.ndarray,
-                   jtwj: np.ndarray | None = None) -> float:
+                   jtwj: np.ndarray | None = None, live: np.ndarray | None = None) -> float:
     """s² of residuals whose errors are correlated within clusters (e.g. blocks of neighbouring pixels): the
     cluster-robust (sandwich) covariance of the M-estimate, expressed as a variance factor of the assumed σ².
 
@@ -114,35 +114,39 @@ def cluster_scale2(r: np.ndarray, J: np.ndarray, sigma: float, delta: float | No
     :func:`residual_scale2`); with correlated errors it also counts how many residuals carry one independent
     error — an image's misfit is spatially correlated, and ~10⁵ pixels taken as independent give a covariance
     far too small.  Falls back to :func:`residual_scale2` with fewer than 4k informative clusters.  ``jtwj``: Jᵀ W J
-    (k, k) when already formed (W = :func:`huber_weights`; as (J W)ᵀ J, the same floats)."""
+    (k, k) when already formed (W = :func:`huber_weights`; as (J W)ᵀ J over J's non-zero rows, the same floats);
+    ``live``: those rows (:func:`live_rows`) when already found."""
     r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
     m, k = J.shape
     if m <= k or sigma <= 0 or k == 0:
         return 1.0
-    u = r / sigma
-    psi, dpsi = huber_psi(u, delta)
-    score = J * (sigma * psi)[:, None]  # (m, k)
     ids = np.asarray(clusters)
     if ids.dtype.kind not in "iu" or ids.min() < 0 or ids.max() > 4 * m:  # labels → 0..G−1 (np.unique is slow)
         ids = np.unique(ids, return_inverse=True)[1].reshape(-1)
+    live = live_rows(J) if live is None else live  # only J's non-zero rows add to A, g, Jᵀ W J (images: background)
+    Jl, rl, ids = J[live], r[live], ids[live]
+    psi, dpsi = huber_psi(rl / sigma, delta)
+    score = Jl * (sigma * psi)[:, None]  # (m_live, k)
     g = np.stack([np.bincount(ids, weights=score[:, j]) for j in range(k)], axis=1)  # (clusters, k): Σ_{i∈c}
     G = int(np.sum(np.any(g != 0.0, axis=1)))
     if G < 4 * k:
         return residual_scale2(r, sigma, delta, k)
-    A = (J * dpsi[:, None]).T @ J
+    A = (Jl * dpsi[:, None]).T @ Jl
     Ainv = np.linalg.pinv(0.5 * (A + A.T))
     V = G / (G - 1) * Ainv @ (g.T @ g) @ Ainv
-    AW = (J * huber_weights(r, sigma, delta)[:, None]).T @ J if jtwj is None else jtwj
+    AW = (Jl * huber_weights(rl, sigma, delta)[:, None]).T @ Jl if jtwj is None else jtwj
     s2 = float(np.trace(V @ AW)) / (k * sigma ** 2)
     return s2 if np.isfinite(s2) and s2 > 0 else residual_scale2(r, sigma, delta, k)
 
 
 def robust_cost(r: np.ndarray, sigma: float, delta: float | None) -> float:
-    """Σ σ² ρ(r/σ) (½ Σ r² without Huber)."""
+    """Σ σ² ρ(r/σ) (½ Σ r² without Huber) = Σ (a |r| − ½ a²), a = min(|r|, δσ) (σ²ρ(u) = ½r² for |u| ≤ δ, δσ|r| − ½(δσ)²
+    beyond: two dot products, no per-residual branch)."""
     if delta is None:
         return 0.5 * float(r @ r)
-    u = np.abs(r) / sigma
-    return float(sigma ** 2 * np.sum(np.where(u <= delta, 0.5 * u * u, delta * u - 0.5 * delta * delta)))
+    ar = np.abs(r)
+    a = np.minimum(ar, delta * sigma)  # σ a in the units of r
+    return float(a @ ar - 0.5 * (a @ a))
 
 
 def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, prior: Prior, sigma: float, *,
@@ -182,14 +186,16 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
     lam = 0.0
     n_eval, it = 1, 0
     p_lin, r_lin, J_lin = p.copy(), r, J
-    W = huber_weights(r, sigma, huber)
+    W = huber_weights(r, sigma, huber) if max_iterations < 1 else None  # (formed in the loop)
     for it in range(1, max_iterations + 1):
         p_lin, r_lin, J_lin = p.copy(), r, J
         W = huber_weights(r, sigma, huber)
-        JW = J * W[:, None]
-        JWJ = JW.T @ J
+        live = live_rows(J)  # the rows of J that are 0 (an image's background pixels) add nothing to Jᵀ W J, Jᵀ W r
+        Jl = J[live]
+        JW = Jl * W[live, None]
+        JWJ = JW.T @ Jl
         N = JWJ / s2 + info
-        g = (JW.T @ r if jtw is None else jtw(W)) / s2 + info @ (p - prior.mean)
+        g = (JW.T @ r[live] if jtw is None else jtw(W)) / s2 + info @ (p - prior.mean)
         accepted = checked = False
         for _ in range(max_rejections + 1):
             A = N + lam * np.diag(np.diag(N))
@@ -232,10 +238,21 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
     JWJ = None if it == 0 else JWJ  # (Jᵀ W J at the last linearisation, formed in the loop)
     cov = posterior_cov(J_lin, W, s2, prior, JWJ)
     k2 = (residual_scale2(r_lin, sigma, huber, len(p)) if clusters is None else
-          cluster_scale2(r_lin, J_lin, sigma, huber, clusters, JWJ))
+          cluster_scale2(r_lin, J_lin, sigma, huber, clusters, JWJ, None if it == 0 else live))
     cov_scaled = posterior_cov(J_lin, W, float(sigma) ** 2 * k2, prior, JWJ) if np.isfinite(k2) else cov
     return GNResult(p=p, cov=cov, cost=c, iterations=it, evaluations=n_eval, residuals=r_lin, jacobian=J_lin,
                     p_lin=p_lin, weights=W, scale2=k2, cov_scaled=cov_scaled, checked=checked or it == 0, jtwj=JWJ)
+
+
+def live_rows(J: np.ndarray) -> np.ndarray:
+    """Indices of the rows of J (m, k) with a non-zero entry."""
+    J = np.asarray(J)
+    if J.shape[1] == 0:
+        return np.zeros(0, np.int64)
+    live = J[:, 0] != 0.0
+    for j in range(1, J.shape[1]):
+        live |= J[:, j] != 0.0
+    return np.flatnonzero(live)
 
 
 def _unpack(out: tuple) -> tuple:
@@ -307,7 +324,7 @@ def condition(prior: Prior, i: int, value: float, hold: float = 1e-10) -> Prior:
 def posterior_cov(J: np.ndarray, weights: np.ndarray, sigma2: float, prior: Prior,
                   jtwj: np.ndarray | None = None) -> np.ndarray:
     """(Jᵀ W J / σ² + P⁻¹)⁻¹ (k, k): the Laplace covariance of one linearisation J (m, k) under ``prior``; ``jtwj``
-    (k, k): Jᵀ W J when already formed (as (J W)ᵀ J: the same floats)."""
+    (k, k): Jᵀ W J when already formed (gauss_newton's, as (J W)ᵀ J over J's non-zero rows: the same to rounding)."""
     if jtwj is None:
         JW = np.asarray(J, np.float64) * np.asarray(weights, np.float64)[:, None]
         jtwj = JW.T @ J

@@ -129,6 +129,7 @@ class ReducedSpace:
         self.dim = int(model.dim)
         self._rin: dict[int, object] = {}
         self.rtol = 1e-8  # relative residual of each reduced Newton step
+        self._decoded: list[tuple[np.ndarray, np.ndarray]] = []  # the latest (z, φ(z)) pairs, newest last
 
     def inputs(self, t: int):
         """ReducedInputs of frame t (cached: the projection of loads is done once)."""
@@ -141,7 +142,16 @@ class ReducedSpace:
         return np.asarray(self.model.z_rest)
 
     def decode(self, states: np.ndarray) -> np.ndarray:
-        return np.asarray(self.model.decode(states))
+        """φ(z) (…, n, 3) of states z (…, r); the same z as one of the last few calls (e.g. a forward's states, decoded
+        by the solve guard and then by the observation) gives that call's floats again without decoding."""
+        z = np.asarray(states)
+        for zc, xc in reversed(self._decoded):
+            if zc.shape == z.shape and np.array_equal(zc, z):
+                return xc.copy()
+        x = np.asarray(self.model.decode(z))
+        self._decoded.append((np.array(z, copy=True), x.copy()))
+        del self._decoded[:-4]
+        return x
 
     def z(self, states: np.ndarray) -> np.ndarray:
         return np.asarray(states)
@@ -228,6 +238,7 @@ class Substepped:
     Gradients: dL/dθ_t sums over frame t's substeps; dL/d before follows from the map above."""
 
     KEEP = 6  # recorded (x_{t−1}, x_t, x_{t−1/S}, δ_t) per frame (the latest forwards)
+    KEEP_TRAJ = 12  # the latest forwards' substep trajectories (a window's sensitivities are stitched from them)
 
     def __init__(self, coarse, fine, substeps: int):
         self._coarse, self.fine, self.S = coarse, fine, int(substeps)
@@ -304,7 +315,7 @@ class Substepped:
         for t in [t for t in self._committed if t < self._horizon - 64]:
             del self._committed[t]
         self._traj.append((list(frames), np.asarray(young, float), np.asarray(poisson, float), fb, X, Xf))
-        del self._traj[:-4]
+        del self._traj[:-self.KEEP_TRAJ]
         return X
 
     def commit(self, t: int, state: np.ndarray) -> None:
@@ -317,15 +328,48 @@ class Substepped:
             self._committed[t] = rec
 
     def _trajectory(self, frames, young, poisson, states, before) -> tuple[np.ndarray, np.ndarray]:
-        """(fine before (2, …), substep states (w·S, …)) of a window whose frame states are ``states``."""
+        """(fine before (2, …), substep states (w·S, …)) of a window whose frame states are ``states``: the
+        substeps of a recorded forward of this very window, else stitched frame by frame from recorded forwards
+        (:meth:`_stitch`: the window's frames taken from the trajectories they were simulated in, e.g. by
+        StartWindow.memo), else simulated from ``before``."""
         fb = self.fine_before(frames[0], before)
         young, poisson, states = np.asarray(young, float), np.asarray(poisson, float), np.asarray(states)
         for fr, y, p, b, X, Xf in reversed(self._traj):
             if (fr == list(frames) and np.array_equal(y, young) and np.array_equal(p, poisson)
                     and np.array_equal(b, fb) and np.array_equal(X, states)):
                 return fb, Xf
-        Xf = np.asarray(self.fine.forward(self.steps(frames), self._expand(young), self._expand(poisson), fb))
+        Xf = self._stitch(frames, young, poisson, states, fb)
+        if Xf is None:
+            Xf = np.asarray(self.fine.forward(self.steps(frames), self._expand(young), self._expand(poisson), fb))
         return fb, Xf
+
+    def _stitch(self, frames, young, poisson, states, fb) -> np.ndarray | None:
+        """Substep states (w·S, …) of the window, each frame's S substeps taken from a recorded forward that
+        simulated that frame with the same θ (young/poisson row) from the same two substep states (the previous
+        frame's last two, ``fb`` for the first) and ended at the same frame state — the very substeps a forward of
+        the whole window from ``fb`` takes, up to the tolerance of each step's solve (a step depends on θ, its
+        inputs and the two states before it alone).  None when a frame has no such record."""
+        S = self.S
+        pair0, pair1 = fb[0], fb[1]
+        blocks = []
+        for i, t in enumerate(frames):
+            blk = None
+            for fr, y, p, b, X, Xf in reversed(self._traj):
+                if t not in fr:
+                    continue
+                j = fr.index(t)
+                lo, hi = ((b[0], b[1]) if j == 0 else (b[1], Xf[0]) if j * S == 1
+                          else (Xf[j * S - 2], Xf[j * S - 1]))  # the two substep states before frame t's first
+                if (np.array_equal(X[j], states[i]) and np.array_equal(y[j], young[i])
+                        and np.array_equal(p[j], poisson[i]) and np.array_equal(lo, pair0)
+                        and np.array_equal(hi, pair1)):
+                    blk = Xf[j * S:(j + 1) * S]
+                    break
+            if blk is None:
+                return None
+            blocks.append(blk)
+            pair0, pair1 = (blk[-2], blk[-1]) if S > 1 else (pair1, blk[-1])
+        return np.concatenate(blocks)
 
     # ---------------------------------------------------------------- derivatives
     def _per_frame_sum(self, g: np.ndarray) -> np.ndarray:

@@ -29,9 +29,9 @@ class StartWindow:
         self._x0 = None  # the last x_0: the warm start of the next static solve
         # ``memo`` (GNWindow.memo): frames of the last trajectory simulated with θ from two known states are taken
         # from it instead of being simulated again — x_t depends on θ, x_{t−2}, x_{t−1} and frame t's controls
-        # alone, so the same states come out (up to the tolerance of the step's solve).  Not with substeps
-        # (window_backends.Substepped): there the window's sensitivities need the substep trajectory that only a
-        # forward of that very window leaves, and would simulate it anyway
+        # alone, so the same states come out (up to the tolerance of the step's solve).  With substeps
+        # (window_backends.Substepped) the window's sensitivities stitch its substep trajectory from the forwards
+        # that simulated its frames (Substepped._stitch)
         self.memo = False
         self._traj: tuple[np.ndarray, np.ndarray, dict] | None = None  # (E, ν, {frame: state})
 
@@ -72,7 +72,7 @@ class StartWindow:
         """States (w, …) of ``frames``; ``before`` = [state t0−2, state t0−1] (unused when frames[0] = 0)."""
         b, w = self.backend, len(frames)
         if frames[0] != 0:
-            memo = self.memo and getattr(b, "S", 1) == 1
+            memo = self.memo
             if memo:
                 X = self._memo_forward(list(frames), E, nu, before)
                 if X is not None:
@@ -274,11 +274,11 @@ class GNWindow:
     """
 
     #: StartWindow.memo: the change test's one-frame forward, the linearisation's window (the frames the last
-    #: evaluation simulated at this θ from the same states) and the anchor of the last θ are not simulated again.
-    #: None: on with the one-evaluation path (:attr:`trust` > 0: the window continues the states extrapolate left),
-    #: off otherwise (with --substeps 3 it measured no faster, docs/results/adapt_speed.md); True / False: forced
-    #: (False: every evaluation simulates its window and anchor — the slow twin)
-    memo: bool | None = None
+    #: evaluation simulated at this θ from the same states; with --substeps its substeps stitched from those
+    #: forwards, window_backends.Substepped._stitch) and the anchor of the last θ are not simulated again — the
+    #: same estimates to the tolerance of the steps' solves (tests/test_gn_speed*.py).  True (or None): on;
+    #: False: every evaluation simulates its window and anchor — the slow twin
+    memo: bool | None = True
 
     def __init__(self, objective: "WindowObjective", fit_poisson: bool, s_fixed: np.ndarray):
         self.obj, self.fit_poisson, self.s_fixed = objective, fit_poisson, s_fixed
@@ -316,7 +316,7 @@ class GNWindow:
         c = p[self.k_theta:]
         b = before if D is None or not len(c) else before + np.tensordot(c, D, axes=1)
         if hasattr(obj.win, "memo"):  # the windows continue the trajectories they remember (StartWindow.memo)
-            obj.win.memo = self.trust > 0 if self.memo is None else bool(self.memo)
+            obj.win.memo = True if self.memo is None else bool(self.memo)
         t0 = time.perf_counter()
         anchored = rebind and obj.rebind and self.rebind_anchor
         smooth = getattr(obj.obs, "binding_jacobian", None) is not None  # markers: d binding/dθ goes into J
@@ -402,9 +402,10 @@ class GNWindow:
 
         (S the window's state sensitivities, J the residuals' Jacobian; the corrected states before the window are
         exact, linear in c).  ``last_*`` then describe the window at p, the window's trajectory is remembered for
-        the next frame's (StartWindow.remember), and the predicted residuals are kept in :attr:`prediction` for
-        :meth:`prediction_error` (``scale2`` = σ² s², the data term's variance).  ``r_lin`` (m,), ``J_lin`` (m, k): the
-        last evaluation's residuals and Jacobian concatenated, when at hand (one product instead of one per frame)."""
+        the next frame's (StartWindow.remember; with one substep per frame), and the predicted residuals are kept in
+        :attr:`prediction` for :meth:`prediction_error` (``scale2`` = σ² s², the data term's variance).  ``r_lin``
+        (m,), ``J_lin`` (m, k): the last evaluation's residuals and Jacobian concatenated, when at hand (one product
+        instead of one per frame)."""
         dp = np.asarray(p, float) - self.last_p
         S = self.last_state_sens  # (k, w, …)
         states = self.last_states + np.tensordot(dp, S, axes=1)
@@ -416,7 +417,9 @@ class GNWindow:
             rs = np.split(r_lin + J_lin @ dp, np.cumsum([len(r) for r in self.last_frames])[:-1])
         self.last_states, self.last_before, self.last_p, self.last_rs = states, b, np.array(p, float), rs
         E, nu, _ = self.theta(p)
-        if hasattr(self.obj.win, "remember"):
+        if hasattr(self.obj.win, "remember") and getattr(self.obj.backend, "S", 1) == 1:
+            # (with --substeps S > 1 not: the window's sensitivities need a substep trajectory through its states,
+            # which no forward made for these — the next window simulates from the stored ones instead)
             self.obj.win.remember(list(frames), E, nu, b, states)
         obj = self.obj
         if obj.rebind and self.rebind_anchor and getattr(obj.obs, "binding_jacobian", None) is not None:

@@ -229,10 +229,35 @@ class ImageLoss:
             b, Fi, _, _ = self._anchored(xa_)
             return b, Fi @ fit_factor
 
+        if not self.quadratic and self.jvp_numpy:  # linear tets: the closed form below, in numpy
+            db, dL = self._binding_tangents_linear(np.asarray(xa, np.float64), np.asarray(Va, np.float64))
+            return self._beta64, self._factor, db, dL
         xa_t = torch.as_tensor(np.asarray(xa, np.float64))
         Va_t = torch.as_tensor(np.asarray(Va, np.float64))
         db, dL = vmap(lambda va: jvp(binding, (xa_t,), (va,))[1])(Va_t)
         return self._beta64, self._factor, db.numpy(), dL.numpy()  # (the primal: the very floats images() renders)
+
+    #: linear tets: :meth:`binding_jvp` and :meth:`geometry_jvp` by their closed forms in numpy (matrix products);
+    #: False: torch.func.jvp through :meth:`anchored_geometry` and einsum — the slow twins the tests hold them to
+    jvp_numpy = True
+
+    def _binding_tangents_linear(self, xa: np.ndarray, Va: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(dβ (k, G, 4), dL (k, G, 3, 3)) of :meth:`anchored_geometry` on linear tets along Va (k, n, 3) at xa (n, 3):
+        with D = [x₁ − x₀, x₂ − x₀, x₃ − x₀] of the host tet at xa, λ = D⁻¹ (μ_fit − x₀), β = (1 − Σλ, λ),
+        F_a = D D_m⁻¹, L = F_a⁻¹ L_fit:
+            dλ = −D⁻¹ (dx₀ + dD λ),   dF_a = dD D_m⁻¹,   dL = −F_a⁻¹ dF_a F_a⁻¹ L_fit."""
+        hv = self._host.numpy()
+        ca, dca = xa[hv], Va[:, hv]  # (G, 4, 3), (k, G, 4, 3)
+        D = (ca[:, 1:4] - ca[:, :1]).transpose(0, 2, 1)  # (G, 3, 3), columns x_j − x_0
+        dD = (dca[:, :, 1:4] - dca[:, :, :1]).transpose(0, 1, 3, 2)  # (k, G, 3, 3)
+        Dinv = np.linalg.inv(D)
+        lam = (Dinv @ (np.asarray(self._fit_means, np.float64) - ca[:, 0])[..., None])  # (G, 3, 1)
+        dlam = -(Dinv[None] @ (dca[:, :, 0, :, None] + dD @ lam[None]))[..., 0]  # (k, G, 3)
+        db = np.concatenate([-dlam.sum(-1, keepdims=True), dlam], axis=-1)
+        Dmi = np.asarray(self._dm_inv_all[self.host_tet], np.float64)
+        Fi = np.linalg.inv(D @ Dmi)
+        dL = -(Fi[None] @ (dD @ Dmi[None]) @ Fi[None]) @ np.asarray(self._fit_factor, np.float64)[None]
+        return db, dL
 
     def geometry_jvp(self, xt: np.ndarray, V: np.ndarray, binding: tuple) -> tuple:
         """(μ (G, 3), M (G, 3, 3), dμ (k, G, 3), dM (k, G, 3, 3)) float64 numpy: the Gaussians' centres and covariance
@@ -261,6 +286,12 @@ class ImageLoss:
         hv = self._host.numpy()
         b, Lf, Dmi = beta.numpy(), factor.numpy(), self._shape.numpy()
         P, dP = x[hv], V[:, hv]  # (G, 4, 3), (k, G, 4, 3)
+        if self.jvp_numpy:  # the same sums as matrix products
+            mu = (b[:, None, :] @ P)[:, 0]
+            dmu = (b[None, :, None, :] @ dP)[:, :, 0] + (db[:, :, None, :] @ P[None])[:, :, 0]
+            F = (P[:, 1:4] - P[:, :1]).transpose(0, 2, 1) @ Dmi
+            dF = (dP[:, :, 1:4] - dP[:, :, :1]).transpose(0, 1, 3, 2) @ Dmi[None]
+            return mu, F @ Lf, dmu, dF @ Lf + F[None] @ dL
         mu = np.einsum("gk,gkd->gd", b, P)
         dmu = np.einsum("gk,jgkd->jgd", b, dP) + np.einsum("jgk,gkd->jgd", db, P)
         F = np.einsum("gjd,gje->gde", P[:, 1:4] - P[:, :1], Dmi)  # D_s D_m⁻¹, D_s columns p_j − p_0
