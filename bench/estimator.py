@@ -3,7 +3,8 @@
 For each scene × seed, `rsl synth` films the shared beam (shared/data Coarse_beam.mesh, a cable pulls its free end)
 with a truth on another discretisation than adapt's (quadratic tets on the once-refined mesh, 3 implicit substeps
 per frame, hard Dirichlet handles, start = equilibrium) and noisy markers (30, σ 0.2 mm).  rsl adapt runs online in
-the full space on the beam's own coarse mesh as quadratic tets (2 substeps per frame) from E_init = E0/2.
+the full space on the beam's own coarse mesh as quadratic tets at its default substeps per frame (``--adapt-substeps S``
+passes another; the value used is read back from adapt.h5's provenance) from E_init = E0/2.
 Scenes: the bar with E stepping ×2 and ×4, the bar with constant E, a two-region beam (E ×3 beyond mid-length).
 Measured per run: the settled error and the ±3 % band, the frames needed after each step to come and stay within
 5 % of the new value, the fraction of settled frames whose truth lies inside ±2σ (gn; E and ν), the change points
@@ -15,6 +16,7 @@ without its marker noise, where the marker loss of adapt's model at fixed E has 
 over frames 0 … t, and the offline gn fit of the whole sequence (docs/results/estimator_window_sweep.{md,json}).
 
     nice .venv/bin/python bench/estimator.py [--seeds 3] [--workers 2] [--scenes ...] [--variant LABEL=OPTIONS]
+                                             [--adapt-substeps S]
     nice .venv/bin/python bench/estimator.py --window-sweep [--sweep-scene S --sweep-seed N]
 """
 from __future__ import annotations
@@ -50,7 +52,6 @@ SCENES = {  # name: (synth arguments, frames, step frames)
     "two-region beam": (["--region", f"stiff={3 * E0:g}@x>0.5"], 24, []),
 }
 TRUTH = ["--truth-order", 2, "--truth-refine", 1, "--substeps", 3, "--handles", "hard", "--start", "equilibrium"]
-ADAPT_SUBSTEPS = 2
 
 
 def make_capture(root: Path, scene: str, seed: int, marker_noise: float = 2e-4):
@@ -80,11 +81,23 @@ def make_capture(root: Path, scene: str, seed: int, marker_noise: float = 2e-4):
     return cap, ws, truth[:frames], nu[:frames], names
 
 
-def run_adapt(cap: Path, ws: Path, estimator: str, options=()):
+def _substeps_option(substeps: int | None) -> list:
+    """adapt's --substeps option: none (adapt's default) unless ``substeps`` is given."""
+    return [] if substeps is None else ["--substeps", substeps]
+
+
+def adapt_substeps_used(adapt_h5: Path) -> int | None:
+    """The substeps per frame an adapt run used, from adapt.h5's provenance config."""
+    from stages.artefacts import read_provenance
+
+    return (read_provenance(adapt_h5).get("config") or {}).get("substeps")
+
+
+def run_adapt(cap: Path, ws: Path, estimator: str, options=(), substeps: int | None = None):
     from stages.artefacts import AdaptArtefact
 
     _pipeline.adapt(cap, ws, "--space", "full", "--loss", "markers", "--window", W, "--young-init", E0 / 2,
-                    "--estimator", estimator, "--substeps", ADAPT_SUBSTEPS, *options)
+                    "--estimator", estimator, *_substeps_option(substeps), *options)
     a = AdaptArtefact.load(ws / "adapt.h5")
     return a, list(a.extra.get("region_names", [])) or None
 
@@ -116,17 +129,18 @@ def metrics(E, sd, truth, steps: list[int], nu=None, sd_nu=None, nu_true=None) -
     return out
 
 
-def run_case(scene: str, seed: int, with_adam: bool, variants: dict | None = None) -> list[dict]:
-    """One capture, gn (and adam, and gn with each variant's extra adapt options): a row per estimator and region
-    (none, with the error printed, if it failed)."""
+def run_case(scene: str, seed: int, with_adam: bool, variants: dict | None = None,
+             substeps: int | None = None) -> list[dict]:
+    """One capture, gn (and adam, and gn with each variant's extra adapt options), adapt at ``substeps`` per frame
+    (None: adapt's default): a row per estimator and region (none, with the error printed, if it failed)."""
     try:
-        return _run_case(scene, seed, with_adam, variants or {})
+        return _run_case(scene, seed, with_adam, variants or {}, substeps)
     except (Exception, SystemExit) as e:  # one failed case must not lose the others' measurements
         print(f"{scene} seed {seed} FAILED: {type(e).__name__}: {e}", flush=True)
         return []
 
 
-def _run_case(scene: str, seed: int, with_adam: bool, variants: dict) -> list[dict]:
+def _run_case(scene: str, seed: int, with_adam: bool, variants: dict, substeps: int | None) -> list[dict]:
     import time
 
     _, _, steps = SCENES[scene]
@@ -138,13 +152,16 @@ def _run_case(scene: str, seed: int, with_adam: bool, variants: dict) -> list[di
         runs = [("gn", "gn", ())] + [(f"gn, {k}", "gn", tuple(v.split())) for k, v in variants.items()]
         runs += [("adam", "adam", ())] if with_adam else []
         for label, est, options in runs:
-            a, _ = run_adapt(cap, ws, est, options)
+            t1 = time.perf_counter()
+            a, _ = run_adapt(cap, ws, est, options, substeps)
+            adapt_wall_s = time.perf_counter() - t1
+            used = adapt_substeps_used(ws / "adapt.h5")
             T = len(a.young)
             for r, name in enumerate(names):
                 sd = np.asarray(a.young_sigma)[:, r] if a.young_sigma is not None else np.full(T, np.nan)
                 sdn = np.asarray(a.poisson_sigma)[:, r] if a.poisson_sigma is not None else np.full(T, np.nan)
                 row = {"scene": scene, "seed": seed, "region": name, "estimator": label, "options": list(options),
-                       "steps": steps, "synth_s": t_synth,
+                       "steps": steps, "synth_s": t_synth, "adapt_substeps": used, "adapt_wall_s": adapt_wall_s,
                        "s_per_frame": float(np.median(a.time_total_s)),
                        "changes_detected": a.extra.get("material_changes_detected", []),
                        "innovation_ratio": a.extra.get("innovation_ratio", []),
@@ -156,7 +173,7 @@ def _run_case(scene: str, seed: int, with_adam: bool, variants: dict) -> list[di
                 print(f"{scene:16} seed {seed} {name:6} {label:4}: settle {row['settle_frames']} "
                       f"med {row['median_abs_err_settled']:.2%} max {row['max_abs_err_settled']:.2%} "
                       f"in2σ {row.get('truth_within_2sigma')} changes {row['changes_detected']} "
-                      f"{row['s_per_frame']:.3f} s/frame", flush=True)
+                      f"{row['s_per_frame']:.3f} s/frame (S = {used}, adapt {adapt_wall_s:.0f} s)", flush=True)
     return rows
 
 
@@ -211,9 +228,9 @@ def _parabola_min(x: np.ndarray, y: np.ndarray) -> float:
     return float(np.exp(-c[1] / (2 * c[0]))) if c[0] > 0 else float("nan")
 
 
-def window_sweep(scene: str, seed: int, body: list[float], stiff: list[float]) -> dict:
+def window_sweep(scene: str, seed: int, body: list[float], stiff: list[float], substeps: int | None = None) -> dict:
     """The marker loss adapt's gn minimises, at FIXED θ, per frame: adapt's model (the beam's coarse tets as P2,
-    ADAPT_SUBSTEPS substeps, the capture's start) simulated from frame 0 with E = scale × E_true per region and the
+    ``substeps`` per frame (None: adapt's default), the capture's start) simulated from frame 0 with E = scale × E_true per region and the
     true ν, markers bound to the simulated frame-0 surface (stages.sweep).  Per frame t: the E of each region at the
     minimum of the w-frame window's loss (t − w + 1 … t) and of the loss of frames 0 … t (the other region at its
     truth; parabola in log E through the grid), on the capture with its marker noise and on the same capture
@@ -225,7 +242,9 @@ def window_sweep(scene: str, seed: int, body: list[float], stiff: list[float]) -
     from stages.sim.scene import make_scene
     from stages.sweep import simulate_fixed
 
-    out: dict = {"scene": scene, "seed": seed, "window": W, "body_scales": body, "stiff_scales": stiff}
+    S = int(_default("substeps")) if substeps is None else substeps
+    out: dict = {"scene": scene, "seed": seed, "window": W, "body_scales": body, "stiff_scales": stiff,
+                 "adapt_substeps": S}
     with tempfile.TemporaryDirectory() as tmp:
         for label, noise in (("noisy", 2e-4), ("noise-free", 0.0)):
             cap, ws, truth, nu_true, names = make_capture(Path(tmp) / label, scene, seed, marker_noise=noise)
@@ -239,7 +258,7 @@ def window_sweep(scene: str, seed: int, body: list[float], stiff: list[float]) -
             faces = np.asarray(mesh.surface_faces)
 
             def frame_loss(scale) -> np.ndarray:
-                X = simulate_fixed(sc, ctl, E_true * np.asarray(scale), nu, len(P), capture.start, ADAPT_SUBSTEPS)
+                X = simulate_fixed(sc, ctl, E_true * np.asarray(scale), nu, len(P), capture.start, S)
                 r = marker_residuals(bind_markers(X[0], faces, P[0]), X, P)
                 return np.sum(r * r, axis=(1, 2))
 
@@ -261,8 +280,11 @@ def window_sweep(scene: str, seed: int, body: list[float], stiff: list[float]) -
                 off = {}
                 for tag, opts in (("ν fitted", ()), ("ν held at the truth", ("--fixed-poisson",))):
                     _pipeline.adapt(cap, ws, "--space", "full", "--loss", "markers", "--mode", "offline",
-                                    "--estimator", "gn", "--young-init", E0 / 2, "--substeps", ADAPT_SUBSTEPS, *opts)
+                                    "--estimator", "gn", "--young-init", E0 / 2, *_substeps_option(substeps), *opts)
                     art = AdaptArtefact.load(ws / "adapt.h5")
+                    if adapt_substeps_used(ws / "adapt.h5") != S:
+                        raise RuntimeError(f"offline adapt ran at {adapt_substeps_used(ws / 'adapt.h5')} substeps, "
+                                           f"the sweep at {S}")
                     rn = list(art.extra.get("region_names", [])) or list(sc.region_names)
                     off[tag] = {n: {"young_rel": float(art.young[-1, i] / truth[0, names.index(n)]),
                                     "poisson": float(art.poisson[-1, i])} for i, n in enumerate(rn)}
@@ -277,7 +299,7 @@ def write_window_sweep(d: dict) -> None:
     settled = lambda rows: [r for r in rows if r["frame"] >= W + 5]  # noqa: E731
     lines = [f"# Estimator: where the marker loss has its minimum, window by window ({d['date']})", "",
              f"Scene {d['scene']!r}, seed {d['seed']} of bench/estimator.py (same capture recipe; once with its marker "
-             f"noise, once without). adapt's model ({ADAPT_SUBSTEPS} substeps, P2 on the coarse beam) simulated at "
+             f"noise, once without). adapt's model ({d.get('adapt_substeps', 2)} substeps, P2 on the coarse beam) simulated at "
              f"FIXED E = scale × E_true per region from frame 0, ν at the truth, markers bound to the simulated "
              f"frame-0 surface. Per frame t: E/E_true at the minimum of the loss of the w = {W} frames t − {W - 1} … t "
              f"('window') and of frames 0 … t ('cumulative'), one region swept with the other at its truth "
@@ -323,13 +345,15 @@ def main() -> None:
                     help="only the fixed-E loss sweep per window on one capture (estimator_window_sweep.md)")
     ap.add_argument("--sweep-scene", default="two-region beam")
     ap.add_argument("--sweep-seed", type=int, default=1)
+    ap.add_argument("--adapt-substeps", type=int, default=None,
+                    help="rsl adapt --substeps for every run (default: not passed, adapt's own default)")
     args = ap.parse_args()
     if args.window_sweep and args.from_json:  # re-write the table from the last sweep
         write_window_sweep(json.loads((OUT / "estimator_window_sweep.json").read_text()))
         return
     if args.window_sweep:
         d = window_sweep(args.sweep_scene, args.sweep_seed, [0.94, 0.97, 1.0, 1.03, 1.06, 1.09],
-                         [0.7, 0.8, 0.9, 1.0, 1.1, 1.2, 1.3])
+                         [0.7, 0.8, 0.9, 1.0, 1.1, 1.2, 1.3], args.adapt_substeps)
         d["date"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
         write_window_sweep(d)
         return
@@ -356,14 +380,24 @@ def main() -> None:
     from _parallel import map_tasks
 
     variants = dict(v.split("=", 1) for v in args.variant)
-    tasks = [(scene, seed, seed < args.adam_seeds, variants) for scene in args.scenes.split(",")
-             for seed in range(args.seeds)]
+    # seed-major: a run stopped early has every scene at the first seeds
+    tasks = [(scene, seed, seed < args.adam_seeds, variants, args.adapt_substeps) for seed in range(args.seeds)
+             for scene in args.scenes.split(",")]
     import time
 
     t0 = time.perf_counter()
     cases = [row for rows in map_tasks(run_case, tasks, workers=args.workers) for row in rows]
     args.wall_s = time.perf_counter() - t0
+    if not cases:  # every case failed: keep the last measurement's pages
+        sys.exit("bench/estimator.py: every case failed (see above); docs/results/estimator.* left as they were.")
     write(cases, args)
+
+
+def _used_substeps(cases: list) -> str:
+    """The substeps per frame adapt used, as recorded in the rows (from adapt.h5's provenance): one value, or the
+    values found ('unrecorded' for rows measured before the bench recorded it)."""
+    v = sorted({str(c.get("adapt_substeps", "unrecorded")) for c in cases})
+    return v[0] if len(v) == 1 else " / ".join(v)
 
 
 def _z(row: dict, t: int) -> float | None:
@@ -419,11 +453,12 @@ def write(cases: list, args) -> None:
             "model_error": old.get("model_error", _default("model_error")),
             "model_error_poisson": old.get("model_error_poisson", _default("model_error_poisson")),
             "poisson_true": 0.45,
+            "adapt_substeps": _used_substeps(cases),
             "setup": old.get("setup", (
                 f"Coarse_beam (the shared beam, 0.2 m) pulled by a cable, filmed by rsl synth with a truth of "
                 f"quadratic tets on the once-refined mesh (1632 tets), 3 substeps per frame, hard handles, start = equilibrium, "
                 f"30 markers with σ 0.2 mm noise; rsl adapt: full space, quadratic tets on the beam's own 204 tets, "
-                f"{ADAPT_SUBSTEPS} substeps per frame, markers, w = {W}, E_init = E0/2, default --process-noise "
+                f"{_used_substeps(cases)} substeps per frame (its default, read from adapt.h5's provenance), markers, w = {W}, E_init = E0/2, default --process-noise "
                 f"({_default('process_noise'):g}; {_default('process_noise_change'):g} after a detected change), "
                 f"--model-error, --change-threshold")),
             "cases": cases}
@@ -435,7 +470,8 @@ def write(cases: list, args) -> None:
         groups.setdefault((c["scene"], c["estimator"]), []).append(c)
     lines = [f"# Estimator: Gauss–Newton vs Adam ({data['date']})", "", data["setup"] + ".", "",
              "Rows: one per scene and estimator over its runs (seeds × regions); settled = from w + 5 frames after "
-             "the start or a step of E to the end of that segment.", "",
+             "the start or a step of E to the end of that segment."
+             + ("" if any(c["estimator"] == "adam" for c in cases) else " Adam was not run (--adam-seeds 0)."), "",
              "| scene | estimator | runs | median settled error | max settled error | settled within ±3 % | "
              "frames to stay within 5 % per segment: median (runs ≤ w + 5) | truth within ±2σ (E) | "
              "median σ_E/E settled | truth within ±2σ (ν) | change points detected | s/frame |",
