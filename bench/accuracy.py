@@ -256,6 +256,8 @@ def main() -> None:
                          "apart, labelled as not re-run, with their date")
     ap.add_argument("--estimator", default="", help="rsl adapt --estimator (default: adapt's own default)")
     ap.add_argument("--substeps", type=int, default=0, help="rsl adapt --substeps (default: adapt's own default)")
+    ap.add_argument("--adapt-option", action="append", default=[],
+                    help="one more rsl adapt option (repeat for each word, e.g. --adapt-option=--lead-in --adapt-option=3)")
     ap.add_argument("--dim", type=int, default=SUBSPACE_DIM, help="train-subspace --dim, r of the reduced rows")
     ap.add_argument("--truth-substeps", type=int, default=TRUTH_SUBSTEPS,
                     help="rsl synth --substeps of the truth (its implicit-Euler steps per frame)")
@@ -291,7 +293,8 @@ def main() -> None:
         plan = want
     TRUTH_SUBSTEPS, SUBSPACE_DIM = a.truth_substeps, a.dim
     EXPORT = not a.no_export
-    EXTRA = (["--estimator", a.estimator] if a.estimator else []) + (["--substeps", a.substeps] if a.substeps else [])
+    EXTRA = ((["--estimator", a.estimator] if a.estimator else []) + (["--substeps", a.substeps] if a.substeps else [])
+             + a.adapt_option)
     print(HEAD, flush=True)
     rows = []
     meta = {"frames": frames, "refine": refine, "rows": plan, "adapt_options": EXTRA, "truth_substeps": TRUTH_SUBSTEPS,

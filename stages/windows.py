@@ -220,8 +220,13 @@ class WindowObjective:
         dXa[-1, :len(ga)] = ga
         return self.win.backward(list(range(k)), E, nu, sa, None, dXa)
 
-    def __call__(self, frames: Sequence[int], p: np.ndarray, before: np.ndarray, need_grad: bool = True):
-        """(states (w, …), per-frame losses (w,), dL/dp (2R,) or None, (forward_s, backward_s, loss_s))."""
+    def __call__(self, frames: Sequence[int], p: np.ndarray, before: np.ndarray, need_grad: bool = True,
+                 lead: int = 0):
+        """(states (w, …), per-frame losses (w − lead,), dL/dp (2R,) or None, (forward_s, backward_s, loss_s)).
+
+        ``lead``: the first ``lead`` frames are a lead-in — simulated with θ (and differentiated through) but not
+        observed, L = Σ_{t ≥ frames[lead]} loss_t: the observed frames start from states simulated with θ rather
+        than from the stored past (AdaptConfig.lead_in)."""
         R, backend = self.R, self.backend
         E, nu = theta_from_params(p[:R], p[R:], self.prange)
         w = len(frames)
@@ -242,7 +247,9 @@ class WindowObjective:
         states = self.win.forward(list(frames), E, nu, before)
         X = backend.decode(states)
         t1 = time.perf_counter()
-        losses, dX = self.obs.loss(frames, X)
+        losses, dX = self.obs.loss(frames[lead:], X[lead:])
+        if lead:
+            dX = np.concatenate([np.zeros((lead,) + dX.shape[1:]), dX])
         t2 = time.perf_counter()
         g = None
         if need_grad:

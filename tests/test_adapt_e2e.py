@@ -358,6 +358,28 @@ def test_marker_loss_gradient_through_adjoint_matches_finite_differences(beam):
     _check_fd(obj, backend, 6, 4, h=1e-5, rtol=1e-4)
 
 
+def test_lead_in_frames_are_simulated_and_differentiated_but_not_observed(beam):
+    """WindowObjective(frames, lead=2): the losses are those of the observed frames simulated through the two
+    lead-in frames (the same as a window of all four with the first two losses dropped), and dL/dp is the central
+    difference of their sum (--lead-in)."""
+    cap, ws = beam
+    obj, backend = _objective(cap, ws, "markers")
+    obj.rebind = False
+    frames, before, p = _window(backend, 6, 4)
+    _, all4, _, _ = obj(frames, p, before, False)
+    states, losses, g, _ = obj(frames, p, before, True, lead=2)
+    assert len(states) == 4 and len(losses) == 2
+    np.testing.assert_allclose(losses, all4[2:], rtol=1e-12)
+    h = 1e-5
+    for i in range(2):
+        e = np.eye(2)[i] * h
+        fd = (obj(frames, p + e, before, False, lead=2)[1].sum() - obj(frames, p - e, before, False, lead=2)[1].sum()) / (2 * h)
+        assert g[i] == pytest.approx(fd, rel=1e-4, abs=1e-6 * abs(g).max()), (i, g, fd)
+    # not the window of the observed frames alone, which starts from the states before them as given
+    _, g2, = obj(frames[2:], p, np.stack([states[0], states[1]]), True)[1:3]
+    assert not np.allclose(g, g2, rtol=1e-3)
+
+
 def _gappy_capture(cap: Path, root: Path, frac: float = 0.4, empty_frames=(7,), seed: int = 0) -> Path:
     """A copy of the capture whose markers.csv drops a random fraction of the (frame > 0, marker) observations
     and every observation of the frames ``empty_frames`` (motion-capture gaps)."""

@@ -95,6 +95,11 @@ class AdaptConfig:
     """Frame range A:B (B exclusive; empty: every frame)."""
     iters_per_frame: int = 2
     """Adam steps per new frame (online) — each one a forward, a loss and an adjoint over the window."""
+    lead_in: int = 0
+    """adam, online: frames before the window that are simulated with the window's θ (from the stored states
+    before them) and differentiated through, but not observed — so the observed frames do not start from a past
+    simulated with earlier estimates of θ.  Reduced space: the lead-in costs simulation only, no rendering.  Never
+    reaches back past a change of material that the images' anchor confirmed."""
     lr: float = 0.15
     """Adam learning rate on log E."""
     lr_poisson: float = 0.05
@@ -338,6 +343,8 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
                        f"{config.process_noise} and {config.process_noise_change}.")
     if not config.gn_trust >= 0:
         raise RslError(f"{capture.toml_path}: --gn-trust must be 0 or more, found {config.gn_trust}.")
+    if config.lead_in < 0:
+        raise RslError(f"{capture.toml_path}: --lead-in must be 0 or more, found {config.lead_in}.")
     if config.iters_per_frame < 1 or config.offline_iters < 1:
         raise RslError(f"{capture.toml_path}: --iters-per-frame and --offline-iters must be at least 1.")
     if config.refine and config.space != "full":
@@ -560,14 +567,18 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
             idle = vision and tied and frames == [obj.anchor_frame]
             if anchor is not None:
                 obj.anchor_p = anchor.held(T, tied)
+            # the lead-in: never before the first frame nor a confirmed change of material
+            lead_from = max(loop.first, anchor.apart_from if anchor is not None and anchor.apart else loop.first)
+            sim = list(range(max(lead_from, frames[0] - config.lead_in), frames[0])) + frames
+            lead = len(sim) - len(frames)
             for _ in range(config.iters_per_frame):
-                states, losses, g, t3 = obj(frames, params, loop.before(frames[0]), True)
+                states, losses, g, t3 = obj(sim, params, loop.before(sim[0]), True, lead=lead)
                 times += t3
                 if not idle:
                     params[:] = adam.step(params, g)
                 if anchor is not None:
                     obj.anchor_p = anchor.after_step(params, obj.last_anchor_g, idle)
-            for i, t in enumerate(frames):
+            for i, t in enumerate(sim):
                 loop.stored[t] = states[i]
             E, nu = theta_from_params(params[:R], params[R:], loop.prange)
             if anchor is not None:
