@@ -174,7 +174,7 @@ def run_row(work: Path, row: tuple, frames: int, refine: int) -> dict:
         from stages.artefacts import SubspaceArtefact
 
         sub = SubspaceArtefact.load(ws / "subspace.h5")
-        out["cubature_tol"] = _subspace_settings(ws)[1]
+        out["dim"], out["cubature_tol"] = _subspace_settings(ws)
         out["cubature_points"] = (len(sub.extra["cubature_points"]) if "cubature_points" in sub.extra else None)
     return {**out, "exported": EXPORT, "code": code_state(), "ended": datetime.datetime.now(datetime.timezone.utc).isoformat(
                 timespec="seconds"), "load_average": os.getloadavg()[0], "estimator": prov.get("config", {}).get("estimator", "?"),
@@ -218,6 +218,7 @@ def _row(r: dict) -> str:
     per = ", ".join((f"{names[j]} " if len(names) > 1 and j < len(names) else "") + f"{100 * e:.1f}"
                     for j, e in enumerate(r["median_error_per_region"]))
     cub = (f"{r['cubature_points'] if r.get('cubature_points') is not None else 'all'} ({r['cubature_tol']:g})"
+           + (f", r = {r['dim']}" if r.get("dim") is not None and r["dim"] != SUBSPACE_DIM else "")
            if r.get("cubature_tol") is not None else "—")
     load = f"{r['load_average']:.1f}" if isinstance(r.get("load_average"), (int, float)) else "—"
     return (f"{key} {r['estimator']} | {r['dofs']} | {cub} | {per} | {r['settled_frames']} | "
@@ -268,9 +269,10 @@ def main() -> None:
                                                     "load_average_end": run.get("load_average_end"),
                                                     "code": run.get("code", "?")}
                                                    for f, run in zip(a.merge, runs)]}
-        rows = [r for run in runs for r in run["cases"]]
+        rows = [{**r, "dim": r.get("dim", run["plan"].get("dim", SUBSPACE_DIM))} if r.get("space") == "reduced" else r
+                for run in runs for r in run["cases"]]  # (rows before r was recorded per row: their run's r)
         TRUTH_SUBSTEPS = int(runs[0]["plan"].get("truth_substeps", TRUTH_SUBSTEPS))
-        SUBSPACE_DIM = int(runs[0]["plan"].get("dim", SUBSPACE_DIM))
+        SUBSPACE_DIM = int(runs[0]["plan"].get("dim", SUBSPACE_DIM))  # the header's r (a row with another: its own)
         if a.previous:
             old = json.loads(a.previous.read_text())
             done = {row_key(r) for r in rows}
@@ -376,7 +378,7 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
           f"reduced space by bench/p2_cost.py ([p2_cost.md]({up}p2_cost.md)). Where each loss is lowest over a grid of fixed "
           f"E on such a capture: bench/loss_sweep.py ([loss_sweep.md]({up}loss_sweep.md)). Hand-written interpretation: "
           f"[accuracy_notes.md]({up}accuracy_notes.md).\n\n"
-          + (f"Rows merged from {len(plan['merged_from'])} runs (run side by side), ended "
+          + (f"Rows merged from {len(plan['merged_from'])} runs, ended "
              + ", ".join(f"{m['date']} (load average {m['load_average_end']:.1f}, code {m.get('code', '?')})"
                          for m in plan["merged_from"])
              + f"; machine {data['machine']}. " if plan.get("merged_from") else
