@@ -176,7 +176,7 @@ def run_row(work: Path, row: tuple, frames: int, refine: int) -> dict:
         sub = SubspaceArtefact.load(ws / "subspace.h5")
         out["dim"], out["cubature_tol"] = _subspace_settings(ws)
         out["cubature_points"] = (len(sub.extra["cubature_points"]) if "cubature_points" in sub.extra else None)
-    return {**out, "exported": EXPORT, "code": code_state(), "ended": datetime.datetime.now(datetime.timezone.utc).isoformat(
+    return {**out, "adapt_options": list(map(str, EXTRA)), "exported": EXPORT, "code": code_state(), "ended": datetime.datetime.now(datetime.timezone.utc).isoformat(
                 timespec="seconds"), "load_average": os.getloadavg()[0], "estimator": prov.get("config", {}).get("estimator", "?"),
             "substeps": prov.get("config", {}).get("substeps", 1), "dofs": dofs,
             "frames": int(len(a.frames)), "settled_frames": int(ok.sum()),
@@ -221,7 +221,11 @@ def _row(r: dict) -> str:
            + (f", r = {r['dim']}" if r.get("dim") is not None and r["dim"] != SUBSPACE_DIM else "")
            if r.get("cubature_tol") is not None else "—")
     load = f"{r['load_average']:.1f}" if isinstance(r.get("load_average"), (int, float)) else "—"
-    return (f"{key} {r['estimator']} | {r['dofs']} | {cub} | {per} | {r['settled_frames']} | "
+    opts = [str(o) for o in r.get("adapt_options", [])]
+    shown = " ".join(o for i, o in enumerate(opts)  # options other than --estimator / --substeps (own columns)
+                     if o not in ("--estimator", "--substeps") and (i == 0 or opts[i - 1] not in ("--estimator",
+                                                                                              "--substeps")))
+    return (f"{key} {r['estimator']}{' ' + shown if shown else ''} | {r['dofs']} | {cub} | {per} | {r['settled_frames']} | "
             f"{_fmt(r['force_error'])} | {_fmt(r['surface_error_mm'], 1.0, 2)} | {r['time_per_frame_s']:.2f} | "
             f"{load} | {r['substeps']} | {r.get('ended', '—')} |")
 
@@ -269,8 +273,10 @@ def main() -> None:
                                                     "load_average_end": run.get("load_average_end"),
                                                     "code": run.get("code", "?")}
                                                    for f, run in zip(a.merge, runs)]}
-        rows = [{**r, "dim": r.get("dim", run["plan"].get("dim", SUBSPACE_DIM))} if r.get("space") == "reduced" else r
-                for run in runs for r in run["cases"]]  # (rows before r was recorded per row: their run's r)
+        # (rows from before r and the adapt options were recorded per row: their run's)
+        rows = [{**r, "adapt_options": r.get("adapt_options", run["plan"].get("adapt_options", [])),
+                 **({"dim": r.get("dim", run["plan"].get("dim", SUBSPACE_DIM))} if r.get("space") == "reduced" else {})}
+                for run in runs for r in run["cases"]]
         TRUTH_SUBSTEPS = int(runs[0]["plan"].get("truth_substeps", TRUTH_SUBSTEPS))
         SUBSPACE_DIM = int(runs[0]["plan"].get("dim", SUBSPACE_DIM))  # the header's r (a row with another: its own)
         if a.previous:
@@ -340,6 +346,9 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
                   f"fixes), not measured with the code above:\n\n" + "\n".join([HEAD] + [_row(r) for r in previous]))
     up = Path(os.path.relpath(ROOT / "docs" / "results", out)).as_posix() + "/"  # links to the other pages
     up = "" if up == "./" else up
+    per_row = {tuple(map(str, r.get("adapt_options", plan["adapt_options"]))) for r in rows}
+    options = (", rsl adapt options per row (estimator column)" if len(per_row) > 1 else
+               ", options " + " ".join(map(str, plan["adapt_options"])) if plan["adapt_options"] else "")
     sources = sorted({r["force_source"] for r in rows if r.get("force_source")})
     unexported = [r for r in rows if r.get("exported") is False]
     ok = [r for r in rows if "error" not in r]
@@ -359,7 +368,7 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
           f"3 cameras at 96², 40 markers. rsl: fTetWild mesh (`--max-tets {MAX_TETS}`), reduced space r = {SUBSPACE_DIM} "
           f"(generate-data 4 sequences; `train-subspace --cubature-tol` "
           f"{', '.join(f'{c} {t:g}' for c, t in CUBATURE_TOL.items())}), adapt online, window "
-          f"{WINDOW}, E initialised at 0.5 E0{', options ' + ' '.join(map(str, plan['adapt_options'])) if plan['adapt_options'] else ''}; "
+          f"{WINDOW}, E initialised at 0.5 E0{options}; "
           f"mode {data['mode']}. Settled frames: ≥ w + 5 after the start and after each step of E_true. "
           f"Force error: median relative error of the handle/obstacle forces of `rsl export --forces` against "
           f"truth/forces.csv, as `rsl evaluate` reports it"
