@@ -510,7 +510,7 @@ def write(cases: list, args) -> None:
                   f"declared on them: {sum(len(r['changes_detected']) for r in const)}; the change test's CUSUM "
                   f"statistic reached at most {_cusum_max(const):.1f} there (declared above "
                   f"{_cusum_h():.1f}); the innovation z at the steps: "
-                  f"{', '.join(sorted({f'{z:.0f}' for r in steps for t in r['steps'] for z in [_z(r, t)] if z}))}.",
+                  f"{', '.join(f'{z:.0f}' for z in sorted({z for r in steps for t in r['steps'] for z in [_z(r, t)] if z}))}.",
                   f"- Wall time of the run: {data['wall_s'] / 60:.1f} min." if data.get("wall_s") else ""]
     labels = list(dict.fromkeys(c["estimator"] for c in cases if c["estimator"].startswith("gn")))
     if len(labels) > 1:  # gn variants measured on the same captures
