@@ -138,9 +138,9 @@ class AdaptConfig:
     """gn: σ of the random walk of log E (and of the ν parameter) per frame — how fast the material may change —
     while no change of material has been detected in the last w + 5 frames.  Small, so the estimate averages over
     the motion instead of following the model error, which varies with the motion's phase (two-region beam: the
-    3-frame window's loss minimum in the body moves from 0.96 to beyond 1.09 E_true, with or without marker noise,
-    docs/results/estimator_window_sweep.md); a step of E is
-    caught by the change test (--change-threshold), and --process-noise-change applies after it."""
+    3-frame window's loss minimum in the body moves from below 0.94 to 1.03 E_true at 6 substeps, with or without
+    marker noise, docs/results/estimator_window_sweep.md); a step of E is caught by the change test
+    (--change-threshold), and --process-noise-change applies after it."""
     process_noise_change: float = 0.02
     """gn: σ of the random walk per frame (as --process-noise) during the w + 5 frames after a detected change of
     material, while the estimate re-settles on the new material."""
