@@ -182,6 +182,9 @@ def test_adapt_cli_reports_bad_input_in_one_sentence(beam, rsl, tmp_path):
     assert proc.returncode != 0 and "--refine needs --space full" in proc.stderr
     proc = rsl("adapt", cap, "-w", ws, "--space", "sideways")
     assert proc.returncode != 0 and "--space" in proc.stderr
+    proc = rsl("adapt", cap, "-w", ws, "--space", "full", "--loss", "markers", "--lead-in", "2")  # markers: gn
+    said = " ".join(proc.stderr.split())
+    assert proc.returncode != 0 and "--lead-in applies to --estimator adam online" in said and "Traceback" not in said
     cap2 = tmp_path / "cap"
     shutil.copytree(cap, cap2)
     (cap2 / "markers.csv").unlink()

@@ -345,6 +345,10 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
         raise RslError(f"{capture.toml_path}: --gn-trust must be 0 or more, found {config.gn_trust}.")
     if config.lead_in < 0:
         raise RslError(f"{capture.toml_path}: --lead-in must be 0 or more, found {config.lead_in}.")
+    if config.lead_in and (estimator != "adam" or config.mode != "online"):
+        raise RslError(f"{capture.toml_path}: --lead-in applies to --estimator adam online (gn corrects the "
+                       f"window's starting states itself, --state-correction); this run is {estimator} "
+                       f"{config.mode}.")
     if config.iters_per_frame < 1 or config.offline_iters < 1:
         raise RslError(f"{capture.toml_path}: --iters-per-frame and --offline-iters must be at least 1.")
     if config.refine and config.space != "full":
