@@ -283,9 +283,9 @@ class GNWindow:
     #: StartWindow.memo: the change test's one-frame forward, the linearisation's window (the frames the last
     #: evaluation simulated at this θ from the same states; with --substeps its substeps stitched from those
     #: forwards, window_backends.Substepped._stitch) and the anchor of the last θ are not simulated again — the
-    #: same estimates to the tolerance of the steps' solves (tests/test_gn_speed*.py).  True (or None): on;
-    #: False: every evaluation simulates its window and anchor — the slow twin
-    memo: bool | None = True
+    #: same estimates to the tolerance of the steps' solves (tests/test_gn_speed*.py).  False: every evaluation
+    #: simulates its window and anchor — the slow twin
+    memo: bool = True
 
     def __init__(self, objective: "WindowObjective", fit_poisson: bool, s_fixed: np.ndarray):
         self.obj, self.fit_poisson, self.s_fixed = objective, fit_poisson, s_fixed
@@ -323,7 +323,7 @@ class GNWindow:
         c = p[self.k_theta:]
         b = before if D is None or not len(c) else before + np.tensordot(c, D, axes=1)
         if hasattr(obj.win, "memo"):  # the windows continue the trajectories they remember (StartWindow.memo)
-            obj.win.memo = True if self.memo is None else bool(self.memo)
+            obj.win.memo = bool(self.memo)
         t0 = time.perf_counter()
         anchored = rebind and obj.rebind and self.rebind_anchor
         smooth = getattr(obj.obs, "binding_jacobian", None) is not None  # markers: d binding/dθ goes into J
