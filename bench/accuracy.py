@@ -57,7 +57,7 @@ SUBSPACE_DIM = 30  # r, the paper's Bar (docs/results/reduced_accuracy.md: r = 1
 # with the Newton fixes of 2026-11-24 it no longer stalls at contact), not on the bar from equilibrium
 # (3.3 → 4.8 %, both ≤ 5 %): accuracy_notes.md, 2026-11-24 afternoon.
 CUBATURE_TOL = {"bar": 0.002, "beam": 0.002, "dino": 0.002}
-EXTRA: list = []  # extra rsl adapt options (--estimator, --substeps)
+EXTRA: list = []  # extra rsl adapt options (--estimator, --substeps, --adapt-option)
 EXPORT = True  # also run `rsl export --forces` (evaluate computes the same replayed forces: stages/forces.py)
 
 # (case, start, adapt element order, loss, space): the full run's rows, most telling first.

@@ -38,12 +38,10 @@ os.environ.setdefault("JAX_ENABLE_X64", "1")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 import _pipeline as pl  # noqa: E402
-from accuracy import E0, WINDOW, scene_args, settled_mask  # noqa: E402  (the captures and settled frames of that bench)
+from accuracy import (E0, MAX_TETS, POISSON, SUBSPACE_DIM, WINDOW, scene_args,  # noqa: E402  (that bench's captures,
+                      settled_mask)  # adapt mesh, subspace and settled frames)
 
-POISSON = 0.45
 FRAMES = 36
-MAX_TETS = 1500
-DIM = 30
 WORKSPACE_FILES = ("cameras.h5", "mesh.h5", "subspace.h5", "snapshots.h5")
 
 
@@ -62,7 +60,7 @@ def run_case(work: Path, start: str, truth_substeps: int, spaces, substeps) -> l
     # controls and the start are the same for every N, so adapt's model is the same for every truth
     ws = work / f"ws_bar_{start}"
     pl.mesh(cap, ws, order=2, max_tets=MAX_TETS)  # (made once per run: bench/_pipeline.skip)
-    pl.subspace(cap, ws, frames=FRAMES, dim=DIM)
+    pl.subspace(cap, ws, frames=FRAMES, dim=SUBSPACE_DIM)
     truth = np.asarray(read_truth(load_capture(cap)).young, float).reshape(FRAMES, -1)
     ok, steps = settled_mask(truth), steps_of(truth)
     rows = []
@@ -187,7 +185,8 @@ def write(rows: list[dict], out: Path, plan: dict, measured: dict | None = None)
           f"Truth: sample_data/bar pulled by a cable, E {E0:g} → {2 * E0:g} → {4 * E0:g} Pa at frames {FRAMES // 3} "
           f"and {2 * FRAMES // 3} of {FRAMES}, ν = {POISSON}, P2 tets, hard handles, N implicit-Euler substeps per "
           f"frame (`rsl synth --truth-order 2 --substeps N --handles hard`), 40 markers.  rsl adapt: its own P2 mesh "
-          f"(`rsl tetrahedralize --order 2 --max-tets {MAX_TETS}`), reduced space r = {DIM} (default cubature), "
+          f"(`rsl tetrahedralize --order 2 --max-tets {MAX_TETS}`), reduced space r = {SUBSPACE_DIM} "
+          f"(default cubature), "
           f"markers, the default estimator, online, window {WINDOW}, E initialised at 0.5 E0, S implicit-Euler steps "
           f"per frame.  Settled frames: ≥ w + 5 after the start and after each step of E_true.\n\n{table}\n\n"
           f"{summary(rows)}\n\nMachine: {data['machine']} (load average {la:.1f} at the end: the times are under "
@@ -246,7 +245,8 @@ def main() -> None:
         return
     ints = (lambda s: [int(v) for v in s.split(",") if v])
     plan = {"truth_substeps": ints(a.truth_substeps), "starts": a.starts.split(","), "spaces": a.spaces.split(","),
-            "substeps": ints(a.substeps), "frames": FRAMES, "max_tets": MAX_TETS, "dim": DIM, "work": str(a.work)}
+            "substeps": ints(a.substeps), "frames": FRAMES, "max_tets": MAX_TETS, "dim": SUBSPACE_DIM,
+            "work": str(a.work)}
     a.work.mkdir(parents=True, exist_ok=True)
     print("| truth substeps N | start | space | S | settled median (%) | settled max (%) | after steps (%) | s / frame "
           "| ratio |", flush=True)

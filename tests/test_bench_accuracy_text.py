@@ -3,18 +3,14 @@ counts and the row names follow them, rows not re-run are listed apart, and a fa
 from __future__ import annotations
 
 import copy
-import importlib.util
 import json
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from test_bench_text import load_bench
 
 
 def _accuracy():
-    spec = importlib.util.spec_from_file_location("bench_accuracy_text", ROOT / "bench" / "accuracy.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("accuracy")
 
 
 def _row(case: str, space: str, errors: list[float], force: float | None) -> dict:

@@ -2,20 +2,15 @@
 recorded in adapt.h5 (not a constant of the script)."""
 from __future__ import annotations
 
-import importlib.util
 import types
 from pathlib import Path
 
 import numpy as np
-
-ROOT = Path(__file__).resolve().parents[1]
+from test_bench_text import load_bench
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_estimator_text", ROOT / "bench" / "estimator.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("estimator")
 
 
 def test_substeps_option_is_passed_only_when_asked() -> None:

@@ -13,7 +13,8 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results"
 
 
-def _bench(name: str):
+def load_bench(name: str):
+    """bench/NAME.py loaded as a module (its main() not run)."""
     spec = importlib.util.spec_from_file_location(f"bench_{name}_text", ROOT / "bench" / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -28,7 +29,7 @@ def _scaled(cases: list[dict], key: str, value: float) -> list[dict]:
 
 
 def test_reduced_vs_full_text_follows_the_ratios() -> None:
-    m = _bench("reduced_vs_full")
+    m = load_bench("reduced_vs_full")
     d = json.loads((RESULTS / "reduced_vs_full.json").read_text())
     slow = m.markdown(d["machine"], d["date"], _scaled(d["cases"], "ratio", 4.25))
     assert "4.2× (not met)" in slow and "(met)" not in slow and "target holds" not in slow
@@ -38,7 +39,7 @@ def test_reduced_vs_full_text_follows_the_ratios() -> None:
 
 
 def test_render_text_follows_the_measurements() -> None:
-    m = _bench("render")
+    m = load_bench("render")
     d = json.loads((RESULTS / "render.json").read_text())
     for key in ("ratio", "ratio_cpu", "ratio_lean", "ratio_lean_cpu"):
         d["cases"] = _scaled(d["cases"], key, 7.5)
@@ -49,7 +50,7 @@ def test_render_text_follows_the_measurements() -> None:
 
 
 def test_adapt_text_quotes_the_measured_speedup() -> None:
-    m = _bench("adapt")
+    m = load_bench("adapt")
     d = json.loads((RESULTS / "adapt.json").read_text())
     for r in d["cases"]:
         if r.get("name") == "bar-like, reduced":

@@ -19,15 +19,14 @@ def _setup(capture):  # noqa: F811
     V = np.stack([_bend(mesh.vertices, a) - mesh.vertices for a in (0.02, -0.01)]
                  + [rng.normal(size=mesh.vertices.shape) * 1e-3 * size])
     Va = np.stack([0.5 * V[0], -V[1], rng.normal(size=mesh.vertices.shape) * 1e-3 * size])
-    return il, mesh, V, Va
+    il.rebind(_bend(mesh.vertices, 0.02))  # the anchor: a bent configuration
+    return il, _bend(mesh.vertices, 0.05), V, Va  # (…, x: the configuration the tangents are taken at)
 
 
 def test_binding_and_geometry_tangents_in_closed_form_are_the_torch_and_einsum_twins(capture):  # noqa: F811
     """After a rebind at a bent anchor: dβ, dL of the anchored binding (numpy closed form against torch forward mode)
     and μ, M, dμ, dM of the Gaussians at a bent configuration (matrix products against einsum) agree to rounding."""
-    il, mesh, V, Va = _setup(capture)
-    il.rebind(_bend(mesh.vertices, 0.02))
-    x = _bend(mesh.vertices, 0.05)
+    il, x, V, Va = _setup(capture)
     got = {}
     for fast in (True, False):
         il.jvp_numpy = fast
@@ -45,9 +44,7 @@ def test_binding_and_geometry_tangents_in_closed_form_are_the_torch_and_einsum_t
 def test_images_jacobian_from_the_closed_form_tangents_is_the_twins(capture):  # noqa: F811
     """images_jvp with the numpy tangents: the same images bit for bit and the same derivative images (float32
     rendering) as with the torch / einsum twins, with the anchor of a rebind moving too."""
-    il, mesh, V, Va = _setup(capture)
-    il.rebind(_bend(mesh.vertices, 0.02))
-    x = _bend(mesh.vertices, 0.05)
+    il, x, V, Va = _setup(capture)
     out = {}
     for fast in (True, False):
         il.jvp_numpy = fast

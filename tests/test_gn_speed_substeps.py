@@ -41,6 +41,12 @@ def _online_like(b: Substepped, young=YOUNG):
     return stored, x4
 
 
+def _window_2_to_4(stored, x4):
+    """(frames, before (2, …), states (3, …), E (3, R), ν (3, R)) of window 2..4 after :func:`_online_like`."""
+    return ([2, 3, 4], np.stack([stored[0], stored[1]]), np.stack([stored[2], stored[3], x4]),
+            np.tile(YOUNG, (3, 1)), np.tile(POISSON, (3, 1)))
+
+
 def _sub(scene, at, S: int) -> Substepped:
     """A substepped full-space backend (S = 1 too: the wrapper itself, as tests/test_adapt_substeps.py builds it)."""
     from stages.window_backends import FullSpace
@@ -58,9 +64,7 @@ def test_stitched_substeps_are_the_windows_own_forward(full, S):  # noqa: F811
     scene, at = full
     b = _sub(scene, at, S)
     stored, x4 = _online_like(b)
-    frames, before = [2, 3, 4], np.stack([stored[0], stored[1]])
-    states = np.stack([stored[2], stored[3], x4])
-    Y, N = np.tile(YOUNG, (3, 1)), np.tile(POISSON, (3, 1))
+    frames, before, states, Y, N = _window_2_to_4(stored, x4)
     calls = _count_fine(b)
     fb, Xf = b._trajectory(frames, Y, N, states, before)
     assert calls == []  # stitched, nothing simulated
@@ -81,9 +85,7 @@ def test_sensitivities_of_a_stitched_window_are_those_of_a_fresh_backend(full): 
     S = 3
     b = _full_backend(scene, at, S)
     stored, x4 = _online_like(b)
-    frames, before = [2, 3, 4], np.stack([stored[0], stored[1]])
-    states = np.stack([stored[2], stored[3], x4])
-    Y, N = np.tile(YOUNG, (3, 1)), np.tile(POISSON, (3, 1))
+    frames, before, states, Y, N = _window_2_to_4(stored, x4)
     R = len(YOUNG)
     dE = np.concatenate([np.eye(R), np.zeros((R + 1, R))])
     dN = np.concatenate([np.zeros((R, R)), np.eye(R), np.zeros((1, R))])
