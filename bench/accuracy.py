@@ -34,6 +34,7 @@ import datetime
 import json
 import os
 import platform
+import re
 import sys
 from pathlib import Path
 
@@ -50,7 +51,12 @@ E0 = 1.0e5
 POISSON = 0.45
 WINDOW = 3
 TRUTH_SUBSTEPS = 3
-MAX_TETS = 1500  # adapt mesh size (fTetWild): ~1.2K P2 tets ≈ 7K DOFs on the bar
+MAX_TETS = 1500  # adapt mesh size (fTetWild): 964 P2 tets, 4914 DOFs on the bar
+# --scale: (cameras, image side, adapt --max-tets, truth --truth-refine).  table: the main table's captures; paper:
+# the paper's Bar (≈10K DOFs, c = 4 at 128²): --max-tets 2000 meshes the bar with ≈2K P2 tets (2500: 11943 DOFs),
+# and the truth is refined once (7832 P2 tets) so that it stays finer than the mesh adapt uses.
+SCALES = {"table": (3, 96, MAX_TETS, 0), "paper": (4, 128, 2000, 1)}
+SCALE = "table"
 SUBSPACE_DIM = 30  # r, the paper's Bar (docs/results/reduced_accuracy.md: r = 12 biases E by 1.5–3.5 %)
 # rsl train-subspace --cubature-tol per case (default 0.01): 0.002 measured better on the released bar
 # (18.8 → 7.7 %), the two-region beam's stiff region (12.3 → 2.8 %) and the dinosaur (22.9 → 8.8 %, helper S;
@@ -98,12 +104,14 @@ def settled_mask(young_true: np.ndarray, first: int = 0) -> np.ndarray:
 
 
 def capture(work: Path, case: str, start: str, frames: int, refine: int) -> Path:
+    cameras, side, _, scale_refine = SCALES[SCALE]
     return pl.foreign_capture(work / f"{case}_{start}", scene_args(case, frames), start=start, frames=frames,
-                              cameras=3, resolution=96, refine=refine, substeps=TRUTH_SUBSTEPS, poisson=POISSON)
+                              cameras=cameras, resolution=side, refine=max(refine, scale_refine),
+                              substeps=TRUTH_SUBSTEPS, poisson=POISSON)
 
 
 def workspace(work: Path, cap: Path, case: str, start: str, order: int, loss: str, space: str, frames: int) -> Path:
-    ws = pl.mesh(cap, work / f"ws_{case}_{start}_p{order}", order=order, max_tets=MAX_TETS)
+    ws = pl.mesh(cap, work / f"ws_{case}_{start}_p{order}", order=order, max_tets=SCALES[SCALE][2])
     if loss == "vision":
         pl.gaussians(cap, ws, frame=0)
     if space == "reduced":
@@ -146,7 +154,7 @@ def run_row(work: Path, row: tuple, frames: int, refine: int) -> dict:
     from stages.capture import load_capture, read_truth
 
     case, start, order, loss, space = row
-    out = {"case": case, "start": start, "order": order, "loss": loss, "space": space}
+    out = {"case": case, "start": start, "order": order, "loss": loss, "space": space, "scale": SCALE}
     try:
         cap = capture(work, case, start, frames, refine)
         ws = workspace(work, cap, case, start, order, loss, space, frames)
@@ -170,6 +178,11 @@ def run_row(work: Path, row: tuple, frames: int, refine: int) -> dict:
 
     with h5py.File(ws / "mesh.h5", "r") as f:
         dofs = 3 * int(f["vertices"].shape[0])
+    import tomllib
+
+    synth = tomllib.loads((cap / "capture.toml").read_text()).get("synth", {})  # what rsl synth made
+    out["cameras"], out["resolution"] = int(synth["cameras"]), int(synth["resolution"])
+    out["truth_refine"], out["truth_tets"] = int(synth["truth_refine"]), int(synth["truth_tets"])
     if space == "reduced":
         from stages.artefacts import SubspaceArtefact
 
@@ -210,10 +223,15 @@ def _fmt(x, scale: float = 100.0, digits: int = 1) -> str:
     return "—" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{scale * x:.{digits}f}"
 
 
+def _views(r: dict) -> str:
+    """'c × N²' of a row's capture (rows from before this was recorded: the table's 3 × 96²)."""
+    return f"{r.get('cameras', 3)} × {r.get('resolution', 96)}²"
+
+
 def _row(r: dict) -> str:
-    key = f"| {r['case']} | {r['start']} | P{r['order']} | {r['loss']} | {r['space']} |"
+    key = f"| {_case(r)} | {r['start']} | P{r['order']} | {r['loss']} | {r['space']} |"
     if "error" in r:
-        return key + " — | — | — | failed | — | — | — | — | — | — | — |"
+        return key + " — | — | — | — | failed | — | — | — | — | — | — | — |"
     names = r.get("regions") or []
     per = ", ".join((f"{names[j]} " if len(names) > 1 and j < len(names) else "") + f"{100 * e:.1f}"
                     for j, e in enumerate(r["median_error_per_region"]))
@@ -225,23 +243,33 @@ def _row(r: dict) -> str:
     shown = " ".join(o for i, o in enumerate(opts)  # options other than --estimator / --substeps (own columns)
                      if o not in ("--estimator", "--substeps") and (i == 0 or opts[i - 1] not in ("--estimator",
                                                                                               "--substeps")))
-    return (f"{key} {r['estimator']}{' ' + shown if shown else ''} | {r['dofs']} | {cub} | {per} | {r['settled_frames']} | "
+    return (f"{key} {r['estimator']}{' ' + shown if shown else ''} | {r['dofs']} | {_views(r)} | {cub} | {per} | "
+            f"{r['settled_frames']} | "
             f"{_fmt(r['force_error'])} | {_fmt(r['surface_error_mm'], 1.0, 2)} | {r['time_per_frame_s']:.2f} | "
             f"{load} | {r['substeps']} | {r.get('ended', '—')} |")
 
 
+def _case(r: dict) -> str:
+    """The case's name in the table: 'bar', or 'bar (paper scale)' for a row of --scale paper."""
+    return r["case"] + (f" ({r['scale']} scale)" if r.get("scale", "table") != "table" else "")
+
+
 def _name(r: dict) -> str:
     """'case start Pk loss space' of a row."""
-    return f"{r['case']} {r['start']} P{r['order']} {r['loss']} {r['space']}"
+    return f"{_case(r)} {r['start']} P{r['order']} {r['loss']} {r['space']}"
 
 
 def row_key(r) -> tuple:
-    """(case, start, order, loss, space) of a row dict or a plan tuple."""
-    return tuple(r) if not isinstance(r, dict) else (r["case"], r["start"], r["order"], r["loss"], r["space"])
+    """(case, start, order, loss, space) of a row dict or a plan tuple; a row of another --scale than the table's
+    has the scale appended."""
+    if not isinstance(r, dict):
+        return tuple(r)
+    key = (r["case"], r["start"], r["order"], r["loss"], r["space"])
+    return key + ((r["scale"],) if r.get("scale", "table") != "table" else ())
 
 
 def main() -> None:
-    global EXTRA, EXPORT, TRUTH_SUBSTEPS, SUBSPACE_DIM
+    global EXTRA, EXPORT, TRUTH_SUBSTEPS, SUBSPACE_DIM, SCALE
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
@@ -266,7 +294,11 @@ def main() -> None:
     ap.add_argument("--dim", type=int, default=SUBSPACE_DIM, help="train-subspace --dim, r of the reduced rows")
     ap.add_argument("--truth-substeps", type=int, default=TRUTH_SUBSTEPS,
                     help="rsl synth --substeps of the truth (its implicit-Euler steps per frame)")
+    ap.add_argument("--scale", choices=sorted(SCALES), default="table",
+                    help="table: 3 cameras at 96², adapt mesh --max-tets 1500 (≈5K DOFs on the bar); paper: the "
+                         "paper's Bar, 4 cameras at 128², --max-tets 2000 (≈10K DOFs), truth refined once")
     a = ap.parse_args()
+    SCALE = a.scale
     if a.merge:
         runs = [json.loads(f.read_text()) for f in a.merge]
         plan = {**runs[0]["plan"], "merged_from": [{"file": str(f), "date": run["date"],
@@ -305,7 +337,7 @@ def main() -> None:
              + a.adapt_option)
     print(HEAD, flush=True)
     rows = []
-    meta = {"frames": frames, "refine": refine, "rows": plan, "adapt_options": EXTRA, "truth_substeps": TRUTH_SUBSTEPS,
+    meta = {"frames": frames, "refine": refine, "rows": plan, "scale": SCALE, "adapt_options": EXTRA, "truth_substeps": TRUTH_SUBSTEPS,
             "dim": SUBSPACE_DIM}
     for row in plan:
         rows.append(run_row(a.work, row, frames, refine))
@@ -314,10 +346,10 @@ def main() -> None:
     write(rows, a.out, a.quick, meta)
 
 
-HEAD = ("| case | start | adapt mesh | loss | space | estimator | DOFs | cubature points (tol) | "
+HEAD = ("| case | start | adapt mesh | loss | space | estimator | DOFs | cameras | cubature points (tol) | "
         "median |E−E_true|/E_true per region (%) | settled frames | force error (%) | surface error (mm) | s / frame | "
         "load average | adapt substeps | ended (UTC) |\n"
-        "| --- | --- | --- | --- | --- | --- | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
+        "| --- | --- | --- | --- | --- | --- | ---: | --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
 
 
 def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = False) -> None:
@@ -349,7 +381,8 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
     per_row = {tuple(map(str, r.get("adapt_options", plan["adapt_options"]))) for r in rows}
     options = (", rsl adapt options per row (estimator column)" if len(per_row) > 1 else
                ", options " + " ".join(map(str, plan["adapt_options"])) if plan["adapt_options"] else "")
-    sources = sorted({r["force_source"] for r in rows if r.get("force_source")})
+    sources = sorted({re.sub(r"\d+ detected change\(s\)", "the changes it detected", r["force_source"])
+                      for r in rows if r.get("force_source")})  # one sentence per kind of replay
     unexported = [r for r in rows if r.get("exported") is False]
     ok = [r for r in rows if "error" not in r]
     n5 = sum(r["median_error_worst"] <= 0.05 for r in ok)
@@ -362,14 +395,21 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
     n10_names = [_name(r) for r in nf if r["force_error"] <= 0.10]
     failed = "".join(f"\n- {r['case']} {r['start']} P{r['order']} {r['loss']} {r['space']}: "
                      f"`{r['error'].strip().splitlines()[-1][:200]}`" for r in rows if "error" in r)
+    cams, side, max_tets, _ = SCALES["table"]
+    paper = [r for r in rows + previous if r.get("scale", "table") == "paper"]
+    paper_note = ("" if not paper else
+                  f" Rows marked (paper scale), `bench/accuracy.py --scale paper`: the paper's Bar, "
+                  f"{SCALES['paper'][0]} cameras at {SCALES['paper'][1]}², adapt mesh `--max-tets {SCALES['paper'][2]}`, "
+                  f"the truth's mesh refined once (`--truth-refine {SCALES['paper'][3]}`, "
+                  f"{paper[0].get('truth_tets', '?')} P2 tets).")
     md = (f"# Accuracy on captures rsl did not make\n\nTruth: P2 tets{' on the mesh refined once' if plan['refine'] else ''}, "
           f"{TRUTH_SUBSTEPS} substeps per frame, hard handles (`rsl synth --truth-order 2 --truth-refine "
           f"{plan['refine']} --substeps {TRUTH_SUBSTEPS} --handles hard`), {plan['frames']} frames, ν = {POISSON}, "
-          f"3 cameras at 96², 40 markers. rsl: fTetWild mesh (`--max-tets {MAX_TETS}`), reduced space r = {SUBSPACE_DIM} "
+          f"{cams} cameras at {side}², 40 markers. rsl: fTetWild mesh (`--max-tets {max_tets}`), reduced space r = {SUBSPACE_DIM} "
           f"(generate-data 4 sequences; `train-subspace --cubature-tol` "
           f"{', '.join(f'{c} {t:g}' for c, t in CUBATURE_TOL.items())}), adapt online, window "
           f"{WINDOW}, E initialised at 0.5 E0{options}; "
-          f"mode {data['mode']}. Settled frames: ≥ w + 5 after the start and after each step of E_true. "
+          f"mode {data['mode']}.{paper_note} Settled frames: ≥ w + 5 after the start and after each step of E_true. "
           f"Force error: median relative error of the handle/obstacle forces of `rsl export --forces` against "
           f"truth/forces.csv, as `rsl evaluate` reports it"
           f"{' (' + '; '.join(sources) + ')' if sources else ''}"
@@ -406,7 +446,9 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
             y = np.asarray(r["young"])
             for j in range(y.shape[1]):  # one colour per row, a dashed line per further region
                 ax.plot(y[:, j], lw=1, color=f"C{c}", ls="-" if j == 0 else "--",
-                        label=f"P{r['order']} {r['loss']} {r['space']}" if j == 0 else None)
+                        label=f"P{r['order']} {r['loss']} {r['space']}"
+                              + (f" ({r['scale']} scale)" if r.get("scale", "table") != "table" else "")
+                        if j == 0 else None)
         ax.set_title(f"{key[0]}, start = {key[1]}")
         ax.set_xlabel("frame")
         ax.set_ylabel("E (Pa)")

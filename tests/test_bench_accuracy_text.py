@@ -44,3 +44,20 @@ def test_accuracy_text_follows_the_rows(tmp_path: Path) -> None:
     assert "r0 2.0, r1 12.0" in table and "loss_sweep.md" in md and "accuracy_notes.md" in md
     data = json.loads((tmp_path / "accuracy.json").read_text())
     assert len(data["cases"]) == 5 and (tmp_path / "accuracy.png").is_file()
+
+
+def test_a_paper_scale_row_is_named_with_its_cameras_and_apart_from_the_table_row(tmp_path: Path) -> None:
+    m = _accuracy()
+    table_row = {**_row("bar", "reduced", [0.04], 0.09), "force_source": "replay smoothed (1 detected change(s))"}
+    paper_row = {**_row("bar", "reduced", [0.03], 0.05), "force_source": "replay smoothed (3 detected change(s))",
+                 "scale": "paper", "cameras": 4, "resolution": 128,
+                 "truth_refine": 1, "truth_tets": 7832}
+    assert m.row_key(paper_row) != m.row_key(table_row)
+    plan = {"frames": 4, "refine": 0, "rows": [], "adapt_options": []}
+    m.write([table_row, paper_row], tmp_path, False, plan, quiet=True)
+    md = (tmp_path / "accuracy.md").read_text()
+    assert "| bar (paper scale) | equilibrium | P2 | markers | reduced | gn | 4914 | 4 × 128² |" in md
+    assert "| bar | equilibrium | P2 | markers | reduced | gn | 4914 | 3 × 96² |" in md
+    assert "Rows marked (paper scale)" in md and "7832 P2 tets" in md
+    assert "2 of 2 rows have every region's median E error ≤ 5 %" in md
+    assert md.count("replay smoothed (the changes it detected)") == 1  # one sentence per kind of replay
