@@ -301,14 +301,20 @@ def main() -> None:
     SCALE = a.scale
     if a.merge:
         runs = [json.loads(f.read_text()) for f in a.merge]
-        plan = {**runs[0]["plan"], "merged_from": [{"file": str(f), "date": run["date"],
-                                                    "load_average_end": run.get("load_average_end"),
-                                                    "code": run.get("code", "?")}
-                                                   for f, run in zip(a.merge, runs)]}
+        plan = {**runs[0]["plan"], "merged_from": [  # (a merged file: the runs it was merged from)
+            m for f, run in zip(a.merge, runs) for m in run["plan"].get("merged_from") or [
+                {"file": str(f), "date": run["date"], "load_average_end": run.get("load_average_end"),
+                 "code": run.get("code", "?")}]]}
         # (rows from before r and the adapt options were recorded per row: their run's)
         rows = [{**r, "adapt_options": r.get("adapt_options", run["plan"].get("adapt_options", [])),
                  **({"dim": r.get("dim", run["plan"].get("dim", SUBSPACE_DIM))} if r.get("space") == "reduced" else {})}
                 for run in runs for r in run["cases"]]
+        latest: dict = {}  # a row measured in several runs: the one that ended last
+        for r in rows:
+            k = row_key(r)
+            if k not in latest or str(r.get("ended", "")) >= str(latest[k].get("ended", "")):
+                latest[k] = r
+        rows = list(latest.values())
         TRUTH_SUBSTEPS = int(runs[0]["plan"].get("truth_substeps", TRUTH_SUBSTEPS))
         SUBSPACE_DIM = int(runs[0]["plan"].get("dim", SUBSPACE_DIM))  # the header's r (a row with another: its own)
         if a.previous:
@@ -427,7 +433,7 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
           f"reduced space by bench/p2_cost.py ([p2_cost.md]({up}p2_cost.md)). Where each loss is lowest over a grid of fixed "
           f"E on such a capture: bench/loss_sweep.py ([loss_sweep.md]({up}loss_sweep.md)). Hand-written interpretation: "
           f"[accuracy_notes.md]({up}accuracy_notes.md).\n\n"
-          + (f"Rows merged from {len(plan['merged_from'])} runs, ended "
+          + (f"Rows merged from {len(plan['merged_from'])} runs (a row measured in several: the run that ended last), ended "
              + ", ".join(f"{m['date']} (load average {m['load_average_end']:.1f}, code {m.get('code', '?')})"
                          for m in plan["merged_from"])
              + f"; machine {data['machine']}. " if plan.get("merged_from") else

@@ -61,3 +61,21 @@ def test_a_paper_scale_row_is_named_with_its_cameras_and_apart_from_the_table_ro
     assert "Rows marked (paper scale)" in md and "7832 P2 tets" in md
     assert "2 of 2 rows have every region's median E error ≤ 5 %" in md
     assert md.count("replay smoothed (the changes it detected)") == 1  # one sentence per kind of replay
+
+
+def test_merging_runs_keeps_the_row_that_ended_last(tmp_path: Path, monkeypatch) -> None:
+    m = _accuracy()
+    old = {**_row("bar", "reduced", [0.30], 0.2), "ended": "2026-01-01T00:00:00+00:00"}
+    new = {**_row("bar", "reduced", [0.02], 0.05), "ended": "2026-02-01T00:00:00+00:00"}
+    other = _row("dino", "reduced", [0.07], 0.08)
+    plan = {"frames": 4, "refine": 0, "rows": [], "adapt_options": []}
+    files = []
+    for i, rows in enumerate(([new, other], [old])):  # the older run named last: the date decides, not the order
+        f = tmp_path / f"run{i}.json"
+        f.write_text(json.dumps({"date": "2026-02-02", "mode": "full", "load_average_end": 1.0, "plan": plan,
+                                 "cases": rows}))
+        files.append(str(f))
+    monkeypatch.setattr("sys.argv", ["accuracy.py", "--merge", *files, "--out", str(tmp_path / "out")])
+    m.main()
+    data = json.loads((tmp_path / "out" / "accuracy.json").read_text())
+    assert sorted((r["case"], r["median_error_worst"]) for r in data["cases"]) == [("bar", 0.02), ("dino", 0.07)]
