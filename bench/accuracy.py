@@ -53,9 +53,10 @@ WINDOW = 3
 TRUTH_SUBSTEPS = 3
 MAX_TETS = 1500  # adapt mesh size (fTetWild): 964 P2 tets, 4914 DOFs on the bar
 # --scale: (cameras, image side, adapt --max-tets, truth --truth-refine).  table: the main table's captures; paper:
-# the paper's Bar (≈10K DOFs, c = 4 at 128²): fTetWild's --max-tets 2450 meshes the bar with 1963 P2 tets, 9369
-# DOFs (2000: 7074 DOFs, 2400: 8673, 2500: 11943), and the truth is refined once (7832 P2 tets) so that it stays
-# finer than the mesh adapt uses.
+# the paper's Bar (≈10K DOFs, c = 4 at 128²): fTetWild's --max-tets 2450 meshes the bar with ≈2K P2 tets, 9–12K
+# DOFs (tried by hand: 2000 gave 7074 DOFs, 2400 8673, 2450 9369 and 11511, 2500 11943; its output varies between
+# runs: the row records its DOFs), and the truth is refined once (7832 P2 tets) so that it stays finer than the mesh
+# adapt uses.
 SCALES = {"table": (3, 96, MAX_TETS, 0), "paper": (4, 128, 2450, 1)}
 SCALE = "table"
 SUBSPACE_DIM = 30  # r, the paper's Bar (docs/results/reduced_accuracy.md: r = 12 biases E by 1.5–3.5 %)
