@@ -303,7 +303,8 @@ def main() -> None:
     SCALE = a.scale
     if a.merge:
         runs = [json.loads(f.read_text()) for f in a.merge]
-        plan = {**runs[0]["plan"], "merged_from": [  # (a merged file: the runs it was merged from)
+        plan = {**{k: v for k, v in runs[0]["plan"].items() if k not in ("previous", "previous_rows")},  # (only --previous)
+                "merged_from": [  # (a merged file: the runs it was merged from)
             m for f, run in zip(a.merge, runs) for m in run["plan"].get("merged_from") or [
                 {"file": str(f), "date": run["date"], "load_average_end": run.get("load_average_end"),
                  "code": run.get("code", "?")}]]}
