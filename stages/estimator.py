@@ -260,16 +260,34 @@ def _unpack(out: tuple) -> tuple:
 
 
 def fold(prior: Prior, p_lin: np.ndarray, r: np.ndarray, J: np.ndarray, sigma: float,
-         weights: np.ndarray | None = None) -> Prior:
+         weights: np.ndarray | None = None, nuisance: tuple | None = None) -> Prior:
     """The posterior of ``prior`` and the linearised observation r(p) ≈ r + J (p − p_lin) with noise σ
-    (a Kalman measurement update in information form):  P⁺ = (P⁻¹ + JᵀWJ/σ²)⁻¹,
-    m⁺ = P⁺ (P⁻¹ m + JᵀW (J p_lin − r)/σ²)."""
+    (a Kalman measurement update in information form):  P⁺ = (P⁻¹ + A)⁻¹,  m⁺ = P⁺ (P⁻¹ m + A p_lin − g),
+    A = JᵀWJ/σ², g = JᵀWr/σ².
+
+    ``nuisance`` = (J_c (m, k_c), c_lin (k_c,), N(m_c, P_c)): unknowns of this observation alone (a window's
+    correction of its starting states, linearised at c_lin), integrated out under their prior — the Schur
+    complement  A ← A − B C⁻¹ Bᵀ,  g ← g − B C⁻¹ g_c  with  B = JᵀW J_c/σ²,  C = J_cᵀW J_c/σ² + P_c⁻¹,
+    g_c = J_cᵀW r/σ² + P_c⁻¹ (c_lin − m_c): the observation then informs θ only as far as the correction cannot
+    explain it too (e.g. the past re-simulated with another θ, nearly collinear with θ itself)."""
     W = np.ones(len(r)) if weights is None else weights
     s2 = float(sigma) ** 2
     info = prior.info
     JW = J * W[:, None]
-    cov = _sym_inv(info + JW.T @ J / s2)
-    mean = cov @ (info @ prior.mean + JW.T @ (J @ p_lin - r) / s2)
+    if nuisance is None or not np.shape(nuisance[0])[1]:
+        cov = _sym_inv(info + JW.T @ J / s2)
+        mean = cov @ (info @ prior.mean + JW.T @ (J @ p_lin - r) / s2)
+        return Prior(mean, cov)
+    Jc, c_lin, pc = nuisance
+    ic = pc.info
+    B = JW.T @ Jc / s2
+    C = Jc.T @ (Jc * W[:, None]) / s2 + ic
+    gc = Jc.T @ (W * r) / s2 + ic @ (np.asarray(c_lin, np.float64) - pc.mean)
+    BC = np.linalg.solve(0.5 * (C + C.T), B.T).T  # B C⁻¹ (k, k_c)
+    A = JW.T @ J / s2 - BC @ B.T
+    g = JW.T @ r / s2 - BC @ gc
+    cov = _sym_inv(info + 0.5 * (A + A.T))
+    mean = cov @ (info @ prior.mean + A @ p_lin - g)
     return Prior(mean, cov)
 
 
@@ -304,6 +322,34 @@ def weakly_informed(n_data: np.ndarray, prior_info: np.ndarray, arrival_var: np.
     ``arrival_var`` [i] the variance of everything before.  Such an unknown is better held at its estimate: the
     window cannot tell it from the others, and moving it moves them (ν against E)."""
     return np.array([marginal_information(n_data, prior_info, i) * float(arrival_var[i]) < ratio for i in idx], bool)
+
+
+def matched_arrival(arrival: Prior, p: np.ndarray, n_data: np.ndarray, prior_info: np.ndarray, idx,
+                    threshold: float) -> tuple[Prior, np.ndarray]:
+    """Covariance matching of the arrival cost N(m, P) against one window's data, per unknown i in ``idx``.
+
+    The window's estimate p_i (its data under the prior) is the precision-weighted mean of m_i and of where the
+    data alone put it, θ_d = m_i + (p_i − m_i)(P_ii + V_i)/P_ii, with V_i = 1/I_i (:func:`marginal_information` of
+    the data's normal matrix ``n_data`` (k, k), ``prior_info`` (k, k) on the others).  d_i = |θ_d − m_i| / √(P_ii + V_i)
+    is ~N(0, 1) while the arrival cost is consistent with the data; it is tested only where the data inform p_i at
+    least as much as the arrival cost does (I_i P_ii ≥ 1).  Where d_i > ``threshold`` it is not (its
+    frames were linearised far from the data's θ — a far start —, or the material changed): P_ii is raised to
+    (θ_d − m_i)² − V_i (d_i = 1 then), its correlations kept.  Returns (the arrival cost, d (len(idx),))."""
+    m, P = arrival.mean, arrival.cov.astype(np.float64).copy()
+    d = np.zeros(len(idx))
+    for j, i in enumerate(idx):
+        pii = float(P[i, i])
+        info = marginal_information(n_data, prior_info, i)
+        if not info * pii >= 1.0:  # the data inform it less than the arrival cost: θ_d is p's round-off × V/P
+            continue
+        v = 1.0 / info
+        gap = (float(p[i]) - float(m[i])) * (pii + v) / pii  # θ_d − m_i
+        d[j] = abs(gap) / np.sqrt(pii + v)
+        if d[j] > threshold:
+            f = np.sqrt(max(gap * gap - v, pii) / pii)
+            P[i, :] *= f
+            P[:, i] *= f
+    return Prior(m.copy(), 0.5 * (P + P.T)), d
 
 
 def condition(prior: Prior, i: int, value: float, hold: float = 1e-10) -> Prior:
@@ -364,6 +410,10 @@ class ChangeDetector:
     drift: float = 1.0
     g: float = 0.0
     seen: list = field(default_factory=list)
+    #: True: nothing is declared before three z are seen, and the one-frame rule is z/b > threshold² too — for
+    #: residuals whose noise level is itself estimated from misfits that grow with the motion and with θ's error
+    #: (images: z = 36–65 over the first frames of a start at 0.5 E_true, more than at a true step of E)
+    relative: bool = False
 
     @staticmethod
     def ratio(r: np.ndarray, sigma: float) -> float:
@@ -379,9 +429,13 @@ class ChangeDetector:
         """Add one frame's normalised innovation z; True when a change is declared (g then restarts)."""
         if self.threshold <= 0:
             return False
-        self.g = max(0.0, self.g + z / self.baseline() - 1.0 - self.drift)
+        b = self.baseline()
+        if self.relative and len(self.seen) < 3:
+            self.seen.append(float(z))
+            return False
+        self.g = max(0.0, self.g + z / b - 1.0 - self.drift)
         self.seen.append(float(z))
-        if z > self.threshold ** 2 or self.g > self.threshold ** 2 - 1.0 - self.drift:
+        if (z / b if self.relative else z) > self.threshold ** 2 or self.g > self.threshold ** 2 - 1.0 - self.drift:
             self.g = 0.0
             return True
         return False
@@ -411,17 +465,17 @@ class WindowFilter:
     """The arrival cost of a sliding-window estimator over θ (module docstring).
 
     prior: N(m, P) on θ's unknowns, summarising the frames before the window; q (kθ,): process noise σ
-    per frame.  ``leave(p_lin, r, J, σ, W)`` folds the linearised residuals of the frame that leaves the
-    window and adds the process noise of one frame; ``advance()`` adds only the process noise (a frame
-    arrived and none left, e.g. while the window grows).
+    per frame.  ``leave(p_lin, r, J, σ, W, nuisance)`` folds the linearised residuals of the frame that leaves the
+    window (:func:`fold`) and adds the process noise of one frame; ``advance()`` adds only the process noise (a
+    frame arrived and none left, e.g. while the window grows).
     """
 
     prior: Prior
     q: np.ndarray
 
     def leave(self, p_lin: np.ndarray, r: np.ndarray, J: np.ndarray, sigma: float,
-              weights: np.ndarray | None = None) -> None:
-        self.prior = inflate(fold(self.prior, p_lin, r, J, sigma, weights), self.q)
+              weights: np.ndarray | None = None, nuisance: tuple | None = None) -> None:
+        self.prior = inflate(fold(self.prior, p_lin, r, J, sigma, weights, nuisance), self.q)
 
     def advance(self) -> None:
         self.prior = inflate(self.prior, self.q)

@@ -9,7 +9,9 @@ keeps p_a and decides, frame by frame, by this rule (p_T: the window's parameter
 
 1. **tied** — while the window holds f, and until a change of material is confirmed: p_a = p.
 2. **candidate** — the window's log E (in one region) has been more than c/2 from its *level*, the median of p
-   over frames T−6..T−3, on the same side in each of the last 2 frames, and more than c (``--anchor-change``) in
+   over frames T−6..T−3 (the frames whose window informed θ: one at rest, or holding f alone, took no step and
+   leaves no estimate — the dinosaur's 10 frames before its pusher arrives would make the initial E the level),
+   on the same side in each of the last 2 frames, and more than c (``--anchor-change``) in
    at least one of them: a threshold with hysteresis, so that an estimate hovering at c (log E − level 0.466
    then 0.398 around c = 0.4: held back by the tied anchor itself, it falls again) is still a candidate, while
    one frame's excursion past c alone is not.  Converging from a far-off start, Adam moves as far and as fast
@@ -23,8 +25,21 @@ keeps p_a and decides, frame by frame, by this rule (p_T: the window's parameter
    restarts at T (the next candidate at T+7 at the earliest).  No frame in F yet: the test waits.
 4. **apart** — p_a is moved by its own Adam along dL/dp_a, the anchor's part of the window's gradient alone
    (WindowObjective.last_anchor_g), so that it stays near the old material while the window's θ follows the new.
+   (Held at the level instead, measured 2026-11-24 on bench/accuracy.py's captures, images, reduced space: better
+   where the level had settled — bar with E steps, lead-in 3: 7.0 % median settled E error against 9.1 %; the
+   dinosaur (constant E, a spurious change confirmed at frame 26 at the level 1.07 E_true, after which p_a's own
+   Adam climbed to 1.5 E_true and E with it): 13.9 % against 20.7 % — and much worse where it had not — the bar
+   without lead-in, level 0.77 E_true: 46.9 % against 30.5 %.)
 
 With c = 0, p_a is its own unknown as soon as the window no longer holds f (no test).
+
+5. **later changes** (c > 0) — once p_a is apart, the candidate of rule 2 is still watched (against a level whose history
+   restarts after each): it marks a later change of material (or a late convergence) without a test, since p_a
+   stays the fit frame's material in either case.  What it limits is the lead-in (AdaptConfig.lead_in):
+   :attr:`AnchorMaterial.lead_from`, the first frame a window's lead-in may re-simulate with its θ, is the frame
+   of the last change, confirmed (rule 3) or later (this rule) — frames before it showed another material, and
+   re-simulating them with the new one holds E back (bar with E ×2, ×4, lead-in 3: E at 0.49–0.84 E_true through
+   the 12 frames after the ×4 step).
 """
 from __future__ import annotations
 
@@ -55,6 +70,8 @@ class AnchorMaterial:
         self.R, self.change, self.window = n_regions, float(change), window
         self.fit_frame, self.first = fit_frame, first
         self.apart_from: int | None = None
+        self.later: list[int] = []  # the frames at which rule 5 saw a later change (after apart_from)
+        self._later: tuple[list, list] = ([], [])  # rule 5's (p per frame, deviations) since the last change
         self.hist: list[np.ndarray] = []  # p per frame since the level's history (re)started
         self.devs: list[np.ndarray] = []  # log E − level (R,) per untied frame with a level, since the restart
         self.tests: list[tuple[int, float, float, bool]] = []
@@ -63,6 +80,12 @@ class AnchorMaterial:
     @property
     def apart(self) -> bool:
         return self.apart_from is not None
+
+    @property
+    def lead_from(self) -> int | None:
+        """The frame of the last change of material seen (rules 3 and 5), before which a lead-in must not reach;
+        None: none seen."""
+        return self.later[-1] if self.later else self.apart_from
 
     def held(self, T: int, tied: bool) -> np.ndarray | None:
         """Before frame T's steps: p_a held apart from the window's p, or None while tied (``tied``: the window holds
@@ -89,12 +112,14 @@ class AnchorMaterial:
             return None
         return np.median(np.stack(self.hist[-(b + 1):-a]), axis=0)
 
-    def candidate(self) -> bool:
-        """Whether the last AWAY deviations d = log E − level (R,) make a candidate: in some region r, |d_r| > HOLD·c
-        with one sign in each of them and |d_r| > c in at least one (rule 2 of the module's docstring)."""
-        if len(self.devs) < AWAY:
+    def candidate(self, devs: list | None = None) -> bool:
+        """Whether the last AWAY deviations d = log E − level (R,) (``devs``, default: rule 2's) make a candidate: in
+        some region r, |d_r| > HOLD·c with one sign in each of them and |d_r| > c in at least one (rule 2 of the
+        module's docstring)."""
+        devs = self.devs if devs is None else devs
+        if len(devs) < AWAY:
             return False
-        d = np.stack(self.devs[-AWAY:])  # (AWAY, R)
+        d = np.stack(devs[-AWAY:])  # (AWAY, R)
         held = np.all(d > HOLD * self.change, axis=0) | np.all(d < -HOLD * self.change, axis=0)
         return bool(np.any(held & (np.max(np.abs(d), axis=0) > self.change)))
 
@@ -105,12 +130,19 @@ class AnchorMaterial:
         return list(range(lo, hi + 1))
 
     def end_frame(self, T: int, p: np.ndarray, tied: bool,
-                  explains: Callable[[Sequence[int], np.ndarray], float]) -> bool:
+                  explains: Callable[[Sequence[int], np.ndarray], float], informed: bool = True) -> bool:
         """After frame T's update (p: the window's parameters (2R,)): the candidate and, when there is one, the test.
         ``explains(F, p)`` = Σ_{t∈F} loss_t of the frames F simulated from the start with θ(p) (the anchor at θ(p)).
-        Returns True when p_a became its own unknown at this frame."""
+        ``informed`` False: the window had no information on θ (it took no step: the object at rest, or the fit
+        frame alone), so p is no estimate and stays out of the level's history.  Returns True when p_a became its
+        own unknown at this frame."""
+        if not informed:
+            return False
         self.hist.append(np.array(p, float))
-        if self.apart or tied:
+        if self.apart:
+            self._watch(T, p)
+            return False
+        if tied:
             return False
         level = self.level()
         if level is None:
@@ -127,6 +159,23 @@ class AnchorMaterial:
         self.tests.append((T, float(at_level), float(at_p), changed))
         if changed:
             self.apart_from, self.p = T, level
+            self._later = ([np.array(p, float)], [])  # rule 5's level history starts at the change
         else:  # a convergence: the level's history restarts here
             self.hist, self.devs = [np.array(p, float)], []
         return changed
+
+    def _watch(self, T: int, p: np.ndarray) -> None:
+        """Rule 5, once apart: rule 2's candidate against the level of the frames since the last change; a candidate
+        is a later change at T (appended to :attr:`later`) and restarts that history."""
+        if self.change <= 0:  # c = 0: every sign-consistent wobble would be a candidate
+            return
+        hist, devs = self._later
+        hist.append(np.array(p, float))
+        a, b = LEVEL
+        if len(hist) < b + 1:
+            return
+        level = np.median(np.stack(hist[-(b + 1):-a]), axis=0)
+        devs.append(np.asarray(p[:self.R], float) - level[:self.R])
+        if self.candidate(devs):
+            self.later.append(T)
+            self._later = ([np.array(p, float)], [])

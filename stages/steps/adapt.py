@@ -55,8 +55,8 @@ from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, MeshArte
                               check_mesh_source, check_same_mesh)
 from stages.capture import CaptureError, check_obstacles_clear, load_capture
 from stages.errors import Interrupted, RslError
-from stages.estimator import (ChangeDetector, Prior, WindowFilter, condition, gauss_newton, huber_weights, posterior_cov,
-                              process_noise, weakly_informed)
+from stages.estimator import (ChangeDetector, Prior, WindowFilter, condition, gauss_newton, huber_weights, marginal,
+                              matched_arrival, posterior_cov, process_noise, weakly_informed)
 from stages.interrupt import CheckedReporter, CtrlC
 from stages.parameters import Adam, params_from_theta, theta_from_params
 from stages.progress import Reporter, SilentReporter
@@ -99,7 +99,13 @@ class AdaptConfig:
     """adam, online: frames before the window that are simulated with the window's θ (from the stored states
     before them) and differentiated through, but not observed — so the observed frames do not start from a past
     simulated with earlier estimates of θ.  Reduced space: the lead-in costs simulation only, no rendering.  Never
-    reaches back past a change of material that the images' anchor confirmed."""
+    reaches back past a change of material that the images' anchor saw (stages/vision_anchor.py, rules 3 and 5).
+    With a lead-in, images: a window whose frames since frame 0 are all at rest (a pusher still approaching) takes
+    no step, and the next window starts from x_0(θ) itself (the rest phase of _online).  Images, reduced space,
+    6 substeps, median settled E error, lead-in 3 against 0 (bench/accuracy.py's captures, by hand, 2026-11-24,
+    accuracy_notes.md): bar released at rest 6.3 against 14.3 %; bar at equilibrium with E ×2, ×4 steps 27.4
+    against 30.3 % (9.1 % with --anchor-change 0.2); the dinosaur (constant E) 28.9 against 13.2 %, E falling to
+    0.5 E_true in the free ringing after the pusher has left (not understood) — so 0 stays the default."""
     lr: float = 0.15
     """Adam learning rate on log E."""
     lr_poisson: float = 0.05
@@ -154,7 +160,10 @@ class AdaptConfig:
     """gn: the change-of-material test (a CUSUM of the new frame's innovation z = rᵀr/(mσ²) at the predicted θ, σ the
     noise level the windows reach): a frame whose residual RMS exceeds this many σ, or a smaller excess that
     persists over a few frames, is taken as a change: the window restarts there and the θ prior is widened by
-    --change-sigma (0: never)."""
+    --change-sigma (0: never).  Images: z against its own baseline only (the median of the earlier z, none before
+    three), since their σ follows misfits that grow with the motion; and a window whose data lie more than this
+    many σ from the arrival cost has the arrival cost's variance of log E matched to them
+    (stages/estimator.py matched_arrival)."""
     change_sigma: float = 0.5
     """gn: σ added to log E when a change of material is detected (0.5: a factor 1.65); ν's prior is kept."""
     poisson_information: float = 1.0
@@ -542,6 +551,19 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     return path
 
 
+REST_TOL = 1e-6
+"""adam, online: a window is *at rest* when every state it simulates from x_0(θ) lies within this fraction of the
+object's size (its bounding-box diagonal) of x_0(θ) — 1e-6 is 1e-4 pixel at 96 px on a 0.2 m object, far below any
+motion the images show and far above the solves' round-off (an object at its equilibrium stays there exactly)."""
+
+
+def _at_rest(backend, states: np.ndarray) -> bool:
+    """Whether the decoded states (k, …) all lie within REST_TOL × the size of the first of them."""
+    X = backend.decode(states)
+    size = float(np.linalg.norm(np.ptp(X[0], axis=0)))
+    return bool(np.max(np.abs(X - X[0])) <= REST_TOL * size)
+
+
 def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
     """Online Adam: per new frame T, ``--iters-per-frame`` Adam steps on the window T−w+1..T's loss L(p).
 
@@ -550,9 +572,15 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
     carries the anchor's part) until a change of material is confirmed — the window's log E has moved more than
     ``--anchor-change`` from its level, and the level explains the frames after f better than the current p does
     (a convergence from a far-off start explains them better with the current p) — then its own unknown, moved by
-    Adam along the anchor's part of the gradient alone.  A window holding only frame f has no information on θ
-    (the re-bound Gaussians render the fitted ones for every θ: dL/dθ = 0 up to round-off) and takes no step (Adam
-    would turn the round-off into a full step)."""
+    Adam along the anchor's part of the gradient alone.
+
+    The rest phase (with ``--lead-in`` > 0).  While the simulated object has not moved since frame 0 (no control has reached it yet: a
+    pusher still approaching, an equilibrium start), frames 0..T are *at rest*: x_t = x_0(θ) for every θ.  A window
+    whose states before it are at rest starts from x_0(θ) itself (frame 0, the static solve, differentiated, then
+    its frames from (x_0, x_0)) instead of from stored states, which hold x_0 of the θ of their time and would make
+    the object start to move as soon as θ changes.  A window at rest, fit frame included (a window holding only
+    frame f too), has no information on θ — the re-bound Gaussians render the fitted ones for every θ, dL/dθ = 0 up
+    to round-off — and takes no step (Adam would turn the round-off into a full step)."""
     config, rec, R, obj = loop.config, loop.rec, loop.objective.R, loop.objective
     w = config.window
     vision = loop.obs.kind == "vision"
@@ -562,28 +590,46 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                                 loop.first)
         obj.want_anchor_grad = True
         rec.anchor_young, rec.anchor_tests = [], anchor.tests
+    f = obj.anchor_frame
+    rest_until = -1  # frames 0..rest_until were at rest (simulated from x_0(θ)); −1: none known (a range from A > 0)
+    # the rest phase comes with the lead-in (both re-simulate the window's past with its θ); without one, the
+    # dinosaur's row measured worse with it (20.7 against 13.2 %, accuracy_notes.md, tenth stop): off by default
+    rest_rule = vision and config.lead_in > 0
     with loop.reporter.task(f"adapt online ({loop.backend.space}, {loop.obs.kind}, w={w})", loop.total()) as task:
         for T in loop.online_frames():
             frames = list(range(max(loop.first, T - w + 1), T + 1))
             tt = time.perf_counter()
             times = np.zeros(3)
-            tied = frames[0] <= obj.anchor_frame  # the window holds the fit frame (p_a is p there in any case)
-            idle = vision and tied and frames == [obj.anchor_frame]
+            tied = frames[0] <= f  # the window holds the fit frame (p_a is p there in any case)
+            idle = vision and tied and frames == [f]
             if anchor is not None:
                 obj.anchor_p = anchor.held(T, tied)
             # the lead-in: never before the first frame nor a confirmed change of material
-            lead_from = max(loop.first, anchor.apart_from if anchor is not None and anchor.apart else loop.first)
+            lead_from = max(loop.first, anchor.lead_from if anchor is not None and anchor.apart else loop.first)
             sim = list(range(max(lead_from, frames[0] - config.lead_in), frames[0])) + frames
+            if rest_rule and loop.first == 0 and 0 < sim[0] and sim[0] - 1 <= rest_until:
+                sim = [0] + sim  # the states before it at rest: x_{s−2} = x_{s−1} = x_0(θ)
             lead = len(sim) - len(frames)
-            for _ in range(config.iters_per_frame):
+            resting = False
+            for it in range(config.iters_per_frame):
                 states, losses, g, t3 = obj(sim, params, loop.before(sim[0]), True, lead=lead)
                 times += t3
+                if it == 0 and rest_rule and sim[0] == 0 and f <= T:  # frames 0..T simulated (or skipped at rest)
+                    resting = _at_rest(loop.backend, states)
+                    idle = idle or resting
                 if not idle:
                     params[:] = adam.step(params, g)
                 if anchor is not None:
                     obj.anchor_p = anchor.after_step(params, obj.last_anchor_g, idle)
+                if idle:
+                    break  # θ does not move: the next steps would repeat this one
             for i, t in enumerate(sim):
                 loop.stored[t] = states[i]
+            if sim[0] == 0 and len(sim) > 1 and sim[1] > 1:  # the frames skipped at rest hold x_0(θ)
+                for t in range(1, sim[1]):
+                    loop.stored[t] = states[0]
+            if resting:
+                rest_until = T
             E, nu = theta_from_params(params[:R], params[R:], loop.prange)
             if anchor is not None:
 
@@ -592,8 +638,8 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                     times[:] += t3
                     return float(fl[F].sum())
 
-                anchor.end_frame(T, params, tied, explains)
-                rec.anchor_apart = anchor.apart_from
+                anchor.end_frame(T, params, tied, explains, informed=not (rest_rule and idle))
+                rec.anchor_apart, rec.anchor_later = anchor.apart_from, list(anchor.later)
                 rec.anchor_young.append(theta_from_params(anchor.p[:R], anchor.p[R:], loop.prange)[0].tolist())
             rec.add(T, E, nu, losses.sum(), losses[-1], tuple(times), time.perf_counter() - tt)
             task.advance(1, frame=T, E=" ".join(f"{e:.4g}" for e in E), loss=float(losses.sum()),
@@ -703,7 +749,10 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     # already their RMS)
     scale_hist: list[float] = []
     changes: list[int] = []  # frames where a change of material was detected
-    detector = ChangeDetector(config.change_threshold)
+    # images: the innovation is judged against its own baseline only (ChangeDetector.relative): their noise level
+    # comes from misfits that grow with the motion and with θ's error, and far from the truth every frame's z
+    # exceeded the threshold (a false change, the anchor then held at a far-off θ: bar, 0.5 E_true, 80 % error)
+    detector = ChangeDetector(config.change_threshold, relative=obs.kind == "vision")
     rec.innovation = []  # per frame: the normalised innovation z of the change test (NaN: not tested)
     start_w = first  # the window never reaches before the last change point
     modes_failed = False
@@ -780,6 +829,13 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                 n_data = res.jtwj / (sigma ** 2 * scale)  # Jᵀ W J at the last linearisation
                 hold_nu = weakly_informed(n_data, prior.info, np.diag(filt.prior.cov), R + np.arange(R),
                                           config.poisson_information)
+            if obs.kind == "vision" and config.change_threshold > 0 and len(frames) > 1:
+                # images: the window's states start from a past simulated with earlier estimates, and the frames
+                # folded while the estimate was far off (a far start) or the material changed make an arrival
+                # cost the window's data contradict: its variance of log E is matched to them (estimator.
+                # matched_arrival) where they lie more than --change-threshold σ away
+                filt.prior, _ = matched_arrival(filt.prior, res.p, res.jtwj / (sigma ** 2 * scale), prior.info,
+                                                np.arange(R), config.change_threshold)
             if hasattr(obs, "clusters") and len(frames) > 1:  # (the fit frame alone carries no information)
                 scale_hist.append(max(res.scale2, 1.0))
             p_th = res.p[:k_th].copy()
@@ -796,15 +852,24 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             sE, sN = sigma_from_cov(gn, res.p, res.cov_scaled[:k_th, :k_th], config.model_error,
                                      config.model_error_poisson)
             if len(frames) == w:  # frame t0 leaves the window: fold it into the arrival cost
-                r0 = r_lin[0] + J_lin[0][:, k_th:] @ (res.p[k_th:] - res.p_lin[k_th:])
                 s_fold = sigma * float(np.sqrt(max(res.scale2, 1.0)))  # never more certain than σ says
                 J0 = J_lin[0][:, :k_th].copy()
                 J0[:, R + np.flatnonzero(held_now)] = 0.0  # a window that held ν tells the arrival cost nothing of it
+                nuisance = None
+                if past_dirs and D is not None:
+                    # the "past" correction (the past re-simulated with θ + c) is nearly collinear with θ in the
+                    # window's first frame: it is the window's own unknown, integrated out under its prior
+                    # (estimator.fold), so the frame informs θ only as far as a corrected past cannot explain it
+                    # (taken as known, one frame gave var(log E) → 0 far from the truth: images, bar, 0.73 E_true)
+                    r0 = r_lin[0]
+                    nuisance = (J_lin[0][:, k_th:], res.p_lin[k_th:], marginal(prior, np.arange(k_th, len(res.p))))
+                else:  # ("states", markers: the correction at the window's estimate, taken as known)
+                    r0 = r_lin[0] + J_lin[0][:, k_th:] @ (res.p[k_th:] - res.p_lin[k_th:])
                 # the process noise of the frame: small while the material is taken as constant, larger during the
                 # w + 5 frames after a detected change (the estimate re-settles there)
                 filt.q = np.full(k_th, process_noise(T, changes, w, config.process_noise,
                                                      config.process_noise_change))
-                filt.leave(res.p_lin[:k_th], r0, J0, s_fold, huber_weights(r0, sigma, obs.huber))
+                filt.leave(res.p_lin[:k_th], r0, J0, s_fold, huber_weights(r0, sigma, obs.huber), nuisance)
             r_all = np.concatenate(gn.last_rs)
             # the noise level: the median over the last 5 frames of the windows' residual scale per degree of
             # freedom, √(RSS/(m − k)) (robust: one window's transient misfit does not inflate it at once)
@@ -932,6 +997,8 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         # adam, --vision-anchor estimated: per frame, E (per region) of the Gaussians' anchor (the fit frame's material)
         "anchor_young": list(getattr(rec, "anchor_young", [])),
         "anchor_apart_from": getattr(rec, "anchor_apart", None),  # the frame its own material began (None: never)
+        # adam, images: the frames at which a later change of material was seen once apart (the lead-in's limit)
+        "anchor_later_changes": list(getattr(rec, "anchor_later", [])),
         # adam, --vision-anchor estimated: the change tests, [frame, loss at the level, loss at the window's p, change?]
         "anchor_tests": [list(x) for x in getattr(rec, "anchor_tests", [])],
         "ended": "ctrl-c" if ended_by_ctrl_c else ("last frame" if status == "complete" else "error"),
