@@ -8,28 +8,15 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import meshio
 import numpy as np
 import pytest
 
-from stages.artefacts import GaussiansArtefact, MeshArtefact, mesh_artefact
 from stages.capture import load_capture
 from stages.parameters import params_from_theta, theta_from_params
-from stages.sim.meshgen import box_tets
+from test_vision_bias import E_TRUE, _film, _make_capture
 
-E_TRUE = 6e4
 DELAY = 4  # the cable pulls from frame DELAY + 1 on: frames 0..DELAY are at rest
 PR = (0.3, 0.49)
-
-
-def _gaussians(mesh: MeshArtefact, n: int, seed: int = 0, scale: float = 0.03) -> GaussiansArtefact:
-    rng = np.random.default_rng(seed)
-    size = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
-    q = rng.normal(size=(n, 4))
-    return GaussiansArtefact(host_tet=rng.integers(0, mesh.n_tets, n), bary=rng.dirichlet(np.ones(4) * 2, n),
-                             log_scales=np.log(scale * size * rng.uniform(0.6, 1.5, (n, 3))),
-                             rotations=q / np.linalg.norm(q, axis=1, keepdims=True),
-                             opacity_logit=np.full(n, 1.5), sh=rng.normal(0, 1.0, (n, 1, 3)), background=np.zeros(3))
 
 
 @pytest.fixture(scope="module")
@@ -37,47 +24,27 @@ def delayed(tmp_path_factory):
     """A box bar sagging at its equilibrium (start = equilibrium), its cable force delayed by DELAY frames, filmed by
     rsl's own model (P1, 1 step per frame, random Gaussians re-bound to the true frame 0, 2 cameras at 40 px).
     Returns (capture, workspace, backend, window objective)."""
-    from PIL import Image
-
     from stages.observations import VisionObservation
     from stages.sim.scene import frame_inputs, make_scene
-    from stages.steps import calibrate
-    from stages.steps.synth import SynthConfig, prepare_mesh, run
     from stages.window_backends import FullSpace
     from stages.windows import StartWindow, WindowObjective
 
-    root = tmp_path_factory.mktemp("vision_rest")
-    v, t = box_tets((6, 2, 2), (0.2, 0.04, 0.04))
-    path = root / "bar.mesh"
-    meshio.write(str(path), meshio.Mesh(v, [("tetra", t)]), file_format="medit")
     frames = 10
-    cap = run(SynthConfig(mesh=path, out=root / "cap", scenario="cable", cameras=2, frames=frames, resolution=40,
-                          markers=8, calib_views=0, young=E_TRUE, start="equilibrium", size=0.2))
+    cap, ws, meshes = _make_capture(tmp_path_factory.mktemp("vision_rest"), frames)  # P1 mesh.h5, gaussians.h5
     ctl = json.loads((cap / "controls.json").read_text())
     for load in ctl["loads"]:
         f = np.asarray(load["force"], float)
         load["force"] = [f[max(k - DELAY, 0)].tolist() for k in range(len(f))]  # f[0] = 0: no pull up to DELAY
     (cap / "controls.json").write_text(json.dumps(ctl))
-    ws = root / "ws"
-    ws.mkdir()
-    calibrate.run(calibrate.CalibrateConfig(capture=cap, workspace=ws, from_json=str(cap / "cameras.json")))
     capt = load_capture(cap)
-    pm = prepare_mesh(v, t, 0.2, "")
-    mesh = mesh_artefact(pm.vertices, pm.tets, capt.density, order=1)
-    mesh.save(ws / "mesh.h5")
-    _gaussians(mesh, 60).save(ws / "gaussians.h5")
+    mesh = meshes[1]
     controls = capt.controls()
     scene = make_scene(mesh, controls, capt.material.model, capt.dt, capt.gravity)
     backend = FullSpace(scene, lambda k: frame_inputs(scene, controls, k), "auto")
     nu = np.array([capt.material.poisson])
     X = StartWindow(backend, capt.start).forward(list(range(frames)), np.array([E_TRUE]), nu, None)
     assert np.array_equal(X[DELAY], X[0]) and not np.allclose(X[DELAY + 1], X[0])  # at rest up to DELAY exactly
-    obs = VisionObservation(capt, ws, "", mesh, False)
-    obs.rebind(X[0])
-    for k in range(frames):
-        for cam, img in zip(obs.cameras, obs.loss_fn.render(X[k])):
-            out = np.clip(np.asarray(img, np.float64) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-            Image.fromarray(out).save(cap / "frames" / cam / f"{k:06d}.png")
+    _film(cap, ws, mesh, X)
     obs = VisionObservation(capt, ws, "", mesh, False)  # the frames just written
     return cap, ws, backend, WindowObjective(backend, obs, 1, PR, capt.start)
 

@@ -34,16 +34,17 @@ def capture(tmp_path_factory):
     return _make_capture(tmp_path_factory.mktemp("vision_bias"))
 
 
-def _make_capture(root: Path):
-    """A cable-pulled box bar sagging at frame 0 (start = equilibrium), 2 cameras at 40 px, and a workspace with its
-    own P1 mesh, cameras.h5 and random Gaussians (no fit needed for identities and gradients)."""
+def _make_capture(root: Path, frames: int = 6):
+    """A cable-pulled box bar sagging at frame 0 (start = equilibrium), ``frames`` frames, 2 cameras at 40 px, and a
+    workspace with its own P1 mesh, cameras.h5 and random Gaussians (no fit needed for identities and gradients).
+    Returns (capture, workspace, {order: mesh artefact} for orders 1 and 2)."""
     from stages.steps import calibrate
     from stages.steps.synth import SynthConfig, prepare_mesh, run
 
     v, t = box_tets((6, 2, 2), (0.2, 0.04, 0.04))
     path = root / "bar.mesh"
     meshio.write(str(path), meshio.Mesh(v, [("tetra", t)]), file_format="medit")
-    cap = run(SynthConfig(mesh=path, out=root / "cap", scenario="cable", cameras=2, frames=6, resolution=40,
+    cap = run(SynthConfig(mesh=path, out=root / "cap", scenario="cable", cameras=2, frames=frames, resolution=40,
                           markers=8, calib_views=0, young=E_TRUE, start="equilibrium", size=0.2))
     ws = root / "ws"
     ws.mkdir()
@@ -341,31 +342,31 @@ def test_held_anchor_renders_at_its_own_material_and_gives_its_own_gradient(capt
         assert g_a[i] == pytest.approx(part, rel=1e-3, abs=1e-9), (i, g_a, part)
 
 
+def _film(cap: Path, ws: Path, mesh, X: np.ndarray) -> None:
+    """Overwrite the capture's frames with rsl's own renders of the states X (T, n, 3): the workspace's Gaussians
+    re-bound to X[0], rounded to 8-bit PNGs as a camera would store them."""
+    from PIL import Image
+
+    from stages.observations import VisionObservation
+
+    obs = VisionObservation(load_capture(cap), ws, "", mesh, False)
+    obs.rebind(X[0])
+    for f in range(len(X)):
+        for cam, img in zip(obs.cameras, obs.loss_fn.render(X[f])):
+            out = np.clip(np.asarray(img, np.float64) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+            Image.fromarray(out).save(cap / "frames" / cam / f"{f:06d}.png")
+
+
 def _own_model_capture(root: Path, step_at: int | None, frames: int = 10):
     """A cable-pulled bar filmed by rsl's own model (P1 mesh, 1 step per frame, the random Gaussians re-bound to the
     true frame 0 and rendered at the true states): E = E_TRUE, doubled from frame ``step_at`` on (None: constant).
     Returns (capture, workspace)."""
     from stages.sim.scene import frame_inputs, make_scene
-    from stages.steps import calibrate
-    from stages.steps.synth import SynthConfig, prepare_mesh, run
     from stages.window_backends import FullSpace
-    from stages.observations import VisionObservation
     from stages.windows import StartWindow
-    from PIL import Image
 
-    v, t = box_tets((6, 2, 2), (0.2, 0.04, 0.04))
-    path = root / "bar.mesh"
-    meshio.write(str(path), meshio.Mesh(v, [("tetra", t)]), file_format="medit")
-    cap = run(SynthConfig(mesh=path, out=root / "cap", scenario="cable", cameras=2, frames=frames, resolution=40,
-                          markers=8, calib_views=0, young=E_TRUE, start="equilibrium", size=0.2))
-    ws = root / "ws"
-    ws.mkdir()
-    calibrate.run(calibrate.CalibrateConfig(capture=cap, workspace=ws, from_json=str(cap / "cameras.json")))
-    capt = load_capture(cap)
-    pm = prepare_mesh(v, t, 0.2, "")
-    mesh = mesh_artefact(pm.vertices, pm.tets, capt.density, order=1)
-    mesh.save(ws / "mesh.h5")
-    _gaussians(mesh, 60).save(ws / "gaussians.h5")
+    cap, ws, meshes = _make_capture(root, frames)
+    capt, mesh = load_capture(cap), meshes[1]
     controls = capt.controls()
     scene = make_scene(mesh, controls, capt.material.model, capt.dt, capt.gravity)
     backend = FullSpace(scene, lambda k: frame_inputs(scene, controls, k), "auto")
@@ -375,12 +376,7 @@ def _own_model_capture(root: Path, step_at: int | None, frames: int = 10):
     X = win.forward(list(range(k)), np.array([E_TRUE]), nu, None)
     if k < frames:
         X = np.concatenate([X, win.forward(list(range(k, frames)), np.array([2 * E_TRUE]), nu, X[-2:])])
-    obs = VisionObservation(capt, ws, "", mesh, False)
-    obs.rebind(X[0])
-    for f in range(frames):
-        for cam, img in zip(obs.cameras, obs.loss_fn.render(X[f])):
-            out = np.clip(np.asarray(img, np.float64) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-            Image.fromarray(out).save(cap / "frames" / cam / f"{f:06d}.png")
+    _film(cap, ws, mesh, X)
     return cap, ws
 
 
