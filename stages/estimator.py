@@ -335,7 +335,7 @@ def matched_arrival(arrival: Prior, p: np.ndarray, n_data: np.ndarray, prior_inf
     least as much as the arrival cost does (I_i P_ii ≥ 1).  Where d_i > ``threshold`` it is not (its
     frames were linearised far from the data's θ — a far start —, or the material changed): P_ii is raised to
     (θ_d − m_i)² − V_i (d_i = 1 then), its correlations kept.  Returns (the arrival cost, d (len(idx),))."""
-    m, P = arrival.mean, arrival.cov.astype(np.float64).copy()
+    m, P = arrival.mean, arrival.cov.astype(np.float64)  # (a copy)
     d = np.zeros(len(idx))
     for j, i in enumerate(idx):
         pii = float(P[i, i])

@@ -825,8 +825,8 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             if hold_nu.any():  # σ (and the information test) with ν's own prior: held, ν is not known better
                 res.cov_scaled = posterior_cov(res.jacobian, res.weights, sigma ** 2 * res.scale2, prior)
             held_now = hold_nu.copy()
+            n_data = res.jtwj / (sigma ** 2 * scale)  # the data's normal matrix Jᵀ W J at the last linearisation
             if config.fit_poisson and config.poisson_information > 0 and len(frames) > 1:
-                n_data = res.jtwj / (sigma ** 2 * scale)  # Jᵀ W J at the last linearisation
                 hold_nu = weakly_informed(n_data, prior.info, np.diag(filt.prior.cov), R + np.arange(R),
                                           config.poisson_information)
             if obs.kind == "vision" and config.change_threshold > 0 and len(frames) > 1:
@@ -834,7 +834,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                 # folded while the estimate was far off (a far start) or the material changed make an arrival
                 # cost the window's data contradict: its variance of log E is matched to them (estimator.
                 # matched_arrival) where they lie more than --change-threshold σ away
-                filt.prior, _ = matched_arrival(filt.prior, res.p, res.jtwj / (sigma ** 2 * scale), prior.info,
+                filt.prior, _ = matched_arrival(filt.prior, res.p, n_data, prior.info,
                                                 np.arange(R), config.change_threshold)
             if hasattr(obs, "clusters") and len(frames) > 1:  # (the fit frame alone carries no information)
                 scale_hist.append(max(res.scale2, 1.0))
