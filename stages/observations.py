@@ -258,11 +258,30 @@ class VisionObservation:
         return np.concatenate([np.repeat(~(np.zeros(c.height * c.width, bool) if m is None else m.reshape(-1)), 3)
                                for c, m in zip(self._cams, self.ignore(t))]).astype(np.float64)
 
+    def _target_flat(self, t: int) -> np.ndarray:
+        """Frame t's :meth:`targets` of every camera flattened like the residuals, float64 (kept for t and the 7
+        frames nearest it: every evaluation of a window subtracts them)."""
+        flat = getattr(self, "_flat", None)
+        if flat is None:
+            flat = self._flat = {}
+        if t not in flat:
+            for old in [u for u in sorted(flat, key=lambda u: abs(u - t))][7:]:  # the 7 frames nearest t stay
+                del flat[old]
+            flat[t] = np.concatenate([im.reshape(-1) for im in self.targets(t)]).astype(np.float64)
+        return flat[t]
+
+    @staticmethod
+    def _masked(a: np.ndarray, keep: np.ndarray | float) -> np.ndarray:
+        """a × keep (rows of a (m,) or (m, k) zeroed under an occluder); a itself when nothing is occluded (the
+        same floats, without the copy)."""
+        if isinstance(keep, float) and keep == 1.0:
+            return a
+        return a * (keep[:, None] if a.ndim == 2 else keep)
+
     def residuals(self, frames: Sequence[int], X: np.ndarray) -> list[np.ndarray]:
         """Per frame, r_f = R(G(x_f), c) − Ĩ_f^c over every pixel, channel and camera, flattened (0 under an
         occluder)."""
-        return [(self._renders(x) - np.concatenate([im.reshape(-1) for im in self.targets(t)]).astype(np.float64))
-                * self._keep(t) for t, x in zip(frames, X)]
+        return [self._masked(self._renders(x) - self._target_flat(t), self._keep(t)) for t, x in zip(frames, X)]
 
     #: how GNWindow gets ∂r/∂p: "jvp" — exact forward mode through projection and rasterizer, all k columns in one
     #: pass per frame and camera (:meth:`residuals_and_jacobian`), where the renderer supports it
@@ -296,10 +315,10 @@ class VisionObservation:
                 V = V - dXa[:, :self.n]
             out = lf.images_jvp(x[:self.n] - self.anchor, V, binding)
             keep = self._keep(t)
-            tg = np.concatenate([im.reshape(-1) for im in self.targets(t)]).astype(np.float64)
-            rs.append((np.concatenate([o[0].reshape(-1) for o in out]).astype(np.float64) - tg) * keep)
+            rs.append(self._masked(np.concatenate([o[0].reshape(-1) for o in out]).astype(np.float64)
+                                   - self._target_flat(t), keep))
             J = np.concatenate([o[1].reshape(len(V), -1) for o in out], axis=1).T.astype(np.float64)  # (m, k)
-            Js.append(J * (keep[:, None] if isinstance(keep, np.ndarray) else keep))
+            Js.append(self._masked(J, keep))
         return rs, Js
 
     def jacobian(self, frames: Sequence[int], X: np.ndarray, dX: np.ndarray, rel_step: float = 1e-2,

@@ -100,6 +100,10 @@ class Adam:
         """Steps taken."""
         return 0 if self.state is None else int(self.state.count)
 
+    def restart(self) -> None:
+        """Forget the moments m, v and the step count: the next step is a first step."""
+        self.state = None
+
     def step(self, p: np.ndarray, g: np.ndarray) -> np.ndarray:
         """p (P,) after one step along the gradient g (P,)."""
         p, g = jnp.asarray(p, jnp.float64), jnp.asarray(g, jnp.float64)

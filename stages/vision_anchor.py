@@ -33,6 +33,10 @@ keeps p_a and decides, frame by frame, by this rule (p_T: the window's parameter
 
 With c = 0, p_a is its own unknown as soon as the window no longer holds f (no test).
 
+0. **calibrated** (AdaptConfig.anchor_calibration K > 0, instead of rules 1–4) — the window grows from the first
+   frame, anchor tied, until K informed frames; θ is then fitted to all of them, and p_a is held at that fit from
+   then on (:meth:`AnchorMaterial.calibrated`): the material is taken to be constant over those first frames.
+
 5. **later changes** (c > 0) — once p_a is apart, the candidate of rule 2 is still watched (against a level whose history
    restarts after each): it marks a later change of material (or a late convergence) without a test, since p_a
    stays the fit frame's material in either case.  What it limits is the lead-in (AdaptConfig.lead_in):
@@ -76,6 +80,7 @@ class AnchorMaterial:
         self.devs: list[np.ndarray] = []  # log E − level (R,) per untied frame with a level, since the restart
         self.tests: list[tuple[int, float, float, bool]] = []
         self._held = False
+        self.fixed = False  # rule 0: p_a held at the calibrated material
 
     @property
     def apart(self) -> bool:
@@ -87,9 +92,18 @@ class AnchorMaterial:
         None: none seen."""
         return self.later[-1] if self.later else self.apart_from
 
+    def calibrated(self, p: np.ndarray, T: int) -> None:
+        """Rule 0: p_a = p (2R,), the material fitted to the first frames, held from frame T on (no own steps, no
+        tests; rule 5 still watches for later changes, which limit the lead-in)."""
+        self.p, self.apart_from, self.fixed = np.array(p, float), T, True
+        self._later = ([np.array(p, float)], [])
+
     def held(self, T: int, tied: bool) -> np.ndarray | None:
         """Before frame T's steps: p_a held apart from the window's p, or None while tied (``tied``: the window holds
         the fit frame, where the anchor is the window's material in any case)."""
+        if self.fixed:
+            self._held = True
+            return self.p
         if not self.apart and not tied and self.change <= 0:  # c = 0: its own unknown from here on
             self.apart_from = T
         self._held = self.apart and not tied
@@ -98,6 +112,8 @@ class AnchorMaterial:
     def after_step(self, p: np.ndarray, g_anchor: np.ndarray | None, idle: bool) -> np.ndarray | None:
         """After one Adam step of the window's p (2R,): p_a's own step along dL/dp_a ``g_anchor`` (2R,; None: no
         anchor part), then p_a = p while tied.  Returns the ``anchor_p`` for the next evaluation."""
+        if self.fixed:
+            return self.p
         if g_anchor is not None and not idle:
             self.p = self.adam.step(self.p, g_anchor)
         if not self._held:

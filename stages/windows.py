@@ -286,6 +286,19 @@ class GNWindow:
     #: same estimates to the tolerance of the steps' solves (tests/test_gn_speed*.py).  False: every evaluation
     #: simulates its window and anchor — the slow twin
     memo: bool = True
+    #: images: the online change test (adapt._online_gn) judges the new frame by the residuals of the window's first
+    #: linearisation at the predicted θ, which the solve then starts from (its last frame: the state and render the
+    #: test would make, to rounding — one render of the new frame less per frame; the linearisation is made again
+    #: only when a change is declared).  False (and markers, whose residuals cost nothing): the test simulates and
+    #: renders the new frame by itself first — the slow twin (tests/test_gn_speed.py)
+    shared_innovation: bool = True
+    #: images (adapt._online_gn): numpy's BLAS (OpenBLAS) held to this many threads over the online loop — its
+    #: vector and thin-matrix products over the window's ~10⁵–10⁶ pixel residuals (the cost's dot products, Jᵀ W J,
+    #: Jᵀ W r) gain nothing from threads, which wait for a core of their own between calls: on the shared 2-core
+    #: machine 13 ms against 1 ms per cost evaluation, ≈0.2 s of gn's 0.9 s per frame at 2 iterations (Bar-like
+    #: case, by hand, 2026-11-25; bench/adapt_speed.py's row "jvp blas-threads").  None: BLAS's threads as the
+    #: process has them — the twin the bench compares
+    blas_threads: int | None = 1
 
     def __init__(self, objective: "WindowObjective", fit_poisson: bool, s_fixed: np.ndarray):
         self.obj, self.fit_poisson, self.s_fixed = objective, fit_poisson, s_fixed
@@ -306,6 +319,17 @@ class GNWindow:
         self.last_states = None
         self.last_frames: list[np.ndarray] = []  # per frame residuals of the last evaluation
         self.last_jac: list[np.ndarray] = []
+
+    def blas_limit(self, kind: str):
+        """The context that holds numpy's BLAS to :attr:`blas_threads` threads for observations of ``kind``
+        ("vision"; a no-op for markers, or with blas_threads None)."""
+        import contextlib
+
+        if kind != "vision" or self.blas_threads is None:
+            return contextlib.nullcontext()
+        from threadpoolctl import threadpool_limits
+
+        return threadpool_limits(limits=int(self.blas_threads), user_api="blas")
 
     def theta(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(E, ν, s) from the unknowns."""

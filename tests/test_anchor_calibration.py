@@ -1,0 +1,101 @@
+"""The images' anchor calibrated on the first frames (``rsl adapt --anchor-calibration K``, rule 0 of
+stages/vision_anchor.py): the window grows from the first frame until K informed frames, θ is fitted to them
+(stages.steps.adapt._calibrate_anchor, L-BFGS-B), and the Gaussians' anchor is held at that material from then on."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.parameters import Adam
+from stages.steps.adapt import _calibrate_anchor
+from stages.vision_anchor import AnchorMaterial
+from stages.window_backends import SolveCollapsed
+from test_adapt_vision_rest import DELAY, _adapt, delayed  # noqa: F401  (the module's capture fixture)
+from test_vision_bias import E_TRUE
+
+
+class _Quadratic:
+    """A window objective stand-in: L(p) = Σ_t (p − c_t)ᵀ A (p − c_t) over the frames, dL/dp exact; a trial with
+    log E beyond ``collapse`` raises SolveCollapsed, as a simulation whose elements invert does."""
+
+    R = 1
+
+    def __init__(self, centres: np.ndarray, collapse: float = np.inf):
+        self.c, self.A, self.collapse, self.calls = centres, np.array([[2.0, 0.3], [0.3, 1.0]]), collapse, 0
+
+    def __call__(self, frames, p, before, need_grad=True, lead=0):
+        self.calls += 1
+        if p[0] > self.collapse:
+            raise SolveCollapsed("inverted")
+        d = p[None, :] - self.c[list(frames)]
+        losses = np.einsum("ti,ij,tj->t", d, self.A, d)
+        return None, losses, 2.0 * (d @ self.A).sum(0), (0.1, 0.2, 0.3)
+
+
+def test_the_calibration_fit_is_the_minimum_of_the_frames_loss():
+    """Σ_t over frames 0..5 of a quadratic in p: the minimum is the mean of the centres, found from far off; the
+    objective's times are accumulated per evaluation."""
+    rng = np.random.default_rng(0)
+    centres = np.array([np.log(E_TRUE), 0.2]) + 0.05 * rng.standard_normal((6, 2))
+    obj, times = _Quadratic(centres), np.zeros(3)
+    p = _calibrate_anchor(obj, list(range(6)), np.array([np.log(0.3 * E_TRUE), -1.0]), None, None, times)
+    np.testing.assert_allclose(p, centres.mean(0), atol=1e-6)
+    np.testing.assert_allclose(times, obj.calls * np.array([0.1, 0.2, 0.3]))
+
+
+def test_the_calibration_keeps_log_e_in_the_young_range_and_steps_back_from_a_collapse():
+    """The minimum lies above young_range: the fit stops at its bound; trials past log E = collapse raise
+    SolveCollapsed (L-BFGS-B's line search backs off) and the result is still the best p evaluated."""
+    centres = np.tile([np.log(4 * E_TRUE), 0.0], (3, 1))
+    p = _calibrate_anchor(_Quadratic(centres), [0, 1, 2], np.array([np.log(E_TRUE), 0.0]), None,
+                          (1e3, 2 * E_TRUE), np.zeros(3))
+    assert p[0] == pytest.approx(np.log(2 * E_TRUE), abs=1e-9)
+    obj = _Quadratic(centres, collapse=np.log(3 * E_TRUE))
+    p = _calibrate_anchor(obj, [0, 1, 2], np.array([np.log(E_TRUE), 0.0]), None, None, np.zeros(3))
+    assert np.log(E_TRUE) < p[0] <= np.log(3 * E_TRUE)
+    assert obj(range(3), p, None)[1].sum() < obj(range(3), np.array([np.log(E_TRUE), 0.0]), None)[1].sum()
+
+
+def test_a_calibrated_anchor_is_held_whatever_the_window_does():
+    """Rule 0: after calibrated(p, T), held() returns p for tied and untied windows alike, the anchor takes no step
+    of its own, and rule 5 still marks a later change (which limits the lead-in)."""
+    rule = AnchorMaterial(np.array([np.log(0.5 * E_TRUE), 0.0]), np.array([0.15, 0.05]), 0.5, 1, 0.4, 3, 0)
+    p_cal = np.array([np.log(E_TRUE), 0.1])
+    rule.calibrated(p_cal, 8)
+    assert rule.apart_from == 8 and rule.lead_from == 8
+    np.testing.assert_array_equal(rule.held(9, True), p_cal)
+    np.testing.assert_array_equal(rule.held(9, False), p_cal)
+    np.testing.assert_array_equal(rule.after_step(p_cal + 1.0, np.array([5.0, 5.0]), False), p_cal)
+    for T, e in enumerate([1.0] * 8 + [2.0] * 8, start=9):  # the window's E steps ×2 at frame 17
+        rule.end_frame(T, np.array([np.log(e * E_TRUE), 0.1]), False, lambda F, p: 0.0)
+    np.testing.assert_array_equal(rule.p, p_cal)
+    assert rule.tests == [] and len(rule.later) == 1 and 17 <= rule.later[0] <= 19, rule.later
+
+
+def test_adam_restart_makes_the_next_step_a_first_step():
+    g = np.array([3.0, -0.01])
+    used = Adam(np.array([0.15, 0.05]), beta1=0.5)
+    p = np.zeros(2)
+    for _ in range(5):
+        p = used.step(p, np.array([40.0, 2.0]))
+    used.restart()
+    np.testing.assert_allclose(used.step(p, g) - p, Adam(np.array([0.15, 0.05]), beta1=0.5).step(p, g) - p,
+                               rtol=1e-12)
+    assert used.k == 1
+
+
+def test_online_adam_calibrates_the_anchor_on_the_first_moving_frames(delayed):  # noqa: F811
+    """The delayed bar (frames 0..DELAY at rest, own model, 8-bit images): E does not move while at rest, the
+    anchor is calibrated once K = 3 frames have moved (frame DELAY + 3), at an E within 3 % of the truth (the
+    model is the capture's own), and held there: adapt.h5 records that frame and the same anchor E after it."""
+    from stages.artefacts import AdaptArtefact
+
+    cap, ws, _, _ = delayed
+    E = _adapt(cap, ws, anchor_calibration=3)
+    extra = AdaptArtefact.load(ws / "adapt.h5").extra
+    T_c = DELAY + 3
+    assert extra["anchor_apart_from"] == T_c, extra["anchor_apart_from"]
+    assert np.all(E[:DELAY + 1] == E[0]), E
+    anchor = np.asarray(extra["anchor_young"], float)[:, 0]
+    assert anchor[T_c] == pytest.approx(E[T_c], rel=1e-12) and np.all(anchor[T_c:] == anchor[T_c]), anchor
+    assert abs(anchor[T_c] / E_TRUE - 1) < 0.03, anchor[T_c] / E_TRUE
