@@ -138,7 +138,8 @@ def _online(cap, ws, trust: float, loss: str, frames: str, monkeypatch, memo: bo
     from stages.windows import GNWindow
 
     skipped = []
-    monkeypatch.setattr(GNWindow, "memo", memo)
+    if memo is not None:  # None: GNWindow's own default
+        monkeypatch.setattr(GNWindow, "memo", memo)
     orig = GNWindow.extrapolate
 
     def extrapolate(self, frames_, *a, **k):
