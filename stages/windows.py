@@ -3,10 +3,12 @@ from x_0(θ); ``StaticWindow`` solves the static equilibria alone; ``WindowObjec
 dL/dp by the adjoint; ``GNWindow`` gives residuals and their Jacobian for Gauss–Newton (stages.estimator)."""
 from __future__ import annotations
 
+import contextlib
 import time
 from typing import Callable, Sequence
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from stages.errors import RslError
 from stages.estimator import bounded_sigma, robust_cost
@@ -323,12 +325,8 @@ class GNWindow:
     def blas_limit(self, kind: str):
         """The context that holds numpy's BLAS to :attr:`blas_threads` threads for observations of ``kind``
         ("vision"; a no-op for markers, or with blas_threads None)."""
-        import contextlib
-
         if kind != "vision" or self.blas_threads is None:
             return contextlib.nullcontext()
-        from threadpoolctl import threadpool_limits
-
         return threadpool_limits(limits=int(self.blas_threads), user_api="blas")
 
     def theta(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
