@@ -36,6 +36,8 @@ With c = 0, p_a is its own unknown as soon as the window no longer holds f (no t
 0. **calibrated** (AdaptConfig.anchor_calibration K > 0, instead of rules 1–4) — the window grows from the first
    frame, anchor tied, until K informed frames; θ is then fitted to all of them, and p_a is held at that fit from
    then on (:meth:`AnchorMaterial.calibrated`): the material is taken to be constant over those first frames.
+   With AdaptConfig.recalibrate, each later change rule 5 sees has the window's θ refitted the same way over a window
+   grown from it (:meth:`AnchorMaterial.restart_watch` then restarts rule 5's level there); p_a stays.
 
 5. **later changes** (c > 0) — once p_a is apart, the candidate of rule 2 is still watched (against a level whose history
    restarts after each): it marks a later change of material (or a late convergence) without a test, since p_a
@@ -96,6 +98,10 @@ class AnchorMaterial:
         """Rule 0: p_a = p (2R,), the material fitted to the first frames, held from frame T on (no own steps, no
         tests; rule 5 still watches for later changes, which limit the lead-in)."""
         self.p, self.apart_from, self.fixed = np.array(p, float), T, True
+        self._later = ([np.array(p, float)], [])
+
+    def restart_watch(self, p: np.ndarray) -> None:
+        """Rule 5's level history restarts at p (2R,): the window's θ refitted after a later change."""
         self._later = ([np.array(p, float)], [])
 
     def held(self, T: int, tied: bool) -> np.ndarray | None:

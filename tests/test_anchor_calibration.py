@@ -99,3 +99,4 @@ def test_online_adam_calibrates_the_anchor_on_the_first_moving_frames(delayed): 
     anchor = np.asarray(extra["anchor_young"], float)[:, 0]
     assert anchor[T_c] == pytest.approx(E[T_c], rel=1e-12) and np.all(anchor[T_c:] == anchor[T_c]), anchor
     assert abs(anchor[T_c] / E_TRUE - 1) < 0.03, anchor[T_c] / E_TRUE
+

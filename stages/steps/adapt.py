@@ -63,7 +63,7 @@ from stages.parameters import Adam, params_from_theta, theta_from_params
 from stages.progress import Reporter, SilentReporter
 from stages.sim.mesh import rest_quantities
 from stages.sim.meshgen import refine_tets  # noqa: F401  (re-exported: stages.steps.adapt.refine_tets)
-from stages.vision_anchor import AnchorMaterial
+from stages.vision_anchor import AWAY, AnchorMaterial
 from stages.window_model import Observation, WindowBackend
 from stages.workspace import prepare_workspace
 from stages.window_backends import (FullSpace, Guarded, ReducedSpace, SolveCollapsed, SolveGuard, StoredStates,
@@ -223,10 +223,20 @@ class AdaptConfig:
     x_f(θ_a) is the sagged frame 0, and an error of θ_a shifts every render by the sag's error, which after a step
     to a stiffer material (its own sag small) E must absorb: --anchor-change's rule left the bar with E ×2, ×4
     steps at 30.3 % median settled error.  bench/accuracy.py's captures, reduced space, median settled E error, 0
-    (the rule) → 8: bar at equilibrium 30.3 → 4.9 % (the paper's scale: 28.8 → 7.4 %), bar released at rest 14.3 →
-    16.8 %, the dinosaur 13.2 → 13.9 %; 11 measured 6.4 / 5.7 / 10.1 % but ends one frame before the bar's first step
-    (a change inside the calibration biases the anchor for good: raise it where the material is constant for
-    longer; accuracy_notes.md, eleventh stop).  0: --anchor-change's rule."""
+    (the rule) → 8, without --recalibrate: bar at equilibrium 30.3 → 4.9 % (the paper's scale: 28.8 → 7.4 %), bar
+    released at rest 14.3 → 16.8 %, the dinosaur 13.2 → 13.9 %; 11 measured 6.4 / 5.7 / 10.1 % but ends one frame
+    before the bar's first step (a change inside the calibration biases the anchor for good: raise it where the
+    material is constant for longer; accuracy_notes.md, eleventh stop).  0: --anchor-change's rule."""
+    recalibrate: bool = True
+    """adam, images, with --anchor-calibration: each later change of material that the anchor's rule 5 sees (log E
+    away from its level since the last change, 2–5 frames after the change) starts a growing window again, from the
+    first frame that moved away: after --anchor-calibration informed frames θ is fitted to all of them (L-BFGS-B)
+    and Adam restarts from it; the anchor stays at the first frames' material.  A false change costs the fit only
+    frames, not bias (the material is the same on both sides).  Why: after a step the sliding window starts from
+    states simulated with the lagging estimate and overshoots.  bench/accuracy.py's captures, reduced space, K = 8,
+    median settled E error without → with: bar released at rest 16.8 → 5.8 %, bar at equilibrium 4.9 → 5.8 %, the
+    dinosaur 13.9 → 13.9 %; the paper's scale (bar at equilibrium) 7.4 → 0.9 % (accuracy.md; accuracy_notes.md,
+    eleventh stop)."""
 
 
 def resolve_estimator(config: AdaptConfig) -> str:
@@ -612,13 +622,15 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
     # the anchor's calibration: until K informed frames, the window grows from the first frame (anchor tied)
     calibrating = anchor is not None and config.anchor_calibration > 0
     informed = 0  # frames whose window informed θ (it took a step) while calibrating
+    calib_from = loop.first  # the growing window's first frame (after a later change: the frame it began)
+    seen_later = 0  # the later changes (rule 5) already recalibrated for
     with loop.reporter.task(f"adapt online ({loop.backend.space}, {loop.obs.kind}, w={w})", loop.total()) as task:
         for T in loop.online_frames():
             frames = list(range(max(loop.first, T - w + 1), T + 1))
             tt = time.perf_counter()
             times = np.zeros(3)
             if calibrating:  # the growing window: every frame since the first, simulated from the start
-                frames = list(range(loop.first, T + 1))
+                frames = list(range(calib_from, T + 1))
             tied = frames[0] <= f  # the window holds the fit frame (p_a is p there in any case)
             idle = vision and tied and frames == [f]
             if anchor is not None:
@@ -656,8 +668,11 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                 times += t3
                 for i, t in enumerate(sim):
                     loop.stored[t] = states[i]
-                anchor.calibrated(params, T)
-                obj.want_anchor_grad = False  # p_a is held: no anchor part to move it by
+                if anchor.fixed:  # a recalibration after a later change: the anchor stays, rule 5 restarts
+                    anchor.restart_watch(params)
+                else:
+                    anchor.calibrated(params, T)
+                    obj.want_anchor_grad = False  # p_a is held: no anchor part to move it by
                 adam.restart()  # the growing window's gradients were larger: kept, they would shrink the next steps
                 calibrating = False
             if losses.shape[0] > w:  # the growing window: the loss of the last w frames, as a window's
@@ -671,7 +686,10 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                     return float(fl[F].sum())
 
                 anchor.end_frame(T, params, tied or calibrating, explains,
-                                 informed=not ((rest_rule or calibrating) and idle))
+                                 informed=not ((rest_rule and idle) or calibrating))
+                if config.recalibrate and anchor.fixed and len(anchor.later) > seen_later:
+                    seen_later = len(anchor.later)  # a later change: grow a window again from where it began
+                    calib_from, calibrating, informed = max(loop.first, T - AWAY + 1), True, 0
                 rec.anchor_apart, rec.anchor_later = anchor.apart_from, list(anchor.later)
                 rec.anchor_young.append(theta_from_params(anchor.p[:R], anchor.p[R:], loop.prange)[0].tolist())
             rec.add(T, E, nu, losses.sum(), losses[-1], tuple(times), time.perf_counter() - tt)
@@ -686,9 +704,10 @@ bench/accuracy.py's captures converged in 6–11)."""
 
 def _calibrate_anchor(obj: WindowObjective, sim: list[int], p: np.ndarray, before: np.ndarray,
                       young_range: tuple[float, float] | None, times: np.ndarray) -> np.ndarray:
-    """p (2R,) minimising L(p) = Σ_{t∈sim} loss_t(X_t(θ(p))), the frames ``sim`` simulated from the start with the
-    anchor tied to θ (WindowObjective with anchor_p None), by L-BFGS-B from ``p`` with the window's adjoint gradient;
-    log E inside young_range.  The calibration of AdaptConfig.anchor_calibration; ``times`` (3,) accumulates."""
+    """p (2R,) minimising L(p) = Σ_{t∈sim} loss_t(X_t(θ(p))), the frames ``sim`` simulated from ``before`` (the
+    start, or the stored states before a later change) with the anchor as ``obj`` holds it (tied to θ at the first
+    calibration, held after), by L-BFGS-B from ``p`` with the window's adjoint gradient; log E inside young_range.
+    AdaptConfig.anchor_calibration and recalibrate; ``times`` (3,) accumulates."""
     R = obj.R
     best = [np.inf, np.array(p, float)]  # the lowest L(p) evaluated, and its p
 
