@@ -598,11 +598,11 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
     (a convergence from a far-off start explains them better with the current p) — then its own unknown, moved by
     Adam along the anchor's part of the gradient alone.
 
-    The rest phase (with ``--lead-in`` > 0).  While the simulated object has not moved since frame 0 (no control has reached it yet: a
-    pusher still approaching, an equilibrium start), frames 0..T are *at rest*: x_t = x_0(θ) for every θ.  A window
-    whose states before it are at rest starts from x_0(θ) itself (frame 0, the static solve, differentiated, then
-    its frames from (x_0, x_0)) instead of from stored states, which hold x_0 of the θ of their time and would make
-    the object start to move as soon as θ changes.  A window at rest, fit frame included (a window holding only
+    The rest phase (with ``--lead-in`` > 0).  While the simulated object has not moved since frame 0 (no control
+    has reached it yet: a pusher still approaching, an equilibrium start), frames 0..T are *at rest*: x_t = x_0(θ)
+    for every θ.  A window whose states before it are at rest starts from x_0(θ) itself (frame 0, the static solve,
+    differentiated, then its frames from (x_0, x_0)) instead of from stored states, which hold x_0 of the θ of their
+    time and would make the object start to move as soon as θ changes.  A window at rest, fit frame included (a window holding only
     frame f too), has no information on θ — the re-bound Gaussians render the fitted ones for every θ, dL/dθ = 0 up
     to round-off — and takes no step (Adam would turn the round-off into a full step)."""
     config, rec, R, obj = loop.config, loop.rec, loop.objective.R, loop.objective
