@@ -16,10 +16,14 @@ Variants (switched in this process only: VisionObservation.jacobian_mode, GNWind
   residuals taken from the solve's first linearisation (GNWindow.shared_innovation) and numpy's BLAS on one thread
   over the online loop (GNWindow.blas_threads);
 - gn jvp no-memo: the same with GNWindow.memo off (every evaluation simulates its window and anchor: the slow twin);
+- gn jvp, --gn-trust 0: every step evaluated (rows "jvp" and its twins below);
 - gn jvp, --gn-trust 5 (row "jvp 1-eval"): the same, with a step of at most 5 posterior σ taken on the quadratic model
   (one evaluation per frame: the window's states at the estimate to first order, GNWindow.extrapolate, continued by
   the next window with one substep per frame, simulated again from them with more) instead of simulated and
   rendered there;
+- gn default (at rsl adapt's default --iters-per-frame): gn as a user gets it — jvp, and --gn-trust left to
+  AdaptConfig's default, which resolve_gn_trust sets from the loss (the value that ran is read back from adapt.h5's
+  provenance); its twin with every step evaluated is the row "jvp" of the same iterations;
 - gn jvp separate-test: the change test simulating and rendering the new frame by itself before the solve
   (GNWindow.shared_innovation off: the slow twin of taking its residuals from the solve's first linearisation);
 - gn jvp blas-threads: numpy's BLAS with the threads the process has (GNWindow.blas_threads None: the twin of
@@ -43,8 +47,9 @@ from stored states (frame > w: no first call's compilation; bench/table1.py take
 wall times (time_forward_s, time_backward_s, time_render_s, time_total_s) and the process CPU time per frame
 (all threads, measured here between the reporter's per-frame calls).  Runs are interleaved (rounds × variants),
 so load from other jobs falls on all alike; ratios are against adam within this run (issue 13's target: gn's
-per-frame time no higher than adam's) and fd / jvp.  The E trajectories of gn jvp against gn fd, each twin and gn
-jvp 1-eval are compared (relative difference and in units of the reported σ_E).
+per-frame time no higher than adam's) and fd / jvp.  The E trajectories of gn jvp against gn fd, each twin, gn
+jvp 1-eval and (at the default iterations) gn default are compared (relative difference and in units of the
+reported σ_E).
 
     nice python bench/adapt_speed.py              # 2 rounds, 4 timed frames per run
     nice python bench/adapt_speed.py --quick      # table1's --quick Bar (64², 2000 Gaussians), 1 round
@@ -72,7 +77,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 import table1  # noqa: E402
-from stages.artefacts import AdaptArtefact  # noqa: E402
+from stages.artefacts import AdaptArtefact, read_provenance  # noqa: E402
 from stages.progress import SilentReporter  # noqa: E402
 from stages.observations import VisionObservation  # noqa: E402
 from stages.steps import adapt  # noqa: E402
@@ -82,11 +87,12 @@ BOTH_OFF = "jvp separate-test blas-threads"  # gn jvp with both switches off: th
 VARIANTS = (("adam", "default"), ("gn", "fd"), ("gn", "jvp"), ("gn", "jvp no-memo"), ("gn", "jvp 1-eval"),
             ("gn", "jvp separate-test"), ("gn", "jvp blas-threads"), ("gn", BOTH_OFF), ("adam", "blas-1"))
 # both estimators at rsl adapt's default --iters-per-frame (the rows above take 1), with rsl adapt's default substeps
-DEFAULTS = (("adam", "default"), ("gn", "jvp"), ("gn", BOTH_OFF), ("adam", "blas-1"))
+DEFAULTS = (("adam", "default"), ("gn", "default"), ("gn", "jvp"), ("gn", BOTH_OFF), ("adam", "blas-1"))
+# AdaptConfig.gn_trust of a gn variant: None (AdaptConfig's default, resolve_gn_trust) for "default", else this
 TRUST = {"jvp 1-eval": 5.0}
 # with rsl adapt's default substeps S (every variant), and with 1 substep per frame — the discretisation the capture was
 # synthesised with (bench/table1.py), where E is not biased by the model's time step (the main variants)
-VARIANTS_S1 = (("adam", "default"), ("gn", "jvp"), ("gn", "jvp 1-eval"))  # AdaptConfig.gn_trust of a variant (0: every step evaluated)
+VARIANTS_S1 = (("adam", "default"), ("gn", "jvp"), ("gn", "jvp 1-eval"))
 E_TRUE = 1e5  # the Young's modulus bench/table1.py's build() synthesises the Bar with (and capture.toml's, the start)
 
 
@@ -158,14 +164,16 @@ def run_once(cap: Path, ws: Path, out: Path, estimator: str, w: int, n_frames: i
     out.mkdir(parents=True, exist_ok=True)
     for f in ("mesh.h5", "cameras.h5", "gaussians.h5", "subspace.h5"):
         shutil.copy(ws / f, out / f)
+    trust = {} if name == "default" else {"gn_trust": TRUST.get(name, 0.0)}  # "default": AdaptConfig's own
     cfg = adapt.AdaptConfig(capture=cap, workspace=out, space="reduced", loss="vision", window=w,
-                            iters_per_frame=iters, frames=f"0:{n_frames}", estimator=estimator,
-                            gn_trust=TRUST.get(name, 0.0), substeps=substeps,
-                            anchor_calibration=0)  # (see the module's docstring: the sliding window is timed)
+                            iters_per_frame=iters, frames=f"0:{n_frames}", estimator=estimator, substeps=substeps,
+                            anchor_calibration=0,  # (see the module's docstring: the sliding window is timed)
+                            **trust)
     clock = _CpuClock()
     its: list = []
     with variant(name), counting_gauss_newton(its):
-        art = AdaptArtefact.load(adapt.run(cfg, clock))
+        path = adapt.run(cfg, clock)
+    art = AdaptArtefact.load(path)
     sel = np.asarray(art.frames) > w
     # gn: one gauss_newton per online frame (its first frame, without an earlier one, is not counted)
     gn_its = np.asarray(its[-len(art.frames):] if its else np.zeros((0, 2)), float).reshape(-1, 2)
@@ -176,7 +184,8 @@ def run_once(cap: Path, ws: Path, out: Path, estimator: str, w: int, n_frames: i
             "gn_iterations": float(np.mean(gn_its[sel, 0])) if len(gn_its) == len(sel) else None,
             "gn_evaluations": float(np.mean(gn_its[sel, 1])) if len(gn_its) == len(sel) else None,
             "young": np.asarray(art.young).tolist(), "young_sigma": np.asarray(art.young_sigma).tolist(),
-            "frames": np.asarray(art.frames).tolist()}
+            "frames": np.asarray(art.frames).tolist(),
+            "gn_trust": read_provenance(path)["config"].get("gn_trust")}  # the value that ran (adapt.h5)
 
 
 def markdown(data: dict) -> str:
@@ -194,20 +203,23 @@ def markdown(data: dict) -> str:
              f"{s['timed']} (no compilation), then the median over the rounds; S: implicit-Euler substeps per frame "
              "(the capture was synthesised with 1; rsl adapt's default first, then 1 for the main variants).  Wall: "
              "adapt.h5's times (fwd includes the re-anchoring); CPU: the process CPU time per frame (all threads).  "
+             "trust: the --gn-trust that ran, as adapt.h5 records it (gn default: AdaptConfig's default, resolved "
+             "from the loss).  "
              "gn / adam: this row's time over adam's with the same S and it, same run (issue 13's target: ≤ 1).  "
              "its / evals: gn's "
              "Gauss–Newton iterations and window evaluations per timed frame (mean).  E error: round 1, every frame, "
              f"against the E the capture was synthesised with ({E_TRUE:.3g} Pa; every run starts there).", "",
-             "| S | it | estimator | J | fwd s | bwd s | render s | total s (wall) | CPU s / frame | "
+             "| S | it | estimator | J | trust | fwd s | bwd s | render s | total s (wall) | CPU s / frame | "
              "gn / adam (wall) | "
              "gn / adam (CPU) | fd / this (CPU) | its / evals | max \\|E/E_true − 1\\| |",
-             "| ---: | ---: | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "| ---: | ---: | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in data["rows"]:
         fd = "" if r.get("fd_over_this_cpu") is None or r["estimator"] != "gn" else f"{r['fd_over_this_cpu']:.2f}×"
         it = r.get("iters_per_frame", 1)
         ev = "" if r.get("gn_iterations") is None else f"{r['gn_iterations']:.2g} / {r['gn_evaluations']:.2g}"
+        trust = "" if r["estimator"] != "gn" or r.get("gn_trust") is None else f"{r['gn_trust']:g}"
         lines.append(f"| {r.get('substeps', 1)} | {it}{' *default*' if it == I0 and I0 != 1 else ''} | "
-                     f"{r['estimator']} | {r['variant']} | {r['forward_s']:.3g} | "
+                     f"{r['estimator']} | {r['variant']} | {trust} | {r['forward_s']:.3g} | "
                      f"{r['backward_s']:.3g} | {r['render_s']:.3g} | {r['total_s']:.3g} | {r['cpu_s']:.3g} | "
                      f"{r['over_adam_wall']:.2f} | {r['over_adam_cpu']:.2f} | {fd} | {ev} | "
                      f"{100 * r['max_err']:.2f} % |")
@@ -215,16 +227,28 @@ def markdown(data: dict) -> str:
     row = {(r.get("substeps", 1), r.get("iters_per_frame", 1), r["estimator"], r["variant"]): r for r in data["rows"]}
     S0 = s["substeps"]
     summary = []
+
+    def gn_part(label: str, g: dict) -> str:
+        return (f"{label} {g['total_s']:.3g} s wall per frame (gn / adam {g['over_adam_wall']:.2f} wall, "
+                f"{g['over_adam_cpu']:.2f} CPU; {g['gn_iterations']:.2g} iterations and {g['gn_evaluations']:.2g} "
+                f"window evaluations per frame; max E error {100 * g['max_err']:.1f} %)")
+
     for it in sorted({1, I0}):
         a, g = row.get((S0, it, "adam", "default")), row.get((S0, it, "gn", "jvp"))
+        # gn as rsl adapt runs it by default (the row "default"; at 1 iteration the row with the same --gn-trust)
+        d = row.get((S0, it, "gn", "default"))
+        if d is None:
+            d = next((r for r in data["rows"] if r.get("substeps", 1) == S0 and r.get("iters_per_frame", 1) == it
+                      and r["estimator"] == "gn" and r["variant"] != "jvp" and r.get("gn_trust") is not None
+                      and r["gn_trust"] == data.get("gn_trust_default")), None)
         if a and g:
             summary.append(f"{it} step(s) / at most {it} iteration(s) per frame"
                            f"{' (the defaults)' if it == I0 else ''}: "
-                           f"adam {a['total_s']:.3g} s, gn {g['total_s']:.3g} s wall per frame (gn / adam "
-                           f"{g['over_adam_wall']:.2f} wall, {g['over_adam_cpu']:.2f} CPU; gn made "
-                           f"{g['gn_iterations']:.2g} iterations and {g['gn_evaluations']:.2g} window evaluations per "
-                           f"frame); max E error adam {100 * a['max_err']:.1f} %, gn {100 * g['max_err']:.1f} %"
-                           + (f"; adam with BLAS on one thread {b['total_s']:.3g} s (gn / that "
+                           f"adam {a['total_s']:.3g} s (max E error {100 * a['max_err']:.1f} %); "
+                           + (gn_part(f"gn with --gn-trust {d['gn_trust']:g} (the default with images, row "
+                                      f"{d['variant']})", d) + "; " if d else "")
+                           + gn_part("gn with every step evaluated (--gn-trust 0)", g)
+                           + (f"; adam with BLAS on one thread {b['total_s']:.3g} s (gn jvp / that "
                               f"{g['total_s'] / b['total_s']:.2f} wall, {g['cpu_s'] / b['cpu_s']:.2f} CPU)"
                               if (b := row.get((S0, it, "adam", "blas-1"))) else "")
                            + (f"; gn {BOTH_OFF} {o['total_s']:.3g} s wall, {o['cpu_s']:.3g} s CPU (gn jvp / that "
@@ -239,9 +263,11 @@ def markdown(data: dict) -> str:
               f"{data['memo_vs_no_memo']['max_in_sigma']:.2g} σ_E.  "
               + "".join(f"gn jvp against gn {n}: E differs by at most {100 * c['max_rel']:.2g} %, at most "
                         f"{c['max_in_sigma']:.2g} σ_E.  " for n, c in twins.items())
-              + "gn jvp 1-eval against gn jvp: E differs by "
+              + "gn taking small last steps on the quadratic model against gn with every step evaluated (--gn-trust "
+              "0, row jvp), the same S and it: E differs by "
               + "; ".join(f"at most {100 * one['max_rel']:.2f} % (median {100 * one['median_rel']:.2f} %), at most "
-                          f"{one['max_in_sigma']:.3f} σ_E with S = {S}" for S, one in data["one_vs_two"].items())
+                          f"{one['max_in_sigma']:.3f} σ_E ({one['variant']}, --gn-trust {one['gn_trust']:g}, "
+                          f"S = {one['S']}, it = {one['it']})" for one in data["one_vs_two"])
               + ".  Per round (CPU s / frame, " + " / ".join(f"S={p[0]} {p[1]} {p[2]} it={p[3] if len(p) > 3 else 1}"
                                                             for p in data["plan"]) + "): "
               + "; ".join(
@@ -295,6 +321,7 @@ def main() -> None:
         fd = runs.get((S, "gn", "fd", it))
         row["fd_over_this_cpu"] = statistics.median(r["cpu_s"] for r in fd) / row["cpu_s"] if fd else None
         row["rounds"] = [{k: r[k] for k in ("total_s", "cpu_s")} for r in rs]
+        row["gn_trust"] = rs[0]["gn_trust"] if est == "gn" else None  # as adapt.h5 records it
         row["young"] = rs[0]["young"]
         row["young_sigma"] = rs[0]["young_sigma"]
         row["max_err"] = float(np.max(np.abs(np.asarray(rs[0]["young"]) / E_TRUE - 1.0)))  # round 1, every frame
@@ -306,8 +333,9 @@ def main() -> None:
                 "max_in_sigma": float(np.max(np.abs(yb - ya) / sa)), "frames": a["frames"]}
 
     jvp_vs_fd = compare(runs[(S0, "gn", "fd", 1)][0], runs[(S0, "gn", "jvp", 1)][0])
-    one_vs_two = {S: compare(runs[(S, "gn", "jvp", 1)][0], runs[(S, "gn", "jvp 1-eval", 1)][0])
-                  for S in sorted({S0, 1})}
+    one_vs_two = [dict(compare(runs[(S, "gn", "jvp", it)][0], runs[(S, "gn", name, it)][0]), S=S, it=it,
+                       variant=name, gn_trust=runs[(S, "gn", name, it)][0]["gn_trust"])
+                  for S, est, name, it in plan if est == "gn" and name in ("jvp 1-eval", "default")]
     memo_vs_not = compare(runs[(S0, "gn", "jvp no-memo", 1)][0], runs[(S0, "gn", "jvp", 1)][0])
     # the fast paths against their twins: E of gn jvp (all on) against each with one switched off
     twins = {name: compare(runs[(S0, "gn", name, 1)][0], runs[(S0, "gn", "jvp", 1)][0])
@@ -321,7 +349,10 @@ def main() -> None:
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "wall_s": time.perf_counter() - t0, "jvp_vs_fd": jvp_vs_fd, "memo_vs_no_memo": memo_vs_not,
             "twins": twins, "iters_default": I0,
-            "one_vs_two": {str(k): v for k, v in one_vs_two.items()}, "plan": [list(x) for x in plan],
+            "one_vs_two": one_vs_two, "plan": [list(x) for x in plan],
+            # --gn-trust as AdaptConfig's default resolves it with images (the "default" runs' adapt.h5)
+            "gn_trust_default": next((r[0]["gn_trust"] for (S, e, n, it), r in runs.items() if n == "default"
+                                      and e == "gn"), None),
             "per_round_cpu": per_round,
             "settings": {"case": f"Bar, {case.shape}, {3 * mesh.n_vertices} DOFs, {mesh.n_tets} tets of order "
                                  f"{mesh.order}", "resolution": resolution, "gaussians": gaussians,

@@ -131,8 +131,9 @@ def test_extrapolate_is_the_window_at_the_new_estimate_to_first_order(beam):  # 
         assert a / b >= 8.0, (a, b)  # second order: h² → (h/4)² divides by 16 (first order: by 4)
 
 
-def _online(cap, ws, trust: float, loss: str, frames: str, monkeypatch, memo: bool | None = None, **kw):
-    """adapt online gn; returns (young (T,), σ_E (T,), the frames whose step was taken without evaluation)."""
+def _online(cap, ws, trust: float | None, loss: str, frames: str, monkeypatch, memo: bool | None = None, **kw):
+    """adapt online gn (trust None: AdaptConfig's default --gn-trust); returns (young (T,), σ_E (T,), the frames whose
+    step was taken without evaluation)."""
     from stages.artefacts import AdaptArtefact
     from stages.steps import adapt
     from stages.windows import GNWindow
@@ -147,9 +148,10 @@ def _online(cap, ws, trust: float, loss: str, frames: str, monkeypatch, memo: bo
         return orig(self, frames_, *a, **k)
 
     monkeypatch.setattr(GNWindow, "extrapolate", extrapolate)
+    trust_kw = {} if trust is None else {"gn_trust": trust}
     art = AdaptArtefact.load(adapt.run(adapt.AdaptConfig(capture=cap, workspace=ws, loss=loss, window=3, frames=frames,
-                                                         iters_per_frame=1, estimator="gn", gn_trust=trust, space="full",
-                                                         **kw)))
+                                                         estimator="gn", space="full", **{"iters_per_frame": 1,
+                                                                                          **trust_kw, **kw})))
     monkeypatch.undo()
     return art.young[:, 0], art.young_sigma[:, 0], skipped
 
@@ -402,3 +404,73 @@ def test_vision_residuals_from_the_kept_targets_are_the_obvious_formula(beam_ste
     assert VisionObservation._masked(rs[0], 1.0) is rs[0]
     assert np.array_equal(VisionObservation._masked(rs[0], keep), rs[0] * keep)
     assert np.array_equal(VisionObservation._masked(J, keep), J * keep[:, None])
+
+
+def test_gn_trust_default_resolves_from_the_loss():
+    """resolve_gn_trust: AdaptConfig's default --gn-trust (None) is GN_TRUST_IMAGES (5) with images and 0 (every step
+    tested) with markers and silhouettes; a value given always wins, 0 included."""
+    from pathlib import Path
+
+    from stages.steps.adapt import GN_TRUST_IMAGES, AdaptConfig, resolve_gn_trust
+
+    cfg = AdaptConfig(capture=Path("c"), workspace=Path("w"))
+    assert cfg.gn_trust is None and GN_TRUST_IMAGES == 5.0
+    assert resolve_gn_trust(cfg, "vision") == GN_TRUST_IMAGES
+    assert resolve_gn_trust(cfg, "markers") == 0.0 and resolve_gn_trust(cfg, "silhouette") == 0.0
+    for given in (0.0, 2.5):
+        explicit = AdaptConfig(capture=Path("c"), workspace=Path("w"), gn_trust=given)
+        assert resolve_gn_trust(explicit, "vision") == given and resolve_gn_trust(explicit, "markers") == given
+
+
+def _mesh_workspace(ws, out):
+    """A copy of ws's mesh.h5 and cameras.h5 alone in ``out`` (no adapt.h5 of an earlier test); returns out."""
+    import shutil
+
+    out.mkdir()
+    for f in ("mesh.h5", "cameras.h5"):
+        shutil.copy(ws / f, out / f)
+    return out
+
+
+def test_gn_trust_negative_is_rejected(beam_step, tmp_path):
+    """--gn-trust below 0 fails before any compute, with the option's name and the value."""
+    from stages.errors import RslError
+    from stages.steps import adapt
+
+    cap, ws = beam_step
+    ws2 = _mesh_workspace(ws, tmp_path / "ws")
+    with pytest.raises(RslError, match=r"--gn-trust must be 0 or more, found -1\.0"):
+        adapt.run(adapt.AdaptConfig(capture=cap, workspace=ws2, loss="markers", estimator="gn", gn_trust=-1.0))
+    assert not (ws2 / "adapt.h5").exists()
+
+
+def test_gn_images_at_the_default_trust_take_one_evaluation_and_record_it(beam_step, tmp_path, monkeypatch):
+    """Images, gn at AdaptConfig's default --gn-trust, rsl adapt's default iterations: the small last steps are taken
+    on the quadratic model (GNWindow.extrapolate, gauss_newton unchecked) and adapt.h5 records the resolved 5; markers at
+    the default: every step tested (no extrapolation) and 0 recorded."""
+    from stages.artefacts import read_provenance
+    from stages.steps import adapt
+    from test_adapt_e2e import _image_workspace
+
+    cap, ws = beam_step
+    ws2 = _image_workspace(ws, tmp_path / "ws")
+    results = []
+    orig = adapt.gauss_newton
+
+    def counted(*a, **k):
+        res = orig(*a, **k)
+        results.append(res)
+        return res
+
+    monkeypatch.setattr(adapt, "gauss_newton", counted)
+    iters = adapt.AdaptConfig.iters_per_frame
+    _, _, skipped = _online(cap, ws2, None, "vision", "0:10", monkeypatch, substeps=1, iters_per_frame=iters)
+    assert read_provenance(ws2 / "adapt.h5")["config"]["gn_trust"] == adapt.GN_TRUST_IMAGES
+    unchecked = [r for r in results if not r.checked]
+    assert len(skipped) >= 3 and len(unchecked) == len(skipped), (skipped, len(unchecked))
+    # a linearisation per iteration and a trial per iteration but the last (every step tested: 2 per iteration)
+    assert all(r.evaluations == 2 * r.iterations - 1 for r in unchecked), \
+        [(r.iterations, r.evaluations) for r in unchecked]
+    ws3 = _mesh_workspace(ws, tmp_path / "ws3")
+    _, _, skipped = _online(cap, ws3, None, "markers", "0:6", monkeypatch, substeps=1)
+    assert skipped == [] and read_provenance(ws3 / "adapt.h5")["config"]["gn_trust"] == 0.0

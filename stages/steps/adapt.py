@@ -189,16 +189,19 @@ class AdaptConfig:
     model_error_poisson: float = 0.02
     """gn: σ of ν that the discretisation itself adds to the reported ν ± σ (in quadrature; ν is weakly identified
     and absorbs model error, calibrated in docs/results/estimator.md)."""
-    gn_trust: float = 0.0
+    gn_trust: float | None = None
     """gn: a frame's (last) Gauss–Newton step of at most this many posterior σ is taken on the quadratic model: the
     window's states and residuals at the new estimate by first order along their sensitivities and Jacobian, not
     simulated and rendered there (one evaluation per frame instead of two; with one substep per frame the next
     window continues these first-order states, with more it simulates its frames again); the next frame's
     linearisation renders that estimate, and when its data cost exceeds the prediction by more than 1 (a 1-σ step
     lowers the cost by ½) that frame's step is tested again; larger steps are always tested (Levenberg–Marquardt).
-    0: every step is tested.  Images, Bar-like case: 5 moves E by < 0.1 σ_E; markers, bar with E steps (3 substeps
-    per frame, measured by hand on bench/accuracy.py's capture): up to 3.1 σ_E right after a change, ≤ 0.2 σ_E
-    elsewhere (docs/results/adapt_speed.md: the images)."""
+    0: every step is tested.  Default (resolve_gn_trust; adapt.h5 records the value that ran): 5 with images, 0 with
+    markers and silhouettes.  Images, Bar-like case, 1 / 2 (the default) iterations per frame, against 0: E moves by
+    ≤ 0.14 / 0.24 σ_E, gn's wall time per frame from 1.34 / 1.19 to 1.09 / 1.11 times adam's
+    (docs/results/adapt_speed.md; 10 and 20 took the very same steps at 2 iterations, by hand); markers, bar with E
+    steps (3 substeps per frame, by hand on bench/accuracy.py's capture): up to 3.1 σ_E right after a change,
+    ≤ 0.2 σ_E elsewhere, and docs/results/estimator.md's accuracy was measured with 0."""
     vision_anchor: Literal["estimated", "simulated"] = "estimated"
     """adam, images: the material θ_a the Gaussians' anchor x_f (their fit frame f, simulated from the start) is
     simulated with.  estimated: the fit frame's own material — the window's θ until a change of material is seen
@@ -245,6 +248,18 @@ def resolve_estimator(config: AdaptConfig) -> str:
     if config.estimator != "auto":
         return config.estimator
     return "gn" if config.loss == "markers" else "adam"
+
+
+GN_TRUST_IMAGES = 5.0
+"""--gn-trust's default with images (docs/results/adapt_speed.md, rows "1-eval")."""
+
+
+def resolve_gn_trust(config: AdaptConfig, obs_kind: str) -> float:
+    """The --gn-trust a run takes: the config's when given, else GN_TRUST_IMAGES with images (obs_kind "vision")
+    and 0 (every step tested) with markers and silhouettes (AdaptConfig.gn_trust)."""
+    if config.gn_trust is not None:
+        return float(config.gn_trust)
+    return GN_TRUST_IMAGES if obs_kind == "vision" else 0.0
 
 
 
@@ -374,7 +389,7 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     if not (config.process_noise >= 0 and config.process_noise_change >= 0):
         raise RslError(f"{capture.toml_path}: --process-noise and --process-noise-change must be 0 or more, found "
                        f"{config.process_noise} and {config.process_noise_change}.")
-    if not config.gn_trust >= 0:
+    if config.gn_trust is not None and not config.gn_trust >= 0:
         raise RslError(f"{capture.toml_path}: --gn-trust must be 0 or more, found {config.gn_trust}.")
     if config.lead_in < 0:
         raise RslError(f"{capture.toml_path}: --lead-in must be 0 or more, found {config.lead_in}.")
@@ -521,6 +536,7 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     # Ctrl-C raises KeyboardInterrupt at once as usual, but is also counted (stages/interrupt.py): one that
     # compiled code lost ends the loop when the frame is recorded (the progress step), and none can abort the save
     ctrl_c = CtrlC()
+    config = dataclasses.replace(config, gn_trust=resolve_gn_trust(config, obs.kind))  # (adapt.h5 records it)
     loop = _Loop(config, obs, backend, objective, stored, rec, prange, mat.young_range, first, last,
                  CheckedReporter(reporter, ctrl_c))
     try:
@@ -824,7 +840,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     w = config.window
     gn = GNWindow(objective, config.fit_poisson, s_nu)
     gn.young_range = loop.young_range
-    gn.trust = float(config.gn_trust)
+    gn.trust = resolve_gn_trust(config, obs.kind)
     k_th = gn.k_theta
     p_th = np.concatenate([log_e, s_nu]) if config.fit_poisson else log_e.copy()
     filt = WindowFilter(_gn_prior(p_th), np.full(k_th, float(config.process_noise)))
