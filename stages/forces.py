@@ -47,9 +47,10 @@ between the material changes adapt's gn estimator detected, the segment's last e
 has seen the whole segment); "smoothed" (default :data:`FORCE_THETA`) = the fixed-interval (Rauch–Tung–Striebel)
 smoother of the recorded E ± σ, ν ± σ under the random walk the gn filter itself assumed (:func:`rts_theta`: its
 process noise per frame, none between frames that shared a window, its change σ at a detected change — the settings
-come from adapt.h5's provenance, :func:`filter_model`); a run without σ or change detector (Adam) keeps its
-recorded θ(t).  Export runs after adapt, so the replay need not be causal.  docs/results/forces_theta.md
-(bench/forces.py --part theta; gn, markers, full space, replay Richardson (1, 2), two adapt runs per capture)
+come from adapt.h5's provenance, :func:`filter_model`); an Adam run with images and --anchor-calibration (no σ)
+is held per segment between its located changes at the calibrations' fits (:func:`calibrated_theta`), any other
+Adam run keeps its recorded θ(t).  Export runs after adapt, so the replay need not be causal.
+docs/results/forces_theta.md (bench/forces.py --part theta; gn, markers, full space, replay Richardson (1, 2), two adapt runs per capture)
 measured against the truth refined in time.  The default is chosen on the frames where the truth's force is defined
 — converged in time: every frame of the two-region beam (constant E) and every capture's frames before its first
 step of E (docs/results/forces_converged.md) — where "smoothed" is lower than "online" on every capture: beam
@@ -352,6 +353,24 @@ def rts_theta(young: np.ndarray, young_sigma: np.ndarray, poisson: np.ndarray, p
     return out_e, lo + (hi - lo) * expit(out_s)
 
 
+def calibrated_theta(young: np.ndarray, poisson: np.ndarray, calibrations: Sequence[dict],
+                     changes: Sequence[int]) -> tuple[np.ndarray, np.ndarray, int]:
+    """θ(t) (T, R) of an adam images run held per segment at its calibrations' fits: the segments between the
+    located changes of material (``changes``, adapt.h5 extra['anchor_change_frames']); a segment whose first frame
+    is a calibration's first frame (extra['anchor_calibrations'], {"frames": [first, last], "young", "poisson"})
+    takes that fit — θ fitted to the segment's first frames at once, not a sliding window's steps — and keeps its
+    recorded θ(t) otherwise (a change too late in the run to be calibrated).  Returns (young, poisson, the number of
+    segments held)."""
+    young, poisson = np.array(young, np.float64), np.array(poisson, np.float64)
+    by_first = {int(c["frames"][0]): c for c in calibrations}
+    held = 0
+    for a, b in segments(changes, len(young)):
+        cal = by_first.get(a)
+        if cal is not None:
+            young[a:b], poisson[a:b], held = cal["young"], cal["poisson"], held + 1
+    return young, poisson, held
+
+
 def replay_theta(young: np.ndarray, poisson: np.ndarray, extra: dict | None, rule: str = FORCE_THETA,
                  young_sigma: np.ndarray | None = None, poisson_sigma: np.ndarray | None = None,
                  model: FilterModel | None = None) -> tuple[np.ndarray, np.ndarray, str]:
@@ -361,13 +380,19 @@ def replay_theta(young: np.ndarray, poisson: np.ndarray, extra: dict | None, rul
     gn estimator detected (extra['material_changes_detected']).  "smoothed": :func:`rts_theta` from the recorded σ
     (young_sigma, poisson_sigma (T, R)) under the filter's random walk ``model`` (:func:`filter_model`).  A run
     without a change detector (Adam: no σ either) keeps its recorded θ(t), and so does "smoothed" without σ or
-    model.  ValueError for an unknown rule."""
+    model — except an Adam run with calibrations (extra['anchor_calibrations']): "segment" and "smoothed" hold them
+    over their segments (:func:`calibrated_theta`).  ValueError for an unknown rule."""
     if rule not in THETA_RULES:
         raise ValueError(f"the replay's θ rule should be one of {', '.join(THETA_RULES)}, found {rule!r}")
     young, poisson = np.asarray(young, np.float64), np.asarray(poisson, np.float64)
     extra = extra or {}
     if rule == "online":
         return young, poisson, "θ(t) of adapt.h5"
+    if extra.get("anchor_calibrations"):  # adam with images: no σ, but fits per segment
+        changes = [int(c) for c in extra.get("anchor_change_frames", []) or []]
+        y, p, held = calibrated_theta(young, poisson, extra["anchor_calibrations"], changes)
+        return y, p, (f"θ(t) of adapt.h5 held at its anchor calibrations' fits ({held} of "
+                      f"{len(segments(changes, len(young)))} segment(s) between located changes)")
     if extra.get("estimator") != "gn":
         return young, poisson, "θ(t) of adapt.h5 (no change detector in this run: not smoothed)"
     changes = [int(c) for c in extra.get("material_changes_detected", []) or []]

@@ -36,12 +36,13 @@ With c = 0, p_a is its own unknown as soon as the window no longer holds f (no t
 0. **calibrated** (AdaptConfig.anchor_calibration K > 0, instead of rules 1–4) — the window grows from the first
    frame, anchor tied, until K informed frames; θ is then fitted to all of them, and p_a is held at that fit from
    then on (:meth:`AnchorMaterial.calibrated`): the material is taken to be constant over those first frames.
-   With AdaptConfig.recalibrate, each later change rule 5 sees has the window's θ refitted the same way over a window
-   grown from it (:meth:`AnchorMaterial.restart_watch` then restarts rule 5's level there); p_a stays.
+   With AdaptConfig.recalibrate, each later change rule 5 sees is located (the frame that splits the frames since
+   the last fit best into the old and the new material) and has the window's θ refitted the same way over a window
+   grown from there (:meth:`AnchorMaterial.restart_watch` then makes that fit rule 5's level); p_a stays.
 
-5. **later changes** (c > 0) — once p_a is apart, the candidate of rule 2 is still watched (against a level whose history
-   restarts after each): it marks a later change of material (or a late convergence) without a test, since p_a
-   stays the fit frame's material in either case.  What it limits is the lead-in (AdaptConfig.lead_in):
+5. **later changes** (c > 0) — once p_a is apart, the candidate of rule 2 is still watched (against a level whose
+   history restarts after each; with rule 0, the last fit itself): it marks a later change of material (or a late
+   convergence) without a test, since p_a stays the fit frame's material in either case.  What it limits is the lead-in (AdaptConfig.lead_in):
    :attr:`AnchorMaterial.lead_from`, the first frame a window's lead-in may re-simulate with its θ, is the frame
    of the last change, confirmed (rule 3) or later (this rule) — frames before it showed another material, and
    re-simulating them with the new one holds E back (bar with E ×2, ×4, lead-in 3: E at 0.49–0.84 E_true through
@@ -98,10 +99,12 @@ class AnchorMaterial:
         """Rule 0: p_a = p (2R,), the material fitted to the first frames, held from frame T on (no own steps, no
         tests; rule 5 still watches for later changes, which limit the lead-in)."""
         self.p, self.apart_from, self.fixed = np.array(p, float), T, True
-        self._later = ([np.array(p, float)], [])
+        self.restart_watch(p)
 
     def restart_watch(self, p: np.ndarray) -> None:
-        """Rule 5's level history restarts at p (2R,): the window's θ refitted after a later change."""
+        """Rule 5 restarts at p (2R,), the window's θ (re)fitted: with the anchor calibrated, p is rule 5's level
+        from then on (a fit to all the frames since the last change, not a median of the sliding window's steps,
+        which follow a step of E slowly enough to drag a running level along and hide it)."""
         self._later = ([np.array(p, float)], [])
 
     def held(self, T: int, tied: bool) -> np.ndarray | None:
@@ -194,9 +197,12 @@ class AnchorMaterial:
         hist, devs = self._later
         hist.append(np.array(p, float))
         a, b = LEVEL
-        if len(hist) < b + 1:
+        if self.fixed:  # rule 0: the level is the last fit (restart_watch)
+            level = hist[0]
+        elif len(hist) < b + 1:
             return
-        level = np.median(np.stack(hist[-(b + 1):-a]), axis=0)
+        else:
+            level = np.median(np.stack(hist[-(b + 1):-a]), axis=0)
         devs.append(np.asarray(p[:self.R], float) - level[:self.R])
         if self.candidate(devs):
             self.later.append(T)

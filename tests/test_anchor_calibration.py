@@ -56,6 +56,56 @@ def test_the_calibration_keeps_log_e_in_the_young_range_and_steps_back_from_a_co
     assert obj(range(3), p, None)[1].sum() < obj(range(3), np.array([np.log(E_TRUE), 0.0]), None)[1].sum()
 
 
+class _Stepwise:
+    """A window objective stand-in whose frames show log E = 0 before frame ``change`` and ``jump`` from it on:
+    loss_t = (p₀ − c_t)² + ¼ (x_{t−1} − c_t)² with the state x_t = p₀ (the material the frame was simulated
+    with), so a frame also pays, less, for a past simulated with the wrong material."""
+
+    R = 1
+
+    def __init__(self, change: int, jump: float = 0.7):
+        self.change, self.jump = change, jump
+
+    def c(self, t):
+        return self.jump if t >= self.change else 0.0
+
+    def __call__(self, frames, p, before, need_grad=True, lead=0):
+        prev, states, losses = float(before[-1][0]), [], []
+        for t in frames:
+            losses.append((p[0] - self.c(t)) ** 2 + 0.25 * (prev - self.c(t)) ** 2)
+            prev = float(p[0])
+            states.append(np.array([prev]))
+        return np.stack(states), np.array(losses), None, (0.1, 0.2, 0.3)
+
+
+class _Loop:
+    def __init__(self, objective, stored):
+        self.objective, self.stored = objective, stored
+
+    def before(self, t0):
+        return np.stack([self.stored[t0 - 2], self.stored[t0 - 1]])
+
+
+@pytest.mark.parametrize("change", [9, 11, 13])
+def test_a_later_change_is_located_at_the_frame_the_material_changed(change):
+    """_locate_change: the frames up to T = 15 show log E 0 before ``change`` and 0.7 from it on; the window's p at
+    T (0.5: not yet there) against the old fit (0): the split of lowest loss is the true change frame, and the
+    stored states before it are re-simulated with the old material (those after it are left alone)."""
+    from stages.steps.adapt import _locate_change
+
+    stored = {t: np.array([0.3 if t >= change else 0.0]) for t in range(16)}  # a past of drifting estimates
+    loop, times = _Loop(_Stepwise(change), stored), np.zeros(3)
+    c = _locate_change(loop, 15, np.array([0.0, 0.0]), np.array([0.5, 0.0]), range(8, 15), times)
+    assert c == change
+    assert all(stored[t][0] == 0.0 for t in range(8, c)) and all(stored[t][0] == 0.3 for t in range(c, 16))
+    assert times[0] > 0
+    # the candidates bound the answer: a change before them is located at their first frame, after at their last
+    assert _locate_change(_Loop(_Stepwise(5), dict(stored)), 15, np.zeros(2), np.array([0.5, 0.0]), range(8, 15),
+                          np.zeros(3)) == 8
+    assert _locate_change(_Loop(_Stepwise(15), dict(stored)), 15, np.zeros(2), np.array([0.5, 0.0]), range(8, 13),
+                          np.zeros(3)) == 12
+
+
 def test_a_calibrated_anchor_is_held_whatever_the_window_does():
     """Rule 0: after calibrated(p, T), held() returns p for tied and untied windows alike, the anchor takes no step
     of its own, and rule 5 still marks a later change (which limits the lead-in)."""

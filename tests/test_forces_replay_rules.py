@@ -142,6 +142,30 @@ def test_replay_theta_rules():
         replay_theta(young, poisson, {}, "median")
 
 
+def test_adam_runs_are_replayed_at_their_calibrations_fits_per_located_segment():
+    """adam with images (--anchor-calibration, --recalibrate): each segment between the located changes takes the
+    fit of the calibration that began with it; a segment without one (a change too late to calibrate) keeps its
+    recorded θ(t); "online" keeps everything as recorded."""
+    from stages.forces import calibrated_theta, replay_theta
+
+    young = np.arange(1.0, 11.0)[:, None]
+    poisson = np.full((10, 1), 0.4)
+    cals = [{"frames": [0, 3], "young": [20.0], "poisson": [0.41]},
+            {"frames": [4, 6], "young": [40.0], "poisson": [0.42]}]
+    y, p, held = calibrated_theta(young, poisson, cals, [4, 8])
+    np.testing.assert_array_equal(y[:, 0], [20, 20, 20, 20, 40, 40, 40, 40, 9, 10])
+    np.testing.assert_array_equal(p[:, 0], [0.41] * 4 + [0.42] * 4 + [0.4] * 2)
+    assert held == 2
+    extra = {"estimator": "adam", "anchor_calibrations": cals, "anchor_change_frames": [4, 8]}
+    for rule in ("segment", "smoothed"):
+        y2, _, how = replay_theta(young, poisson, extra, rule)
+        np.testing.assert_array_equal(y2, y)
+        assert "2 of 3 segment(s)" in how, how
+    y3, _, _ = replay_theta(young, poisson, extra, "online")
+    np.testing.assert_array_equal(y3, young)
+    np.testing.assert_array_equal(young[:, 0], np.arange(1.0, 11.0))  # the input is not modified
+
+
 def test_adapted_forces_follows_the_rules(cable):
     """adapted_forces (export, evaluate, report) = replay_forces with the rule's θ(t) and time extrapolation."""
     from types import SimpleNamespace

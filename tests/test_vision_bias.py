@@ -428,22 +428,30 @@ def test_calibrated_anchor_holds_the_first_frames_material_after_an_e_step(tmp_p
 
 def test_recalibration_after_a_later_change_fits_the_new_material(tmp_path):
     """E doubling at frame 7 of 20, the anchor calibrated on frames 0..3 (--anchor-calibration 3) and
-    --recalibrate: rule 5 sees the change, a window grows again from where the estimate moved away, and θ fitted to
-    its 3 informed frames puts E within 5 % of 2 E_TRUE at that frame (the sliding window alone overshoots to 1.4×,
-    the test above; after the fit it wanders again, 0.77–1.08× here); the anchor stays at the first frames'
-    material."""
+    --recalibrate: rule 5 sees the change (log E away from the calibration's fit), the change is located at the
+    frame the material changed (±1), a window grows again from there, and θ fitted to its 3 or more informed
+    frames puts E within 5 % of 2 E_TRUE at that frame (the sliding window alone overshoots to 1.4×, the test
+    above); the anchor stays at the first frames' material; the force replay's θ(t) holds each fit over its
+    segment."""
     from stages.artefacts import AdaptArtefact
+    from stages.forces import replay_theta
 
     cap, ws = _own_model_capture(tmp_path, step_at=7, frames=20)
     E, Ea, apart = _adapt_own_model(cap, ws, "estimated", calibration=3, recalibrate=True)
-    later = AdaptArtefact.load(ws / "adapt.h5").extra["anchor_later_changes"]
-    print("recalibrated", np.round(E / E_TRUE, 3), later)
+    a = AdaptArtefact.load(ws / "adapt.h5")
+    later, located, cals = (a.extra[k] for k in ("anchor_later_changes", "anchor_change_frames",
+                                                  "anchor_calibrations"))
+    print("recalibrated", np.round(E / E_TRUE, 3), later, located, cals)
     assert apart == 3 and np.all(Ea[apart:] == Ea[apart]) and abs(Ea[apart] / E_TRUE - 1) < 0.03, Ea
     assert len(later) >= 1 and 7 < later[0] <= 12, later
-    fitted = later[0] + 3  # the fit: at the 3rd informed frame of the window grown from later[0] − 1
-    assert fitted < len(E), (later, len(E))
+    assert len(located) == len(later) and abs(located[0] - 7) <= 1, located
+    assert len(cals) >= 2 and cals[1]["frames"][0] == located[0] and cals[1]["frames"][1] > later[0], cals
+    fitted = cals[1]["frames"][1]
     assert abs(E[fitted] / (2 * E_TRUE) - 1) < 0.05, E
     assert abs(E[later[0]] / (2 * E_TRUE) - 1) > 0.1, E  # (before it, the sliding window had not reached it)
+    y, _, _ = replay_theta(a.young, a.poisson, a.extra, "smoothed")
+    np.testing.assert_allclose(y[:located[0], 0], cals[0]["young"][0])
+    np.testing.assert_allclose(y[located[0]:(located + [len(y)])[1], 0], cals[1]["young"][0])
 
 
 def test_anchor_follows_the_window_while_e_is_constant(tmp_path):

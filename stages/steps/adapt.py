@@ -232,9 +232,12 @@ class AdaptConfig:
     material is constant for longer; accuracy_notes.md, eleventh stop).  0: --anchor-change's rule."""
     recalibrate: bool = True
     """adam, images, with --anchor-calibration: each later change of material that the anchor's rule 5 sees (log E
-    away from its level since the last change, 2–5 frames after the change) starts a growing window again, from the
-    first frame that moved away: after --anchor-calibration informed frames θ is fitted to all of them (L-BFGS-B)
-    and Adam restarts from it; the anchor stays at the first frames' material.  A false change costs the fit only
+    away from the last fit, 1–4 frames after the change) is located — the frame c that splits the frames since the
+    last fit best into the old material and the window's (adapt._locate_change) — and starts a growing window
+    again at c: once it holds --anchor-calibration frames θ is fitted to all of them (L-BFGS-B), c located again
+    with the fit (refitted if it moved) and Adam restarts from it; the anchor stays at the first frames' material.
+    The fits and the located changes are recorded (adapt.h5 extra anchor_calibrations, anchor_change_frames): the
+    force replay holds each fit over its segment (stages.forces.calibrated_theta).  A false change costs the fit only
     frames, not bias (the material is the same on both sides).  Why: after a step the sliding window starts from
     states simulated with the lagging estimate and overshoots.  bench/accuracy.py's captures, reduced space, K = 8,
     median settled E error without → with: bar released at rest 16.8 → 5.8 %, bar at equilibrium 4.9 → 5.8 %, the
@@ -630,6 +633,8 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                                 loop.first)
         obj.want_anchor_grad = True
         rec.anchor_young, rec.anchor_tests = [], anchor.tests
+        rec.calibrations = []  # per calibration fit: {"frames": [first, last], "young": (R,), "poisson": (R,)}
+        rec.change_frames = []  # the located first frame of each later change of material (--recalibrate)
     f = obj.anchor_frame
     rest_until = -1  # frames 0..rest_until were at rest (simulated from x_0(θ)); −1: none known (a range from A > 0)
     # the rest phase comes with the lead-in (both re-simulate the window's past with its θ); without one, the
@@ -640,6 +645,7 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
     informed = 0  # frames whose window informed θ (it took a step) while calibrating
     calib_from = loop.first  # the growing window's first frame (after a later change: the frame it began)
     seen_later = 0  # the later changes (rule 5) already recalibrated for
+    change_lo = loop.first + 1  # the earliest frame a later change may be located at (after the last calibration)
     with loop.reporter.task(f"adapt online ({loop.backend.space}, {loop.obs.kind}, w={w})", loop.total()) as task:
         for T in loop.online_frames():
             frames = list(range(max(loop.first, T - w + 1), T + 1))
@@ -680,6 +686,12 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
             informed += calibrating and not idle
             if calibrating and informed >= config.anchor_calibration:
                 params[:] = _calibrate_anchor(obj, sim, params, loop.before(sim[0]), loop.young_range, times)
+                if anchor.fixed:  # a recalibration: the change located again with the fit, and refitted if it moved
+                    c = _locate_change(loop, T, calib_p, params, range(max(change_lo, calib_from - 2),
+                                                                       min(calib_from + 2, T) + 1), times)
+                    if c != calib_from:
+                        calib_from, sim, rec.change_frames[-1] = c, list(range(c, T + 1)), c
+                        params[:] = _calibrate_anchor(obj, sim, params, loop.before(c), loop.young_range, times)
                 states, losses, _, t3 = obj(sim, params, loop.before(sim[0]), False)
                 times += t3
                 for i, t in enumerate(sim):
@@ -691,6 +703,10 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                     obj.want_anchor_grad = False  # p_a is held: no anchor part to move it by
                 adam.restart()  # the growing window's gradients were larger: kept, they would shrink the next steps
                 calibrating = False
+                calib_p = params.copy()  # the material of the frames since the last change
+                fit_e, fit_nu = theta_from_params(params[:R], params[R:], loop.prange)
+                rec.calibrations.append({"frames": [calib_from, T], "young": fit_e.tolist(),
+                                         "poisson": fit_nu.tolist()})
             if losses.shape[0] > w:  # the growing window: the loss of the last w frames, as a window's
                 losses = losses[-w:]
             E, nu = theta_from_params(params[:R], params[R:], loop.prange)
@@ -704,13 +720,44 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                 anchor.end_frame(T, params, tied or calibrating, explains,
                                  informed=not ((rest_rule and idle) or calibrating))
                 if config.recalibrate and anchor.fixed and len(anchor.later) > seen_later:
-                    seen_later = len(anchor.later)  # a later change: grow a window again from where it began
-                    calib_from, calibrating, informed = max(loop.first, T - AWAY + 1), True, 0
+                    seen_later = len(anchor.later)  # a later change: grow a window again from the frame it began
+                    change_lo = max(loop.first + 1, rec.calibrations[-1]["frames"][1] + 1)
+                    calib_from = _locate_change(loop, T, calib_p, params, range(
+                        min(max(change_lo, T - 2 * w - AWAY), T), min(max(change_lo, T - AWAY + 1), T) + 1), times)
+                    rec.change_frames.append(calib_from)
+                    calibrating, informed = True, T - calib_from + 1  # frames c..T: the new material, moving
                 rec.anchor_apart, rec.anchor_later = anchor.apart_from, list(anchor.later)
                 rec.anchor_young.append(theta_from_params(anchor.p[:R], anchor.p[R:], loop.prange)[0].tolist())
             rec.add(T, E, nu, losses.sum(), losses[-1], tuple(times), time.perf_counter() - tt)
             task.advance(1, frame=T, E=" ".join(f"{e:.4g}" for e in E), loss=float(losses.sum()),
                          s_per_frame=rec.t_tot[-1])
+
+
+def _locate_change(loop: _Loop, T: int, p_old: np.ndarray, p_new: np.ndarray, candidates: range,
+                   times: np.ndarray) -> int:
+    """The first frame c of a later change of material seen at frame T (rule 5 of stages/vision_anchor.py), among
+    ``candidates`` (frames ≤ T): the c of lowest L(c) = Σ_{t=c0..T} loss_t, frames c0..c−1 simulated with the old
+    material p_old (the last calibration's fit) and c..T with p_new (the window's p at T), from the stored states
+    before c0 = min(candidates).  The frames before c are stored as simulated with p_old: the recalibration's
+    window starts at c from a past of the old material.  ``times`` (3,) accumulates."""
+    obj, c0 = loop.objective, candidates[0]
+    span = list(range(c0, T + 1))
+    states, old_losses, _, t3 = obj(span, p_old, loop.before(c0), False)
+    times[:] += t3
+    past = [*loop.before(c0), *states]  # past[t − c0 + 2] = x_t with the old material
+    best = (float(np.sum(old_losses)), T + 1)  # no frame of the new material (a candidate only to compare)
+    for c in candidates[1:]:
+        _, new_losses, _, t3 = obj(span[c - c0:], p_new, np.stack(past[c - c0:c - c0 + 2]), False)
+        times[:] += t3
+        cost = float(np.sum(old_losses[:c - c0]) + np.sum(new_losses))
+        if cost < best[0]:
+            best = (cost, c)
+    _, c0_losses, _, t3 = obj(span, p_new, loop.before(c0), False)
+    times[:] += t3
+    c = c0 if float(np.sum(c0_losses)) < best[0] else min(best[1], candidates[-1])
+    for t in range(c0, c):
+        loop.stored[t] = past[t - c0 + 2]
+    return c
 
 
 CALIBRATION_ITERATIONS = 30
@@ -1098,6 +1145,9 @@ def _trim_record(rec: _Record) -> None:
         del rec.innovation[k:]
     if hasattr(rec, "anchor_young"):  # adam, --vision-anchor estimated: likewise
         del rec.anchor_young[k:]
+    if hasattr(rec, "calibrations"):  # recorded at its frame, before that frame's other entries
+        rec.calibrations[:] = [c for c in rec.calibrations if c["frames"][1] in rec.frames]
+        rec.change_frames[:] = [c for c in rec.change_frames if c <= rec.frames[-1]] if rec.frames else []
 
 
 def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_used: list, status: str,
@@ -1127,6 +1177,11 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         "anchor_later_changes": list(getattr(rec, "anchor_later", [])),
         # adam, --vision-anchor estimated: the change tests, [frame, loss at the level, loss at the window's p, change?]
         "anchor_tests": [list(x) for x in getattr(rec, "anchor_tests", [])],
+        # adam, --anchor-calibration: each fit, {"frames": [first, last] (the frames it was fitted to), "young",
+        # "poisson" (R,)}: the material of those frames (stages.forces.replay_theta's smoothed θ(t))
+        "anchor_calibrations": list(getattr(rec, "calibrations", [])),
+        # adam, --recalibrate: the first frame of each later change of material, located (adapt._locate_change)
+        "anchor_change_frames": list(getattr(rec, "change_frames", [])),
         "ended": "ctrl-c" if ended_by_ctrl_c else ("last frame" if status == "complete" else "error"),
         "wall_s": wall_s,
         "young_meaning": _young_meaning(config, mesh),
