@@ -69,9 +69,23 @@ class GNResult:
 
 
 def huber_weights(r: np.ndarray, sigma: float, delta: float | None) -> np.ndarray:
-    """IRLS weights of the Huber loss: min(1, δσ/|r|) (all ones when δ is None)."""
+    """IRLS weights of the Huber loss: min(1, δσ/max(|r|, 1e-300)) (all ones when δ is None), in place over one
+    array — the floats of the branch where(|r| ≤ δσ, 1, δσ/max(|r|, 1e-300)) (:func:`_huber_weights_where`, its
+    twin) in fewer passes: a rounded quotient c/a with c ≥ a > 0 is ≥ 1, and δσ/1e-300 overflows to ∞."""
     if delta is None:
         return np.ones_like(r)
+    c = float(delta * sigma)
+    if not c > 0:
+        return _huber_weights_where(r, sigma, delta)
+    w = np.abs(r)
+    np.maximum(w, 1e-300, out=w)
+    with np.errstate(over="ignore"):
+        np.divide(c, w, out=w)
+    return np.minimum(w, 1.0, out=w)
+
+
+def _huber_weights_where(r: np.ndarray, sigma: float, delta: float) -> np.ndarray:
+    """:func:`huber_weights` by its branch (the slow twin the tests hold it to)."""
     a = np.abs(r)
     return np.where(a <= delta * sigma, 1.0, delta * sigma / np.maximum(a, 1e-300))
 
@@ -139,6 +153,18 @@ def cluster_scale2(r: np.ndarray, J: np.ndarray, sigma: float, delta: float | No
     return s2 if np.isfinite(s2) and s2 > 0 else residual_scale2(r, sigma, delta, k)
 
 
+class JacobianProduct:
+    """The ``jtw`` of an evaluation whose J is exact (gauss_newton's ``evaluate``): W ↦ Jᵀ diag(W) r (k,) from J
+    (m, k) and r (m,) themselves.  gauss_newton forms that product over J's non-zero rows, with the Jᵀ W J it
+    forms there anyway (the same to rounding), instead of calling this over every row."""
+
+    def __init__(self, J: np.ndarray, r: np.ndarray):
+        self.J, self.r = J, r
+
+    def __call__(self, W: np.ndarray) -> np.ndarray:
+        return self.J.T @ (W * self.r)
+
+
 def robust_cost(r: np.ndarray, sigma: float, delta: float | None) -> float:
     """Σ σ² ρ(r/σ) (½ Σ r² without Huber) = Σ (a |r| − ½ a²), a = min(|r|, δσ) (σ²ρ(u) = ½r² for |u| ≤ δ, δσ|r| − ½(δσ)²
     beyond: two dot products, no per-residual branch)."""
@@ -159,7 +185,8 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
 
     evaluate(p, need_jacobian) → (r (m,), J (m, k) or None) or, with the Jacobian, (r, J, jtw) where jtw(W)
     gives Jᵀ diag(W) r exactly (used for the gradient when J is only approximate — the estimate is then the
-    exact minimum of C, and J only shapes the steps and the covariance); sigma the noise level of one residual;
+    exact minimum of C, and J only shapes the steps and the covariance; a :class:`JacobianProduct`, J exact, is
+    formed from J here); sigma the noise level of one residual;
     huber δ in units of σ (None: plain least squares); stops after ``max_iterations`` Jacobians or when
     the step's size in units of the posterior σ falls below ``tol``.  ``max_step`` (k,) or scalar: a step is
     scaled down until no |δ_i| exceeds it (a trust region); ``lower``/``upper`` (k,): p is clipped into these
@@ -195,8 +222,10 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
         JW = Jl * W[live, None]
         JWJ = JW.T @ Jl
         N = JWJ / s2 + info
-        g = (JW.T @ r[live] if jtw is None else jtw(W)) / s2 + info @ (p - prior.mean)
+        jtwr = JW.T @ r[live] if jtw is None or isinstance(jtw, JacobianProduct) else jtw(W)
+        g = jtwr / s2 + info @ (p - prior.mean)
         accepted = checked = False
+        r_new = None  # the residuals at the accepted step, when evaluated there
         for _ in range(max_rejections + 1):
             A = N + lam * np.diag(np.diag(N))
             step = -np.linalg.solve(A, g)
@@ -233,7 +262,8 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
             break
         r, J, jtw = _unpack(evaluate(p, True))
         n_eval += 1
-        c = cost(p, r)
+        if r is not r_new:  # (the trial's own residuals, e.g. GNWindow.evaluate's ``ahead``: c is their cost)
+            c = cost(p, r)
     # the covariance at the last linearisation (the final step is small: the same to first order)
     JWJ = None if it == 0 else JWJ  # (Jᵀ W J at the last linearisation, formed in the loop)
     cov = posterior_cov(J_lin, W, s2, prior, JWJ)

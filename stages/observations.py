@@ -420,14 +420,20 @@ class VisionObservation:
         ``block_px`` × ``block_px`` pixels (every channel, every window frame: the misfit of a shape error is
         correlated over neighbouring pixels, the colour channels and consecutive frames), for the estimator's
         cluster-robust σ (stages.estimator.cluster_scale2)."""
-        b, ids, base = self.block_px, [], 0
+        b = self.block_px
+        kept = getattr(self, "_clusters", None)  # (block_px, frames, ids): the last window's
+        if kept is not None and kept[0] == b and kept[1] == len(frames):
+            return kept[2]
+        ids, base = [], 0
         for c in self._cams:
             yy, xx = np.divmod(np.arange(c.height * c.width), c.width)
             nbx = -(-c.width // b)
             ids.append(np.repeat(base + (yy // b) * nbx + xx // b, 3))
             base += nbx * -(-c.height // b)
-        one = np.concatenate(ids)
-        return np.tile(one, len(frames))
+        out = np.tile(np.concatenate(ids), len(frames))
+        out.flags.writeable = False  # (shared by the windows of this many frames)
+        self._clusters = (b, len(frames), out)
+        return out
 
     def noise_scale(self, r: np.ndarray) -> float:
         """σ of one pixel residual: 1.4826 × the median |r| over the pixels that differ (robust; the

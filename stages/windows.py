@@ -11,7 +11,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from stages.errors import RslError
-from stages.estimator import bounded_sigma, robust_cost
+from stages.estimator import JacobianProduct, bounded_sigma, robust_cost
 from stages.parameters import chain_params, theta_from_params
 from stages.window_model import Observation, Window, WindowBackend
 
@@ -301,6 +301,14 @@ class GNWindow:
     #: case, by hand, 2026-11-25; bench/adapt_speed.py's row "jvp blas-threads").  None: BLAS's threads as the
     #: process has them — the twin the bench compares
     blas_threads: int | None = 1
+    #: images, forward-mode J (adapt._gn_solve): a trial step of an iteration before the last is evaluated with the
+    #: Jacobian (:meth:`evaluate`'s ``ahead``) — one pass that renders and differentiates, instead of a render for
+    #: the trial and, once it is accepted (nearly always), the same window simulated, rendered and differentiated
+    #: again for the next linearisation; a rejected trial's Jacobian is wasted.  False: the trial renders alone — the
+    #: slow twin (the same floats, tests/test_gn_trial_jacobian.py)
+    trial_jacobian: bool = True
+    _LINEARISATION = ("last_jac", "last_frames", "last_state_sens")  # (what a linearisation sets, a trial not)
+    _EVALUATION = ("last_states", "last_before", "last_p", "last_rs")
 
     def __init__(self, objective: "WindowObjective", fit_poisson: bool, s_fixed: np.ndarray):
         self.obj, self.fit_poisson, self.s_fixed = objective, fit_poisson, s_fixed
@@ -321,6 +329,7 @@ class GNWindow:
         self.last_states = None
         self.last_frames: list[np.ndarray] = []  # per frame residuals of the last evaluation
         self.last_jac: list[np.ndarray] = []
+        self._ahead: tuple | None = None  # a trial's evaluation with the Jacobian (:meth:`evaluate`'s ``ahead``)
 
     def blas_limit(self, kind: str):
         """The context that holds numpy's BLAS to :attr:`blas_threads` threads for observations of ``kind``
@@ -337,8 +346,39 @@ class GNWindow:
         return E, nu, s
 
     def evaluate(self, frames: Sequence[int], p: np.ndarray, before: np.ndarray, D: np.ndarray | None,
-                 need_jac: bool, rebind: bool = True):
-        """(r (m,), J (m, k) or None); the window's states are kept in ``last_states``."""
+                 need_jac: bool, rebind: bool = True, ahead: bool = False):
+        """(r (m,), J (m, k) or None); the window's states are kept in ``last_states``.
+
+        ``ahead`` (with need_jac False: a trial step that the solve linearises at next when it is accepted,
+        adapt._gn_solve): images with the forward-mode Jacobian (:attr:`trial_jacobian`) make the Jacobian here
+        too, in the one pass that gives the residuals (the same floats), and keep it; the next call, when it asks
+        for the Jacobian at the same p, frames, ``before`` and D, returns it without simulating or rendering the
+        window again.  The attributes a linearisation sets (``last_jac``, ``last_frames``, ``last_state_sens``)
+        stay those of the last linearisation until then, as after a trial evaluated without it."""
+        kept, self._ahead = self._ahead, None
+        if need_jac and kept is not None and kept[0] == (list(frames), rebind) and kept[2] is before \
+                and kept[3] is D and np.array_equal(kept[1], p):
+            for name, v in kept[5].items():
+                setattr(self, name, v)
+            return kept[4]
+        obs = self.obj.obs
+        if not (ahead and not need_jac and self.trial_jacobian and getattr(obs, "uses_jvp", None) is not None
+                and obs.uses_jvp()):
+            return self._evaluate(frames, p, before, D, need_jac, rebind)
+        lin = {name: getattr(self, name, None) for name in self._LINEARISATION}
+        try:
+            out = self._evaluate(frames, p, before, D, True, rebind)
+            state = {name: getattr(self, name, None) for name in self._LINEARISATION + self._EVALUATION}
+        finally:  # (as a trial without the Jacobian leaves them)
+            for name, v in lin.items():
+                setattr(self, name, v)
+        self._ahead = ((list(frames), rebind), np.array(p, float), before, D, out, state)
+        return out[0], None
+
+
+    def _evaluate(self, frames: Sequence[int], p: np.ndarray, before: np.ndarray, D: np.ndarray | None,
+                  need_jac: bool, rebind: bool = True):
+        """:meth:`evaluate` itself."""
         obj, R = self.obj, self.R
         backend = obj.backend
         E, nu, s = self.theta(p)
@@ -398,7 +438,7 @@ class GNWindow:
             self.times[2] += t4 - t3
             self.last_rs, self.last_frames, self.last_jac = rs, rs, Js
             r, J = np.concatenate(rs), np.concatenate(Js, axis=0)
-            return r, J, lambda W: J.T @ (W * r)  # J is exact: Jᵀ W r from it is the autograd product
+            return r, J, JacobianProduct(J, r)  # J is exact: Jᵀ W r from it is the autograd product
         if x_anchor is not None and smooth and obj.obs.kind == "vision" and self.skip_joint:
             # binding_jacobian differences the θ columns jointly (positions and anchor): jacobian skips them
             Js = obj.obs.jacobian(frames, X, dX, skip=range(self.k_theta))
@@ -435,6 +475,7 @@ class GNWindow:
         :attr:`prediction` for :meth:`prediction_error` (``scale2`` = σ² s², the data term's variance).  ``r_lin``
         (m,), ``J_lin`` (m, k): the last evaluation's residuals and Jacobian concatenated, when at hand (one product
         instead of one per frame)."""
+        self._ahead = None  # (the observations are bound at p below, the window remembered there)
         dp = np.asarray(p, float) - self.last_p
         S = self.last_state_sens  # (k, w, …)
         states = self.last_states + np.tensordot(dp, S, axes=1)

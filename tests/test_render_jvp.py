@@ -161,3 +161,31 @@ def test_images_jvp_columns_agree_with_central_differences_of_the_render(capture
     assert np.linalg.norm(fd) > 0
     assert np.linalg.norm(jv - fd) <= 0.15 * np.linalg.norm(fd)
     assert jv @ fd >= 0.99 * np.linalg.norm(jv) * np.linalg.norm(fd)
+
+
+def test_compiled_linear_tangents_are_the_numpy_closed_forms():
+    """rasterize_jvp.binding_tangents_linear and geometry_jvp_linear (ImageLoss.jvp_kernel) against ImageLoss's numpy
+    matrix products (jvp_kernel False) after a rebind at a bent anchor: dβ, dL of the anchored binding and μ, M, dμ,
+    dM of the Gaussians, to rounding (the 3 × 3 inverses by the adjugate, the sums in another order)."""
+    from stages.render.image_loss import ImageLoss
+    from test_render_project_bound import _mesh_and_gaussians
+
+    mesh, art = _mesh_and_gaussians(1, 300)
+    il = ImageLoss(art, mesh, [])
+    rng = np.random.default_rng(21)
+    v = mesh.vertices
+    il.rebind(v + 0.01 * np.sin(v[:, [1, 2, 0]] * 20.0))
+    x = v + 0.02 * np.sin(v[:, [2, 0, 1]] * 15.0)
+    size = float(np.linalg.norm(np.ptp(v, axis=0)))
+    V = rng.normal(size=(3,) + v.shape) * 1e-3 * size
+    Va = rng.normal(size=(3,) + v.shape) * 1e-3 * size
+    got = {}
+    for kernel in (True, False):
+        il.jvp_kernel = kernel
+        b = il.binding_jvp(il._anchor_x, Va)
+        got[kernel] = (b, il.geometry_jvp(x, V, b))
+    (bf, gf), (bs, gs) = got[True], got[False]
+    assert bf[0] is bs[0] and bf[1] is bs[1]  # the primal binding: the rebind's own
+    for a, c in zip(list(bf[2:]) + list(gf), list(bs[2:]) + list(gs)):
+        assert a.shape == c.shape and np.abs(c).max() > 0
+        np.testing.assert_allclose(a, c, rtol=0, atol=1e-12 * np.abs(c).max())

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.sim.locate import locate_in_elements
+from stages.sim.locate import Relocator, locate_in_elements
 from stages.sim.mesh import deformation_gradients
 from stages.sim.quadrature import point_map
 
@@ -75,6 +75,7 @@ class ImageLoss:
         self._fit_cov = F_fit @ self._fit_cov0 @ F_fit.transpose(0, 2, 1)
         self._fit_factor = F_fit @ self._fit_factor0  # (G, 3, 3): Σ = F_fit L₀ (F_fit L₀)ᵀ in world space
         self._anchor_x = None  # (n, 3) the configuration of the last rebind (None: bound as fitted)
+        self._relocator: Relocator | None = None  # (made at the first rebind, :attr:`relocate`)
         self._set_binding(self._fit_host, self._fit_bary, self._fit_cov0, self._fit_factor0)
         self.cams = [self.g.camera(c) for c in cameras]
         self.background = self.g.background.detach().numpy().astype(np.float32)  # (3,)
@@ -101,6 +102,11 @@ class ImageLoss:
         shape = self._rest[self._tets[self.host_tet]] if self.quadratic else self._dm_inv_all[self.host_tet]
         self._shape = torch.as_tensor(shape, dtype=f64)
 
+    #: :meth:`rebind` finds the Gaussians' new tets with a :class:`stages.sim.locate.Relocator` (a walk from their
+    #: last tets, one k-d tree query for the rest); False: the search of locate_in_elements with the hint — the slow
+    #: twin, the same tets and floats (tests/test_render_rebind_speed.py)
+    relocate = True
+
     def rebind(self, x_fit: np.ndarray | None) -> None:
         """Bind the fitted Gaussians to the tets of configuration x_fit (n, 3) (None: back to the binding as
         fitted, in the rest frame); see the class docstring.  Always starts from the fitted Gaussians."""
@@ -112,7 +118,10 @@ class ImageLoss:
         if self._anchor_x is not None and np.array_equal(x, self._anchor_x):
             return  # bound there already (the same floats would come out)
         self._anchor_x = x.copy()  # (n, 3): the configuration of the binding (see :meth:`anchored_geometry`)
-        host, bary = locate_in_elements(self._fit_means, x, self._tets, hint=self.host_tet)  # x moves little
+        if self.relocate and self._relocator is None:
+            self._relocator = Relocator(self._fit_means, self._tets)
+        host, bary = locate_in_elements(self._fit_means, x, self._tets, hint=self.host_tet,  # x moves little
+                                        relocator=self._relocator if self.relocate else None)
         if self.quadratic:  # F = Σ x_a ⊗ G_a at each Gaussian's new location
             _, G, _ = point_map(self._rest, self._tets, host, bary)
             F = np.einsum("gki,gkj->gij", x[self._tets[host]], G)
@@ -229,8 +238,14 @@ class ImageLoss:
             b, Fi, _, _ = self._anchored(xa_)
             return b, Fi @ fit_factor
 
-        if not self.quadratic and self.jvp_numpy:  # linear tets: the closed form below, in numpy
-            db, dL = self._binding_tangents_linear(np.asarray(xa, np.float64), np.asarray(Va, np.float64))
+        if not self.quadratic and self.jvp_numpy:  # linear tets: the closed form below (compiled, or in numpy)
+            if self.jvp_kernel:
+                from stages.render.rasterize_jvp import binding_tangents_linear
+
+                db, dL = binding_tangents_linear(xa, Va, self._host.numpy(), self._fit_means,
+                                                 self._dm_inv_all[self.host_tet], self._fit_factor)
+            else:
+                db, dL = self._binding_tangents_linear(np.asarray(xa, np.float64), np.asarray(Va, np.float64))
             return self._beta64, self._factor, db, dL
         xa_t = torch.as_tensor(np.asarray(xa, np.float64))
         Va_t = torch.as_tensor(np.asarray(Va, np.float64))
@@ -240,6 +255,10 @@ class ImageLoss:
     #: linear tets: :meth:`binding_jvp` and :meth:`geometry_jvp` by their closed forms in numpy (matrix products);
     #: False: torch.func.jvp through :meth:`anchored_geometry` and einsum — the slow twins the tests hold them to
     jvp_numpy = True
+    #: with :attr:`jvp_numpy`: those closed forms in one compiled pass per Gaussian (rasterize_jvp.geometry_jvp_linear,
+    #: binding_tangents_linear: ≈ 10× fewer seconds than numpy's stacked 3 × 3 products on the Bar of
+    #: bench/adapt_speed.py); False: the numpy matrix products — their twin (tests/test_render_jvp.py)
+    jvp_kernel = True
 
     def _binding_tangents_linear(self, xa: np.ndarray, Va: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(dβ (k, G, 4), dL (k, G, 3, 3)) of :meth:`anchored_geometry` on linear tets along Va (k, n, 3) at xa (n, 3):
@@ -285,6 +304,10 @@ class ImageLoss:
             return means.numpy(), M.numpy(), dmu.numpy(), dM.numpy()
         hv = self._host.numpy()
         b, Lf, Dmi = beta.numpy(), factor.numpy(), self._shape.numpy()
+        if self.jvp_numpy and self.jvp_kernel:
+            from stages.render.rasterize_jvp import geometry_jvp_linear
+
+            return geometry_jvp_linear(x, V, hv, b, Lf, Dmi, db, dL)
         P, dP = x[hv], V[:, hv]  # (G, 4, 3), (k, G, 4, 3)
         if self.jvp_numpy:  # the same sums as matrix products
             mu = (b[:, None, :] @ P)[:, 0]

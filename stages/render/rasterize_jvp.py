@@ -273,3 +273,149 @@ def project_jvp(means: np.ndarray, factors: np.ndarray, d_means: np.ndarray, d_f
     d_m2d, d_con = np.empty((k, g, 2)), np.empty((k, g, 3))
     _project_jvp(f(means), f(factors), f(d_means), f(d_factors), camera_array(cam), d_m2d, d_con)
     return d_m2d, d_con
+
+
+# =========================================================================== the linear-tet geometry's forward mode
+@nb.njit(parallel=True, cache=True)
+def _geometry_jvp_linear(x, V, host, beta, factor, dm_inv, d_beta, d_factor, mu, M, d_mu, d_M):  # pragma: no cover
+    """ImageLoss.geometry_jvp on linear tets, per Gaussian g (host corners p_a = x[host[g, a]]):
+    μ = Σ_a β_a p_a,  F = D_s D_m⁻¹ (D_s columns p_j − p_0),  M = F L,
+    dμ = Σ_a (β_a dp_a + dβ_a p_a),  dM = dD_s D_m⁻¹ L + F dL  (dp_a = V[j, host[g, a]])."""
+    n = host.shape[0]
+    k = V.shape[0]
+    for g in nb.prange(n):
+        P = np.empty((4, 3))
+        for a in range(4):
+            for d in range(3):
+                P[a, d] = x[host[g, a], d]
+        F = np.zeros((3, 3))
+        for d in range(3):
+            mu[g, d] = beta[g, 0] * P[0, d] + beta[g, 1] * P[1, d] + beta[g, 2] * P[2, d] + beta[g, 3] * P[3, d]
+            for e in range(3):
+                F[d, e] = ((P[1, d] - P[0, d]) * dm_inv[g, 0, e] + (P[2, d] - P[0, d]) * dm_inv[g, 1, e]
+                           + (P[3, d] - P[0, d]) * dm_inv[g, 2, e])
+        for d in range(3):
+            for e in range(3):
+                M[g, d, e] = F[d, 0] * factor[g, 0, e] + F[d, 1] * factor[g, 1, e] + F[d, 2] * factor[g, 2, e]
+        dP = np.empty((4, 3))
+        dF = np.empty((3, 3))
+        for j in range(k):
+            for a in range(4):
+                for d in range(3):
+                    dP[a, d] = V[j, host[g, a], d]
+            for d in range(3):
+                s = 0.0
+                for a in range(4):
+                    s += beta[g, a] * dP[a, d] + d_beta[j, g, a] * P[a, d]
+                d_mu[j, g, d] = s
+                for e in range(3):
+                    dF[d, e] = ((dP[1, d] - dP[0, d]) * dm_inv[g, 0, e] + (dP[2, d] - dP[0, d]) * dm_inv[g, 1, e]
+                                + (dP[3, d] - dP[0, d]) * dm_inv[g, 2, e])
+            for d in range(3):
+                for e in range(3):
+                    s = 0.0
+                    for c in range(3):
+                        s += dF[d, c] * factor[g, c, e] + F[d, c] * d_factor[j, g, c, e]
+                    d_M[j, g, d, e] = s
+
+
+def geometry_jvp_linear(x: np.ndarray, V: np.ndarray, host: np.ndarray, beta: np.ndarray, factor: np.ndarray,
+                        dm_inv: np.ndarray, d_beta: np.ndarray, d_factor: np.ndarray) -> tuple:
+    """(μ (G, 3), M (G, 3, 3), dμ (k, G, 3), dM (k, G, 3, 3)) float64: the Gaussians of a binding in linear tets —
+    host (G, 4) vertex ids, β (G, 4), covariance factors L (G, 3, 3), the rest D_m⁻¹ (G, 3, 3) — at positions x
+    (n, 3), and their tangents along V (k, n, 3) and the binding's dβ (k, G, 4), dL (k, G, 3, 3)
+    (ImageLoss.geometry_jvp's closed form, in one compiled pass)."""
+    f = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    k, G = len(V), len(host)
+    out = (np.empty((G, 3)), np.empty((G, 3, 3)), np.empty((k, G, 3)), np.empty((k, G, 3, 3)))
+    _geometry_jvp_linear(f(x), f(V), np.ascontiguousarray(host, dtype=np.int64), f(beta), f(factor), f(dm_inv),
+                         f(d_beta), f(d_factor), *out)
+    return out
+
+
+@nb.njit(cache=True)
+def _inv3(A, out):  # pragma: no cover - compiled
+    """out = A⁻¹ (3, 3) by the adjugate."""
+    c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]
+    c01 = A[1, 2] * A[2, 0] - A[1, 0] * A[2, 2]
+    c02 = A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]
+    det = A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02
+    out[0, 0] = c00 / det
+    out[1, 0] = c01 / det
+    out[2, 0] = c02 / det
+    out[0, 1] = (A[0, 2] * A[2, 1] - A[0, 1] * A[2, 2]) / det
+    out[1, 1] = (A[0, 0] * A[2, 2] - A[0, 2] * A[2, 0]) / det
+    out[2, 1] = (A[0, 1] * A[2, 0] - A[0, 0] * A[2, 1]) / det
+    out[0, 2] = (A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]) / det
+    out[1, 2] = (A[0, 2] * A[1, 0] - A[0, 0] * A[1, 2]) / det
+    out[2, 2] = (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]) / det
+
+
+@nb.njit(parallel=True, cache=True)
+def _binding_tangents_linear(xa, Va, host, mu_fit, dm_inv, fit_factor, d_beta, d_factor):  # pragma: no cover
+    """ImageLoss._binding_tangents_linear per Gaussian g: D (columns x_j − x_0 of its host at xa),
+    λ = D⁻¹(μ_fit − x_0), F_a = D D_m⁻¹;  dλ = −D⁻¹ (dx_0 + dD λ),  dβ = (−Σ dλ, dλ),
+    dL = −F_a⁻¹ dD D_m⁻¹ F_a⁻¹ L_fit."""
+    n = host.shape[0]
+    k = Va.shape[0]
+    for g in nb.prange(n):
+        D = np.empty((3, 3))
+        Di = np.empty((3, 3))
+        Fa = np.empty((3, 3))
+        Fi = np.empty((3, 3))
+        FiL = np.empty((3, 3))
+        lam = np.empty(3)
+        u = np.empty(3)
+        dD = np.empty((3, 3))
+        dDm = np.empty((3, 3))
+        T = np.empty((3, 3))
+        h0 = host[g, 0]
+        for d in range(3):
+            for j in range(3):
+                D[d, j] = xa[host[g, j + 1], d] - xa[h0, d]
+        _inv3(D, Di)
+        for d in range(3):
+            lam[d] = (Di[d, 0] * (mu_fit[g, 0] - xa[h0, 0]) + Di[d, 1] * (mu_fit[g, 1] - xa[h0, 1])
+                      + Di[d, 2] * (mu_fit[g, 2] - xa[h0, 2]))
+            for e in range(3):
+                Fa[d, e] = D[d, 0] * dm_inv[g, 0, e] + D[d, 1] * dm_inv[g, 1, e] + D[d, 2] * dm_inv[g, 2, e]
+        _inv3(Fa, Fi)
+        for d in range(3):
+            for e in range(3):
+                FiL[d, e] = (Fi[d, 0] * fit_factor[g, 0, e] + Fi[d, 1] * fit_factor[g, 1, e]
+                             + Fi[d, 2] * fit_factor[g, 2, e])
+        for j in range(k):
+            for d in range(3):
+                for c in range(3):
+                    dD[d, c] = Va[j, host[g, c + 1], d] - Va[j, h0, d]
+            for d in range(3):  # dx_0 + dD λ
+                u[d] = Va[j, h0, d] + dD[d, 0] * lam[0] + dD[d, 1] * lam[1] + dD[d, 2] * lam[2]
+            s = 0.0
+            for d in range(3):
+                dl = -(Di[d, 0] * u[0] + Di[d, 1] * u[1] + Di[d, 2] * u[2])
+                d_beta[j, g, d + 1] = dl
+                s += dl
+            d_beta[j, g, 0] = -s
+            for d in range(3):  # dD D_m⁻¹
+                for e in range(3):
+                    dDm[d, e] = dD[d, 0] * dm_inv[g, 0, e] + dD[d, 1] * dm_inv[g, 1, e] + dD[d, 2] * dm_inv[g, 2, e]
+            for d in range(3):  # F_a⁻¹ dD D_m⁻¹
+                for e in range(3):
+                    T[d, e] = Fi[d, 0] * dDm[0, e] + Fi[d, 1] * dDm[1, e] + Fi[d, 2] * dDm[2, e]
+            for d in range(3):  # −(F_a⁻¹ dD D_m⁻¹)(F_a⁻¹ L_fit)
+                for e in range(3):
+                    d_factor[j, g, d, e] = -(T[d, 0] * FiL[0, e] + T[d, 1] * FiL[1, e] + T[d, 2] * FiL[2, e])
+
+
+def binding_tangents_linear(xa: np.ndarray, Va: np.ndarray, host: np.ndarray, mu_fit: np.ndarray,
+                            dm_inv: np.ndarray, fit_factor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(dβ (k, G, 4), dL (k, G, 3, 3)) float64 of ImageLoss.anchored_geometry on linear tets along Va (k, n, 3) at
+    the anchor xa (n, 3): host (G, 4) vertex ids, the fitted centres μ_fit (G, 3), the rest D_m⁻¹ (G, 3, 3) and the
+    fitted world factors L_fit (G, 3, 3) (ImageLoss._binding_tangents_linear's closed form, in one compiled pass;
+    3 × 3 inverses by the adjugate)."""
+    f = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    k, G = len(Va), len(host)
+    d_beta, d_factor = np.empty((k, G, 4)), np.empty((k, G, 3, 3))
+    _binding_tangents_linear(f(xa), f(Va), np.ascontiguousarray(host, dtype=np.int64), f(mu_fit), f(dm_inv),
+                             f(fit_factor), d_beta, d_factor)
+    return d_beta, d_factor

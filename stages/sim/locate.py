@@ -94,18 +94,25 @@ def invert_element_map(points: np.ndarray, vertices: np.ndarray, tets: np.ndarra
 
 
 def locate_in_elements(points: np.ndarray, vertices: np.ndarray, tets: np.ndarray, candidates: int = 16,
-                       hint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                       hint: np.ndarray | None = None, relocator: "Relocator | None" = None
+                       ) -> tuple[np.ndarray, np.ndarray]:
     """(element (P,), barycentric corner coordinates (P, 4)) of points (P, 3) in a mesh of linear (m, 4) or
     quadratic (m, 10) tets at positions vertices (n, 3): :func:`locate_in_tets` in the corner tets, then for
     quadratic tets the exact inverse of the (curved) element map (:func:`invert_element_map`); a point that
     this puts outside its element (a curved element bulges past its corner tet) is inverted in each of the
     ``candidates`` elements with the nearest corner centroids and kept in the one it is most inside.
     ``hint`` (P,): a guess of each point's element (e.g. its host before a small motion); a point strictly inside
-    the hinted corner tet (every barycentric > 1e-9: the one tet that holds it) keeps it without the search."""
+    the hinted corner tet (every barycentric > 1e-9: the one tet that holds it) keeps it without the search.
+    ``relocator``: a :class:`Relocator` of these points in these tets, which finds the corner tets from ``hint``
+    with less work (the same tets and floats as without it)."""
     tets = np.asarray(tets, np.int64)
     points = np.asarray(points, np.float64)
     if hint is None:
         host, bary = locate_in_tets(points, vertices, tets[:, :4])
+    elif relocator is not None:
+        if not (np.array_equal(relocator.points, points) and np.array_equal(relocator.tets, tets[:, :4])):
+            raise ValueError("the relocator was made for other points or another mesh")
+        host, bary = relocator(vertices, hint)
     else:
         host = np.asarray(hint, np.int64).copy()
         c = tets[host, :4]  # the arithmetic of locate_in_tets, so a kept hint gives the very same floats
@@ -132,3 +139,94 @@ def locate_in_elements(points: np.ndarray, vertices: np.ndarray, tets: np.ndarra
         host[pick] = cand.reshape(len(far), k)[better, j[better]]
         bary[pick] = b[better, j[better]]
     return host, bary
+
+
+def tet_neighbours(tets: np.ndarray) -> np.ndarray:
+    """(M, 4): the tet across the face opposite each corner of each tet (M, 4) (the face corner i's barycentric
+    coordinate vanishes on), −1 on the mesh's boundary."""
+    tets = np.asarray(tets, np.int64)[:, :4]
+    M = len(tets)
+    faces = np.sort(np.stack([np.delete(tets, i, axis=1) for i in range(4)], axis=1).reshape(-1, 3), axis=1)
+    order = np.lexsort(faces.T[::-1])
+    same = np.flatnonzero(np.all(faces[order[1:]] == faces[order[:-1]], axis=1))  # a face shared by two tets
+    out = np.full(4 * M, -1, np.int64)
+    a, b = order[same], order[same + 1]
+    out[a], out[b] = b // 4, a // 4
+    return out.reshape(M, 4)
+
+
+class Relocator:
+    """:func:`locate_in_tets` of the same points (P, 3) in one tet mesh (M, 4 | 10: its corner tets) as the mesh
+    moves, given a guess of each point's tet — the same tets and floats, with less work:
+
+    1. a point strictly inside its hinted tet (every barycentric > 1e-9: the one tet that holds it) keeps it;
+    2. the others walk from it through the face of their most negative barycentric coordinate (at most ``walk``
+       steps, stopping at the boundary) and keep the first tet that holds them strictly;
+    3. the rest (outside the mesh, on a face, or off the walk) get :func:`locate_in_tets`'s own rule — the best of
+       the ``candidates`` tets with the nearest centroids, else of the ``candidates · widen`` nearest — from one
+       k-d tree query of the ``candidates · widen`` nearest (sorted: their first ``candidates`` are the nearest
+       ``candidates``), the barycentrics of each candidate tet computed once.
+
+    Every barycentric is computed with :func:`locate_in_tets`' arithmetic (D⁻¹ per tet by numpy's batched inverse,
+    the same einsums), so a tet found here gives the very floats the search gives (tests/test_sim_locate.py).
+    (A list of each point's nearest tets kept from an earlier configuration, valid while the centroids move less
+    than its margin, was tried: on the Bar of bench/adapt_speed.py the anchor's centroids move by 0.5–9 mm between
+    re-bindings, more than the margin of twice the needed list, and nearly every call had to query again.)"""
+
+    def __init__(self, points: np.ndarray, tets: np.ndarray, candidates: int = 16, widen: int = 4, walk: int = 8):
+        self.points = np.array(points, np.float64)  # (P, 3)
+        self.tets = np.ascontiguousarray(np.asarray(tets, np.int64)[:, :4])  # (M, 4)
+        M = len(self.tets)
+        self.k1, self.k2 = min(candidates, M), min(candidates * widen, M)
+        self.walk = walk
+        self.neighbours = tet_neighbours(self.tets)  # (M, 4)
+
+    def __call__(self, vertices: np.ndarray, hint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(tet (P,), barycentric (P, 4)) of the points in the tets at ``vertices`` (n, 3); ``hint`` (P,) a guess of
+        each point's tet (e.g. its tet before a small motion)."""
+        x = np.asarray(vertices, np.float64)
+        P, M = len(self.points), len(self.tets)
+        dinv = np.empty((M, 3, 3))
+        have = np.zeros(M, bool)
+
+        def inverses(ids: np.ndarray) -> np.ndarray:  # D⁻¹ of the tets ``ids`` (any shape), each inverted once a call
+            flat = ids.ravel()
+            new = flat[~have[flat]]
+            if len(new):
+                new = np.unique(new)
+                dinv[new] = np.linalg.inv(shape_matrices(x, self.tets[new]))
+                have[new] = True
+            return dinv[ids]
+
+        def bary(rows: np.ndarray, t: np.ndarray) -> np.ndarray:  # (P', 4) of points ``rows`` in tets t (P',)
+            lam = np.einsum("pij,pj->pi", inverses(t), self.points[rows] - x[self.tets[t, 0]])
+            return np.concatenate([1.0 - lam.sum(-1, keepdims=True), lam], axis=-1)
+
+        tet = np.asarray(hint, np.int64).copy()
+        b = bary(np.arange(P), tet)
+        rows = np.flatnonzero(~(b.min(1) > 1e-9))
+        walkers, cur, bc = rows, tet[rows], b[rows]
+        for _ in range(self.walk):
+            nxt = self.neighbours[cur, np.argmin(bc, axis=1)]  # across the face of the most negative coordinate
+            go = nxt >= 0
+            walkers, cur = walkers[go], nxt[go]
+            if not len(walkers):
+                break
+            bc = bary(walkers, cur)
+            ok = bc.min(1) > 1e-9
+            tet[walkers[ok]], b[walkers[ok]] = cur[ok], bc[ok]
+            walkers, cur, bc = walkers[~ok], cur[~ok], bc[~ok]
+        rest = rows[~(b[rows].min(1) > 1e-9)]
+        if len(rest):  # locate_in_tets' rule on the nearest k1, then (none holding the point) on the nearest k2
+            p = self.points[rest]
+            _, near = cKDTree(x[self.tets].mean(1)).query(p, k=self.k2)
+            near = np.asarray(near, np.int64).reshape(len(rest), self.k2)
+            lam = np.einsum("pkij,pkj->pki", inverses(near), p[:, None] - x[self.tets[near, 0]])
+            bb = np.concatenate([1.0 - lam.sum(-1, keepdims=True), lam], axis=-1)  # (R, k2, 4)
+            score = bb.min(2)
+            r = np.arange(len(rest))
+            j = np.argmax(score[:, :self.k1], axis=1)
+            far = score[r, j] < -1e-9
+            j[far] = np.argmax(score[far], axis=1)
+            tet[rest], b[rest] = near[r, j], bb[r, j]
+        return tet, b

@@ -819,6 +819,7 @@ def _gn_solve(gn: GNWindow, frames, p0, prior, before, D, sigma, obs, iterations
     if primed is None:
         gn.rebind_next = True
     first = [True]
+    lins = [0]  # linearisations so far: a trial step before the last iteration is evaluated ahead (GNWindow.evaluate)
     # the one-evaluation path (gn.trust > 0, AdaptConfig.gn_trust): the last step, when at most gn.trust posterior
     # σ, is taken on the quadratic model without simulating the window there — unless the last frame's such step
     # missed its predicted residuals by more than GN_PREDICTION_SLACK in the cost's units (checked at this frame's
@@ -829,7 +830,9 @@ def _gn_solve(gn: GNWindow, frames, p0, prior, before, D, sigma, obs, iterations
         # a trial step whose simulation collapses (inverted elements, a failed solve) is a rejected step: the
         # damping grows and a shorter step is tried; the first evaluation (the starting point) still raises
         try:
-            out = primed if first[0] and nj and primed is not None else gn.evaluate(frames, pp, before, D, nj)
+            out = primed if first[0] and nj and primed is not None else gn.evaluate(
+                frames, pp, before, D, nj, ahead=not nj and lins[0] < iterations)
+            lins[0] += bool(nj)
             if first[0] and nj and gn.prediction is not None:
                 gn.last_prediction_error = gn.prediction_error(frames, sigma, obs.huber)
                 trusted[0] = trusted[0] and gn.last_prediction_error <= GN_PREDICTION_SLACK
@@ -996,7 +999,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             res, (r_lin, J_lin) = _gn_solve(gn, frames, p0, solve_prior, before, D, sigma, obs,
                                             config.iters_per_frame, scale, primed)
             if hold_nu.any():  # σ (and the information test) with ν's own prior: held, ν is not known better
-                res.cov_scaled = posterior_cov(res.jacobian, res.weights, sigma ** 2 * res.scale2, prior)
+                res.cov_scaled = posterior_cov(res.jacobian, res.weights, sigma ** 2 * res.scale2, prior, res.jtwj)
             held_now = hold_nu.copy()
             n_data = res.jtwj / (sigma ** 2 * scale)  # the data's normal matrix Jᵀ W J at the last linearisation
             if config.fit_poisson and config.poisson_information > 0 and len(frames) > 1:
