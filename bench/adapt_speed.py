@@ -207,7 +207,9 @@ def markdown(data: dict) -> str:
              "from the loss).  "
              "gn / adam: this row's time over adam's with the same S and it, same run (issue 13's target: ≤ 1).  "
              "its / evals: gn's "
-             "Gauss–Newton iterations and window evaluations per timed frame (mean).  E error: round 1, every frame, "
+             "Gauss–Newton iterations and evaluations of gauss_newton's residual function per timed frame (mean; a "
+             "trial step evaluated with its Jacobian ahead and reused as the next linearisation, GNWindow.evaluate's "
+             "ahead, counts twice but is one window pass).  E error: round 1, every frame, "
              f"against the E the capture was synthesised with ({E_TRUE:.3g} Pa; every run starts there).", "",
              "| S | it | estimator | J | trust | fwd s | bwd s | render s | total s (wall) | CPU s / frame | "
              "gn / adam (wall) | "
@@ -231,7 +233,7 @@ def markdown(data: dict) -> str:
     def gn_part(label: str, g: dict) -> str:
         return (f"{label} {g['total_s']:.3g} s wall per frame (gn / adam {g['over_adam_wall']:.2f} wall, "
                 f"{g['over_adam_cpu']:.2f} CPU; {g['gn_iterations']:.2g} iterations and {g['gn_evaluations']:.2g} "
-                f"window evaluations per frame; max E error {100 * g['max_err']:.1f} %)")
+                f"evaluations per frame; max E error {100 * g['max_err']:.1f} %)")
 
     for it in sorted({1, I0}):
         a, g = row.get((S0, it, "adam", "default")), row.get((S0, it, "gn", "jvp"))
