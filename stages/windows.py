@@ -375,7 +375,6 @@ class GNWindow:
         self._ahead = ((list(frames), rebind), np.array(p, float), before, D, out, state)
         return out[0], None
 
-
     def _evaluate(self, frames: Sequence[int], p: np.ndarray, before: np.ndarray, D: np.ndarray | None,
                   need_jac: bool, rebind: bool = True):
         """:meth:`evaluate` itself."""
