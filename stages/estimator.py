@@ -153,18 +153,6 @@ def cluster_scale2(r: np.ndarray, J: np.ndarray, sigma: float, delta: float | No
     return s2 if np.isfinite(s2) and s2 > 0 else residual_scale2(r, sigma, delta, k)
 
 
-class JacobianProduct:
-    """The ``jtw`` of an evaluation whose J is exact (gauss_newton's ``evaluate``): W ↦ Jᵀ diag(W) r (k,) from J
-    (m, k) and r (m,) themselves.  gauss_newton forms that product over J's non-zero rows, with the Jᵀ W J it
-    forms there anyway (the same to rounding), instead of calling this over every row."""
-
-    def __init__(self, J: np.ndarray, r: np.ndarray):
-        self.J, self.r = J, r
-
-    def __call__(self, W: np.ndarray) -> np.ndarray:
-        return self.J.T @ (W * self.r)
-
-
 def robust_cost(r: np.ndarray, sigma: float, delta: float | None) -> float:
     """Σ σ² ρ(r/σ) (½ Σ r² without Huber) = Σ (a |r| − ½ a²), a = min(|r|, δσ) (σ²ρ(u) = ½r² for |u| ≤ δ, δσ|r| − ½(δσ)²
     beyond: two dot products, no per-residual branch)."""
@@ -185,8 +173,8 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
 
     evaluate(p, need_jacobian) → (r (m,), J (m, k) or None) or, with the Jacobian, (r, J, jtw) where jtw(W)
     gives Jᵀ diag(W) r exactly (used for the gradient when J is only approximate — the estimate is then the
-    exact minimum of C, and J only shapes the steps and the covariance; a :class:`JacobianProduct`, J exact, is
-    formed from J here); sigma the noise level of one residual;
+    exact minimum of C, and J only shapes the steps and the covariance; without jtw, J exact, Jᵀ W r is formed
+    here over J's non-zero rows); sigma the noise level of one residual;
     huber δ in units of σ (None: plain least squares); stops after ``max_iterations`` Jacobians or when
     the step's size in units of the posterior σ falls below ``tol``.  ``max_step`` (k,) or scalar: a step is
     scaled down until no |δ_i| exceeds it (a trust region); ``lower``/``upper`` (k,): p is clipped into these
@@ -222,7 +210,7 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
         JW = Jl * W[live, None]
         JWJ = JW.T @ Jl
         N = JWJ / s2 + info
-        jtwr = JW.T @ r[live] if jtw is None or isinstance(jtw, JacobianProduct) else jtw(W)
+        jtwr = JW.T @ r[live] if jtw is None else jtw(W)
         g = jtwr / s2 + info @ (p - prior.mean)
         accepted = checked = False
         r_new = None  # the residuals at the accepted step, when evaluated there

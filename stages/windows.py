@@ -11,7 +11,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from stages.errors import RslError
-from stages.estimator import JacobianProduct, bounded_sigma, robust_cost
+from stages.estimator import bounded_sigma, robust_cost
 from stages.parameters import chain_params, theta_from_params
 from stages.window_model import Observation, Window, WindowBackend
 
@@ -437,7 +437,7 @@ class GNWindow:
             self.times[2] += t4 - t3
             self.last_rs, self.last_frames, self.last_jac = rs, rs, Js
             r, J = np.concatenate(rs), np.concatenate(Js, axis=0)
-            return r, J, JacobianProduct(J, r)  # J is exact: Jᵀ W r from it is the autograd product
+            return r, J  # J is exact: gauss_newton forms Jᵀ W r from it (the autograd product)
         if x_anchor is not None and smooth and obj.obs.kind == "vision" and self.skip_joint:
             # binding_jacobian differences the θ columns jointly (positions and anchor): jacobian skips them
             Js = obj.obs.jacobian(frames, X, dX, skip=range(self.k_theta))
