@@ -27,7 +27,7 @@ import numba as nb
 import numpy as np
 import torch
 
-from stages.render.bind_project import _screen_terms, camera_array
+from stages.render.bind_project import _inv3, _mm, _screen_terms, camera_array
 from stages.render.projection import CameraTensors
 from stages.render.rasterize import (ALPHA_MAX, ALPHA_MIN, TILE, _bin_ranked, _exp_neg, _forward, _pack, _schedule,
                                      exp_coefficients)
@@ -333,24 +333,6 @@ def geometry_jvp_linear(x: np.ndarray, V: np.ndarray, host: np.ndarray, beta: np
     return out
 
 
-@nb.njit(cache=True)
-def _inv3(A, out):  # pragma: no cover - compiled
-    """out = A⁻¹ (3, 3) by the adjugate."""
-    c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]
-    c01 = A[1, 2] * A[2, 0] - A[1, 0] * A[2, 2]
-    c02 = A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]
-    det = A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02
-    out[0, 0] = c00 / det
-    out[1, 0] = c01 / det
-    out[2, 0] = c02 / det
-    out[0, 1] = (A[0, 2] * A[2, 1] - A[0, 1] * A[2, 2]) / det
-    out[1, 1] = (A[0, 0] * A[2, 2] - A[0, 2] * A[2, 0]) / det
-    out[2, 1] = (A[0, 1] * A[2, 0] - A[0, 0] * A[2, 1]) / det
-    out[0, 2] = (A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]) / det
-    out[1, 2] = (A[0, 2] * A[1, 0] - A[0, 0] * A[1, 2]) / det
-    out[2, 2] = (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]) / det
-
-
 @nb.njit(parallel=True, cache=True)
 def _binding_tangents_linear(xa, Va, host, mu_fit, dm_inv, fit_factor, d_beta, d_factor):  # pragma: no cover
     """ImageLoss._binding_tangents_linear per Gaussian g: D (columns x_j − x_0 of its host at xa),
@@ -377,13 +359,9 @@ def _binding_tangents_linear(xa, Va, host, mu_fit, dm_inv, fit_factor, d_beta, d
         for d in range(3):
             lam[d] = (Di[d, 0] * (mu_fit[g, 0] - xa[h0, 0]) + Di[d, 1] * (mu_fit[g, 1] - xa[h0, 1])
                       + Di[d, 2] * (mu_fit[g, 2] - xa[h0, 2]))
-            for e in range(3):
-                Fa[d, e] = D[d, 0] * dm_inv[g, 0, e] + D[d, 1] * dm_inv[g, 1, e] + D[d, 2] * dm_inv[g, 2, e]
+        _mm(D, dm_inv[g], Fa)
         _inv3(Fa, Fi)
-        for d in range(3):
-            for e in range(3):
-                FiL[d, e] = (Fi[d, 0] * fit_factor[g, 0, e] + Fi[d, 1] * fit_factor[g, 1, e]
-                             + Fi[d, 2] * fit_factor[g, 2, e])
+        _mm(Fi, fit_factor[g], FiL)
         for j in range(k):
             for d in range(3):
                 for c in range(3):
@@ -396,15 +374,13 @@ def _binding_tangents_linear(xa, Va, host, mu_fit, dm_inv, fit_factor, d_beta, d
                 d_beta[j, g, d + 1] = dl
                 s += dl
             d_beta[j, g, 0] = -s
-            for d in range(3):  # dD D_m⁻¹
+            _mm(dD, dm_inv[g], dDm)  # dD D_m⁻¹
+            _mm(Fi, dDm, T)  # F_a⁻¹ dD D_m⁻¹
+            dL = d_factor[j, g]
+            _mm(T, FiL, dL)  # −(F_a⁻¹ dD D_m⁻¹)(F_a⁻¹ L_fit)
+            for d in range(3):
                 for e in range(3):
-                    dDm[d, e] = dD[d, 0] * dm_inv[g, 0, e] + dD[d, 1] * dm_inv[g, 1, e] + dD[d, 2] * dm_inv[g, 2, e]
-            for d in range(3):  # F_a⁻¹ dD D_m⁻¹
-                for e in range(3):
-                    T[d, e] = Fi[d, 0] * dDm[0, e] + Fi[d, 1] * dDm[1, e] + Fi[d, 2] * dDm[2, e]
-            for d in range(3):  # −(F_a⁻¹ dD D_m⁻¹)(F_a⁻¹ L_fit)
-                for e in range(3):
-                    d_factor[j, g, d, e] = -(T[d, 0] * FiL[0, e] + T[d, 1] * FiL[1, e] + T[d, 2] * FiL[2, e])
+                    dL[d, e] = -dL[d, e]
 
 
 def binding_tangents_linear(xa: np.ndarray, Va: np.ndarray, host: np.ndarray, mu_fit: np.ndarray,
