@@ -23,16 +23,22 @@ def _setup(capture):  # noqa: F811
     return il, _bend(mesh.vertices, 0.05), V, Va  # (…, x: the configuration the tangents are taken at)
 
 
+def tangents_both_ways(il, switch: str, x, V, Va) -> tuple:
+    """((binding, geometry) with ImageLoss's ``switch`` on, the same with it off): binding_jvp at the anchor along Va
+    and geometry_jvp at x along V — a fast path and its twin, to compare."""
+    got = {}
+    for fast in (True, False):
+        setattr(il, switch, fast)
+        b = il.binding_jvp(il._anchor_x, Va)
+        got[fast] = (b, il.geometry_jvp(x, V, b))
+    return got[True], got[False]
+
+
 def test_binding_and_geometry_tangents_in_closed_form_are_the_torch_and_einsum_twins(capture):  # noqa: F811
     """After a rebind at a bent anchor: dβ, dL of the anchored binding (numpy closed form against torch forward mode)
     and μ, M, dμ, dM of the Gaussians at a bent configuration (matrix products against einsum) agree to rounding."""
     il, x, V, Va = _setup(capture)
-    got = {}
-    for fast in (True, False):
-        il.jvp_numpy = fast
-        b = il.binding_jvp(il._anchor_x, Va)
-        got[fast] = (b, il.geometry_jvp(x, V, b))
-    (bf, gf), (bs, gs) = got[True], got[False]
+    (bf, gf), (bs, gs) = tangents_both_ways(il, "jvp_numpy", x, V, Va)
     for a, c in zip(bf[2:], bs[2:]):
         assert np.abs(c).max() > 0
         np.testing.assert_allclose(a, c, rtol=0, atol=1e-10 * np.abs(c).max())

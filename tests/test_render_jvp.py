@@ -168,6 +168,7 @@ def test_compiled_linear_tangents_are_the_numpy_closed_forms():
     matrix products (jvp_kernel False) after a rebind at a bent anchor: dβ, dL of the anchored binding and μ, M, dμ,
     dM of the Gaussians, to rounding (the 3 × 3 inverses by the adjugate, the sums in another order)."""
     from stages.render.image_loss import ImageLoss
+    from test_gn_speed_render import tangents_both_ways
     from test_render_project_bound import _mesh_and_gaussians
 
     mesh, art = _mesh_and_gaussians(1, 300)
@@ -179,12 +180,7 @@ def test_compiled_linear_tangents_are_the_numpy_closed_forms():
     size = float(np.linalg.norm(np.ptp(v, axis=0)))
     V = rng.normal(size=(3,) + v.shape) * 1e-3 * size
     Va = rng.normal(size=(3,) + v.shape) * 1e-3 * size
-    got = {}
-    for kernel in (True, False):
-        il.jvp_kernel = kernel
-        b = il.binding_jvp(il._anchor_x, Va)
-        got[kernel] = (b, il.geometry_jvp(x, V, b))
-    (bf, gf), (bs, gs) = got[True], got[False]
+    (bf, gf), (bs, gs) = tangents_both_ways(il, "jvp_kernel", x, V, Va)
     assert bf[0] is bs[0] and bf[1] is bs[1]  # the primal binding: the rebind's own
     for a, c in zip(list(bf[2:]) + list(gf), list(bs[2:]) + list(gs)):
         assert a.shape == c.shape and np.abs(c).max() > 0
