@@ -744,17 +744,15 @@ def _locate_change(loop: _Loop, T: int, p_old: np.ndarray, p_new: np.ndarray, ca
     span = list(range(c0, T + 1))
     states, old_losses, _, t3 = obj(span, p_old, loop.before(c0), False)
     times[:] += t3
-    past = [*loop.before(c0), *states]  # past[t − c0 + 2] = x_t with the old material
-    best = (float(np.sum(old_losses)), T + 1)  # no frame of the new material (a candidate only to compare)
-    for c in candidates[1:]:
+    past = [*loop.before(c0), *states]  # past[t − c0 + 2] = x_t with the old material (past[:2]: before c0)
+    best = (float(np.sum(old_losses)), candidates[-1])  # no frame of the new material: the last candidate
+    for c in [*candidates[1:], c0]:
         _, new_losses, _, t3 = obj(span[c - c0:], p_new, np.stack(past[c - c0:c - c0 + 2]), False)
         times[:] += t3
         cost = float(np.sum(old_losses[:c - c0]) + np.sum(new_losses))
         if cost < best[0]:
             best = (cost, c)
-    _, c0_losses, _, t3 = obj(span, p_new, loop.before(c0), False)
-    times[:] += t3
-    c = c0 if float(np.sum(c0_losses)) < best[0] else min(best[1], candidates[-1])
+    c = best[1]
     for t in range(c0, c):
         loop.stored[t] = past[t - c0 + 2]
     return c
