@@ -195,13 +195,13 @@ class AnchorMaterial:
         if self.change <= 0:  # c = 0: every sign-consistent wobble would be a candidate
             return
         hist, devs = self._later
-        hist.append(np.array(p, float))
-        a, b = LEVEL
-        if self.fixed:  # rule 0: the level is the last fit (restart_watch)
+        if self.fixed:  # rule 0: the level is the last fit (restart_watch), the history's only entry
             level = hist[0]
-        elif len(hist) < b + 1:
-            return
         else:
+            hist.append(np.array(p, float))
+            a, b = LEVEL
+            if len(hist) < b + 1:
+                return
             level = np.median(np.stack(hist[-(b + 1):-a]), axis=0)
         devs.append(np.asarray(p[:self.R], float) - level[:self.R])
         if self.candidate(devs):
