@@ -49,6 +49,16 @@ def material_setting(capture: Capture | None, adapt: AdaptArtefact) -> tuple[str
             np.asarray(extra.get("gravity", DEFAULT_GRAVITY), np.float64))
 
 
+def window_young(adapt: AdaptArtefact) -> np.ndarray | None:
+    """(T, R) Pa: the sliding window's own E per frame where adapt.h5 records E(t) held at the calibration fits
+    (``rsl adapt --hold-fit``, extras ``window_young``); None when it records none or it equals E(t)."""
+    wy = (adapt.extra or {}).get("window_young") or []
+    if len(wy) != len(adapt.young):
+        return None
+    wy = np.asarray(wy, np.float64).reshape(np.shape(adapt.young))
+    return None if np.array_equal(wy, np.asarray(adapt.young, np.float64)) else wy
+
+
 def previous_states(frames: np.ndarray, positions: np.ndarray, rest: np.ndarray, row: int
                     ) -> tuple[np.ndarray, np.ndarray]:
     """(x_{t−1}, x_{t−2}) of row ``row`` of a trajectory (frames (T,), positions (T, n, 3)): the earlier rows

@@ -3,11 +3,14 @@ stages/vision_anchor.py): the window grows from the first frame until K informed
 (stages.steps.adapt._calibrate_anchor, L-BFGS-B), and the Gaussians' anchor is held at that material from then on."""
 from __future__ import annotations
 
+import dataclasses
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from stages.parameters import Adam
-from stages.steps.adapt import _calibrate_anchor
+from stages.steps.adapt import AdaptConfig, _calibrate_anchor, _holds_fit
 from stages.vision_anchor import AnchorMaterial
 from stages.window_backends import SolveCollapsed
 from test_adapt_vision_rest import DELAY, _adapt, delayed  # noqa: F401  (the module's capture fixture)
@@ -41,6 +44,29 @@ def test_the_calibration_fit_is_the_minimum_of_the_frames_loss():
     p = _calibrate_anchor(obj, list(range(6)), np.array([np.log(0.3 * E_TRUE), -1.0]), None, None, times)
     np.testing.assert_allclose(p, centres.mean(0), atol=1e-6)
     np.testing.assert_allclose(times, obj.calls * np.array([0.1, 0.2, 0.3]))
+
+
+def test_a_recalibration_holding_poisson_fits_log_e_alone():
+    """hold_poisson: ν's coordinate stays where it was, and log E goes to the minimum of the loss along log E at that
+    ν: ∂L/∂p₀ = 0 ⇒ p₀ = c̄₀ − (A₀₁/A₀₀)(p₁ − c̄₁), not to the joint minimum c̄."""
+    rng = np.random.default_rng(1)
+    centres = np.array([np.log(E_TRUE), 0.2]) + 0.05 * rng.standard_normal((6, 2))
+    obj = _Quadratic(centres)
+    start = np.array([np.log(0.5 * E_TRUE), -1.0])
+    p = _calibrate_anchor(obj, list(range(6)), start, None, None, np.zeros(3), hold_poisson=True)
+    c = centres.mean(0)
+    assert p[1] == start[1]
+    assert p[0] == pytest.approx(c[0] - obj.A[0, 1] / obj.A[0, 0] * (start[1] - c[1]), abs=1e-6)
+    assert abs(p[0] - c[0]) > 0.1  # the joint minimum is elsewhere: ν was held, not fitted
+
+
+def test_e_is_held_at_the_fits_only_where_a_later_change_can_be_seen_and_refitted():
+    """--hold-fit holds E(t) at the last fit only with --recalibrate and rule 5's threshold --anchor-change > 0:
+    without either the fit would never be replaced, and E(t) stays the window's."""
+    cfg = AdaptConfig(capture=Path("c"), workspace=Path("w"))
+    assert _holds_fit(cfg)
+    for off in ({"hold_fit": False}, {"recalibrate": False}, {"anchor_change": 0.0}):
+        assert not _holds_fit(dataclasses.replace(cfg, **off)), off
 
 
 def test_the_calibration_keeps_log_e_in_the_young_range_and_steps_back_from_a_collapse():
@@ -78,7 +104,20 @@ class _Stepwise:
         return np.stack(states), np.array(losses), None, (0.1, 0.2, 0.3)
 
 
+class _StepwiseGrad(_Stepwise):
+    """_Stepwise with dL/dp exact: Σ_t 2(p₀ − c_t) + Σ_{t after the first} ½(p₀ − c_t) (each later frame's x_{t−1}
+    is p₀), none along p₁."""
+
+    def __call__(self, frames, p, before, need_grad=True, lead=0):
+        states, losses, _, times = super().__call__(frames, p, before, need_grad, lead)
+        c = np.array([self.c(t) for t in frames])
+        g0 = 2 * np.sum(p[0] - c) + 0.5 * np.sum(p[0] - c[1:])
+        return states, losses, np.array([g0, 0.0]), times
+
+
 class _Loop:
+    young_range = None
+
     def __init__(self, objective, stored):
         self.objective, self.stored = objective, stored
 
@@ -104,6 +143,28 @@ def test_a_later_change_is_located_at_the_frame_the_material_changed(change):
                           np.zeros(3)) == 8
     assert _locate_change(_Loop(_Stepwise(15), dict(stored)), 15, np.zeros(2), np.array([0.5, 0.0]), range(8, 13),
                           np.zeros(3)) == 12
+
+
+@pytest.mark.parametrize("fitted_at", [10, 11, 13, 14])
+def test_a_recalibration_locates_the_change_again_with_a_fit_per_split(fitted_at):
+    """_relocate_with_fits: the material changes at frame 12 (log E 0 → 0.7), the recalibration was fitted to frames
+    from ``fitted_at``, off the change either way (a fit that took in frames of the old material is pulled towards
+    it): each split fitted on its own finds 12, with the new material's fit, and the frames before it are stored as
+    the old material's."""
+    from stages.steps.adapt import _relocate_with_fits
+
+    T, change, hold = 15, 12, True
+    stored = {t: np.array([0.0 if t < min(change, fitted_at) else 0.7]) for t in range(T + 1)}
+    obj = _StepwiseGrad(change)
+    p_fit = _calibrate_anchor(obj, list(range(fitted_at, T + 1)), np.array([0.3, 0.0]),
+                              _Loop(obj, stored).before(fitted_at), None, np.zeros(3), hold)
+    cands = range(fitted_at - 2, min(fitted_at + 2, T) + 1)
+    loop, times = _Loop(obj, stored), np.zeros(3)
+    c, p = _relocate_with_fits(loop, T, np.zeros(2), p_fit, fitted_at, cands, hold, times)
+    assert c == change
+    assert p[1] == 0.0 and abs(p[0] - obj.jump) < abs(p_fit[0] - obj.jump) + 1e-12
+    assert abs(p[0] - obj.jump) < 0.05
+    assert all(stored[t][0] == 0.0 for t in range(cands[0], c)) and times[0] > 0
 
 
 def test_a_calibrated_anchor_is_held_whatever_the_window_does():

@@ -9,6 +9,7 @@ import pytest
 
 from stages.artefacts import Provenance, mesh_artefact
 from stages.results import compute_stress, gaussian_anchor, material_setting, previous_states, recorded_capture
+from stages.results import window_young
 from stages.sim import stress as st
 from stages.sim.meshgen import box_tets
 
@@ -120,3 +121,15 @@ def test_gaussian_anchor_rebinds_or_offsets_at_the_fit_frame(tmp_path):
     assert r.rebound is None
     adapt.frames = np.array([5, 6, 7])  # the fit frame is not in adapt.h5
     assert gaussian_anchor(_Renderer(fit), adapt, path) == 0.0
+
+
+def test_window_young_is_the_windows_own_estimate_only_where_e_is_held():
+    """stages.results.window_young: extras ``window_young`` (T, R) where it differs from E(t) (rsl adapt --hold-fit
+    held E at the fits); None without it, with the wrong length, or equal to E(t)."""
+    young = np.array([[1.0e5], [1.0e5], [2.0e5]])
+    own = [[0.9e5], [1.1e5], [2.0e5]]
+    np.testing.assert_array_equal(window_young(SimpleNamespace(young=young, extra={"window_young": own})), own)
+    assert window_young(SimpleNamespace(young=young, extra={})) is None
+    assert window_young(SimpleNamespace(young=young, extra=None)) is None
+    assert window_young(SimpleNamespace(young=young, extra={"window_young": own[:2]})) is None
+    assert window_young(SimpleNamespace(young=young, extra={"window_young": young.tolist()})) is None

@@ -431,8 +431,8 @@ def test_recalibration_after_a_later_change_fits_the_new_material(tmp_path):
     --recalibrate: rule 5 sees the change (log E away from the calibration's fit), the change is located at the
     frame the material changed (±1), a window grows again from there, and θ fitted to its 3 or more informed
     frames puts E within 5 % of 2 E_TRUE at that frame (the sliding window alone overshoots to 1.4×, the test
-    above); the anchor stays at the first frames' material; the force replay's θ(t) holds each fit over its
-    segment."""
+    above), ν held at the first fit's, and E(t) held at each fit until the next change is seen; the anchor stays
+    at the first frames' material; the force replay's θ(t) holds each fit over its segment."""
     from stages.artefacts import AdaptArtefact
     from stages.forces import replay_theta
 
@@ -446,8 +446,16 @@ def test_recalibration_after_a_later_change_fits_the_new_material(tmp_path):
     assert len(later) >= 1 and 7 < later[0] <= 12, later
     assert len(located) == len(later) and abs(located[0] - 7) <= 1, located
     assert len(cals) >= 2 and cals[1]["frames"][0] == located[0] and cals[1]["frames"][1] > later[0], cals
+    assert all(c["poisson"] == cals[0]["poisson"] for c in cals[1:]), cals  # recalibrations fit log E alone
     fitted = cals[1]["frames"][1]
     assert abs(E[fitted] / (2 * E_TRUE) - 1) < 0.05, E
+    # --hold-fit: E(t) is each fit from its frame until rule 5 sees the next change; the window's own E is recorded
+    window = np.asarray(a.extra["window_young"])[:, 0]
+    first_fit, next_seen = cals[0]["frames"][1], (later + [len(E) - 1])[1]
+    np.testing.assert_allclose(E[first_fit:later[0] + 1], cals[0]["young"][0])
+    np.testing.assert_allclose(E[fitted:next_seen + 1], cals[1]["young"][0])
+    np.testing.assert_allclose(window[:first_fit + 1], E[:first_fit + 1])  # calibrating: the window's own
+    assert np.any(window[first_fit + 1:later[0] + 1] != E[first_fit + 1:later[0] + 1])
     assert abs(E[later[0]] / (2 * E_TRUE) - 1) > 0.1, E  # (before it, the sliding window had not reached it)
     y, _, _ = replay_theta(a.young, a.poisson, a.extra, "smoothed")
     np.testing.assert_allclose(y[:located[0], 0], cals[0]["young"][0])

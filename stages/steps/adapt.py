@@ -234,8 +234,9 @@ class AdaptConfig:
     """adam, images, with --anchor-calibration: each later change of material that the anchor's rule 5 sees (log E
     away from the last fit, 1–4 frames after the change) is located — the frame c that splits the frames since the
     last fit best into the old material and the window's (adapt._locate_change) — and starts a growing window
-    again at c: once it holds --anchor-calibration frames θ is fitted to all of them (L-BFGS-B), c located again
-    with the fit (refitted if it moved) and Adam restarts from it; the anchor stays at the first frames' material.
+    again at c: once it holds --anchor-calibration frames log E is fitted to all of them (L-BFGS-B; ν held at the
+    first fit's: RECALIBRATION_HOLDS_POISSON), c located again with a fit of each split c ± 1, ... of its own
+    (adapt._relocate_with_fits) and Adam restarts from it; the anchor stays at the first frames' material.
     The fits and the located changes are recorded (adapt.h5 extra anchor_calibrations, anchor_change_frames): the
     force replay holds each fit over its segment (stages.forces.calibrated_theta).  A false change costs the fit only
     frames, not bias (the material is the same on both sides).  Why: after a step the sliding window starts from
@@ -243,6 +244,17 @@ class AdaptConfig:
     median settled E error without → with: bar released at rest 16.8 → 5.8 %, bar at equilibrium 4.9 → 5.8 %, the
     dinosaur 13.9 → 13.9 %; the paper's scale (bar at equilibrium) 7.4 → 0.9 % (accuracy.md; accuracy_notes.md,
     eleventh stop)."""
+    hold_fit: bool = True
+    """adam, images, with --anchor-calibration and --recalibrate (and --anchor-change > 0, rule 5's threshold): from
+    each calibration's fit until the next change of material rule 5 sees, E(t) and ν(t) are that fit — a fit to
+    every frame since the change, which the sliding window's Adam steps (--lr in log E each, whatever the gradient,
+    after Adam's restart), from states simulated with its own lagging estimates, only move away from.  The window
+    runs on as rule 5's detector of the next change, from states simulated with the fit (each new frame once more,
+    with the fit: what a later change is located against) and with Adam's moments kept from the growing window (a
+    restarted Adam's first steps, --lr whatever the gradient, look like a change); during a recalibration's growing
+    window E(t) is its estimate.
+    A material that drifts slowly is followed in steps of rule 5's threshold.  --no-hold-fit: E(t) is the sliding
+    window's Adam estimate at every frame.  Measured: accuracy_notes.md, thirteenth stop."""
 
 
 def resolve_estimator(config: AdaptConfig) -> str:
@@ -265,6 +277,12 @@ def resolve_gn_trust(config: AdaptConfig, obs_kind: str) -> float:
     return GN_TRUST_IMAGES if obs_kind == "vision" else 0.0
 
 
+
+
+def _holds_fit(config: AdaptConfig) -> bool:
+    """--hold-fit in force: E(t) held at each calibration fit, where rule 5 can see the next change and refit
+    (--recalibrate, --anchor-change > 0)."""
+    return config.hold_fit and config.recalibrate and config.anchor_change > 0
 
 
 # =========================================================================== mesh refinement
@@ -635,6 +653,7 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
         rec.anchor_young, rec.anchor_tests = [], anchor.tests
         rec.calibrations = []  # per calibration fit: {"frames": [first, last], "young": (R,), "poisson": (R,)}
         rec.change_frames = []  # the located first frame of each later change of material (--recalibrate)
+        rec.window_young = []  # per frame, the window's own E (young holds the fit between changes: --hold-fit)
     f = obj.anchor_frame
     rest_until = -1  # frames 0..rest_until were at rest (simulated from x_0(θ)); −1: none known (a range from A > 0)
     # the rest phase comes with the lead-in (both re-simulate the window's past with its θ); without one, the
@@ -646,6 +665,7 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
     calib_from = loop.first  # the growing window's first frame (after a later change: the frame it began)
     seen_later = 0  # the later changes (rule 5) already recalibrated for
     change_lo = loop.first + 1  # the earliest frame a later change may be located at (after the last calibration)
+    holding = calibrating and _holds_fit(config)  # E(t) held at the last fit between changes
     with loop.reporter.task(f"adapt online ({loop.backend.space}, {loop.obs.kind}, w={w})", loop.total()) as task:
         for T in loop.online_frames():
             frames = list(range(max(loop.first, T - w + 1), T + 1))
@@ -676,8 +696,13 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                     obj.anchor_p = anchor.after_step(params, obj.last_anchor_g, idle)
                 if idle:
                     break  # θ does not move: the next steps would repeat this one
-            for i, t in enumerate(sim):
-                loop.stored[t] = states[i]
+            if holding and anchor.fixed and not calibrating:  # the past is the held fit's: frame T simulated with it
+                states_fit, _, _, t3 = obj([T], calib_p, loop.before(T), False)
+                times += t3
+                loop.stored[T] = states_fit[0]
+            else:
+                for i, t in enumerate(sim):
+                    loop.stored[t] = states[i]
             if sim[0] == 0 and len(sim) > 1 and sim[1] > 1:  # the frames skipped at rest hold x_0(θ)
                 for t in range(1, sim[1]):
                     loop.stored[t] = states[0]
@@ -685,13 +710,16 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                 rest_until = T
             informed += calibrating and not idle
             if calibrating and informed >= config.anchor_calibration:
-                params[:] = _calibrate_anchor(obj, sim, params, loop.before(sim[0]), loop.young_range, times)
-                if anchor.fixed:  # a recalibration: the change located again with the fit, and refitted if it moved
-                    c = _locate_change(loop, T, calib_p, params, range(max(change_lo, calib_from - 2),
-                                                                       min(calib_from + 2, T) + 1), times)
+                hold = anchor.fixed and RECALIBRATION_HOLDS_POISSON  # a recalibration: log E alone
+                if hold:
+                    params[R:] = calib_p[R:]  # ν at the last fit's
+                params[:] = _calibrate_anchor(obj, sim, params, loop.before(sim[0]), loop.young_range, times, hold)
+                if anchor.fixed:  # a recalibration: the change located again, each split with its own fit
+                    c, params[:] = _relocate_with_fits(
+                        loop, T, calib_p, params, calib_from,
+                        range(max(change_lo, calib_from - 2), min(calib_from + 2, T) + 1), hold, times)
                     if c != calib_from:
                         calib_from, sim, rec.change_frames[-1] = c, list(range(c, T + 1)), c
-                        params[:] = _calibrate_anchor(obj, sim, params, loop.before(c), loop.young_range, times)
                 states, losses, _, t3 = obj(sim, params, loop.before(sim[0]), False)
                 times += t3
                 for i, t in enumerate(sim):
@@ -701,7 +729,11 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                 else:
                     anchor.calibrated(params, T)
                     obj.want_anchor_grad = False  # p_a is held: no anchor part to move it by
-                adam.restart()  # the growing window's gradients were larger: kept, they would shrink the next steps
+                # Adam restarts from the fit (the growing window's larger gradients, kept, would shrink the next
+                # steps), except while E(t) holds the fits: the window then only detects, and a fresh Adam's first
+                # steps (lr whatever the gradient) saw the dinosaur's constant E change (accuracy_notes.md, 13th stop)
+                if not holding:
+                    adam.restart()
                 calibrating = False
                 calib_p = params.copy()  # the material of the frames since the last change
                 fit_e, fit_nu = theta_from_params(params[:R], params[R:], loop.prange)
@@ -710,6 +742,10 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
             if losses.shape[0] > w:  # the growing window: the loss of the last w frames, as a window's
                 losses = losses[-w:]
             E, nu = theta_from_params(params[:R], params[R:], loop.prange)
+            if anchor is not None:
+                rec.window_young.append(E.tolist())
+            if holding and anchor.fixed and not calibrating:
+                E, nu = theta_from_params(calib_p[:R], calib_p[R:], loop.prange)  # the last fit, held
             if anchor is not None:
 
                 def explains(F, p):  # Σ loss over the frames F simulated from the start with θ(p), anchored there
@@ -758,16 +794,61 @@ def _locate_change(loop: _Loop, T: int, p_old: np.ndarray, p_new: np.ndarray, ca
     return c
 
 
+def _relocate_with_fits(loop: _Loop, T: int, p_old: np.ndarray, p_fit: np.ndarray, c: int, candidates: range,
+                        hold_poisson: bool, times: np.ndarray) -> tuple[int, np.ndarray]:
+    """The change located again after a recalibration: p_fit (2R,) is θ fitted to frames c..T; each neighbouring
+    split c ± 1, c ± 2, ... inside ``candidates`` gets its own fit to its frames c'..T (from the old material's
+    states before c'), and the split of lowest L(c') = Σ_{t=c0..c'−1} loss_t(p_old) + Σ_{t=c'..T} loss_t(p_c') wins,
+    walking while L falls (c0 = min(candidates)).  Comparing splits at one θ favours the split that θ was fitted to
+    (a fit that took in a frame of the old material is lower, and that frame then looks new).  The frames before the
+    split are stored as simulated with p_old.  Returns (c, p_c); ``times`` (3,) accumulates."""
+    obj, c0 = loop.objective, candidates[0]
+    span = list(range(c0, T + 1))
+    states, old_losses, _, t3 = obj(span, p_old, loop.before(c0), False)
+    times[:] += t3
+    past = [*loop.before(c0), *states]  # past[t − c0 + 2] = x_t with the old material (past[:2]: before c0)
+
+    def split(k: int, p: np.ndarray, fit: bool) -> tuple[float, np.ndarray]:
+        before = np.stack(past[k - c0:k - c0 + 2])
+        if fit:
+            p = _calibrate_anchor(obj, span[k - c0:], p, before, loop.young_range, times, hold_poisson)
+        _, new_losses, _, t3 = obj(span[k - c0:], p, before, False)
+        times[:] += t3
+        return float(np.sum(old_losses[:k - c0]) + np.sum(new_losses)), p
+
+    best_cost, best_p = split(c, p_fit, False)
+    start = c
+    for step in (-1, 1):
+        if c != start:
+            break  # the walk down moved: the splits above the start cost more
+        k = start + step
+        while k in candidates:
+            cost, p = split(k, best_p, True)
+            if cost >= best_cost:
+                break
+            c, best_cost, best_p, k = k, cost, p, k + step
+    for t in range(c0, c):
+        loop.stored[t] = past[t - c0 + 2]
+    return c, best_p
+
+
 CALIBRATION_ITERATIONS = 30
 """adam, images, --anchor-calibration: the L-BFGS-B iterations of the calibration fit at most (the bars of
 bench/accuracy.py's captures converged in 6–11)."""
+RECALIBRATION_HOLDS_POISSON = True
+"""adam, images, --recalibrate: a recalibration fits log E alone, ν held at the last fit's (the first calibration's).
+The frames after a later change start from stored states, and over them ν is not told apart from E: fitted too, it
+ran to the bound of its range (0.30–0.32 against 0.45) in every recalibration on the bars of bench/accuracy.py
+(accuracy_notes.md, thirteenth stop)."""
 
 
 def _calibrate_anchor(obj: WindowObjective, sim: list[int], p: np.ndarray, before: np.ndarray,
-                      young_range: tuple[float, float] | None, times: np.ndarray) -> np.ndarray:
+                      young_range: tuple[float, float] | None, times: np.ndarray,
+                      hold_poisson: bool = False) -> np.ndarray:
     """p (2R,) minimising L(p) = Σ_{t∈sim} loss_t(X_t(θ(p))), the frames ``sim`` simulated from ``before`` (the
     start, or the stored states before a later change) with the anchor as ``obj`` holds it (tied to θ at the first
-    calibration, held after), by L-BFGS-B from ``p`` with the window's adjoint gradient; log E inside young_range.
+    calibration, held after), by L-BFGS-B from ``p`` with the window's adjoint gradient; log E inside young_range;
+    ``hold_poisson``: ν's coordinates p[R:] held at p's (a recalibration, RECALIBRATION_HOLDS_POISSON).
     AdaptConfig.anchor_calibration and recalibrate; ``times`` (3,) accumulates."""
     R = obj.R
     best = [np.inf, np.array(p, float)]  # the lowest L(p) evaluated, and its p
@@ -785,6 +866,8 @@ def _calibrate_anchor(obj: WindowObjective, sim: list[int], p: np.ndarray, befor
     bounds = [(None, None)] * len(p)
     if young_range is not None:
         bounds[:R] = [(float(np.log(young_range[0])), float(np.log(young_range[1])))] * R
+    if hold_poisson:
+        bounds[R:] = [(float(v), float(v)) for v in p[R:]]
     scipy.optimize.minimize(cost, np.array(p, float), jac=True, method="L-BFGS-B", bounds=bounds,
                             options={"maxiter": CALIBRATION_ITERATIONS})
     return best[1]
@@ -1144,8 +1227,9 @@ def _trim_record(rec: _Record) -> None:
         del getattr(rec, f)[k:]
     if hasattr(rec, "innovation"):  # gn: appended before the frame's other entries
         del rec.innovation[k:]
-    if hasattr(rec, "anchor_young"):  # adam, --vision-anchor estimated: likewise
+    if hasattr(rec, "anchor_young"):  # adam, --vision-anchor estimated: likewise (and the window's own E)
         del rec.anchor_young[k:]
+        del rec.window_young[k:]
     if hasattr(rec, "calibrations"):  # recorded at its frame, before that frame's other entries
         rec.calibrations[:] = [c for c in rec.calibrations if c["frames"][1] in rec.frames]
         rec.change_frames[:] = [c for c in rec.change_frames if c <= rec.frames[-1]] if rec.frames else []
@@ -1183,6 +1267,8 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         "anchor_calibrations": list(getattr(rec, "calibrations", [])),
         # adam, --recalibrate: the first frame of each later change of material, located (adapt._locate_change)
         "anchor_change_frames": list(getattr(rec, "change_frames", [])),
+        # adam, --hold-fit: per frame, E (per region) of the sliding window's own Adam estimate (young: the fit held)
+        "window_young": list(getattr(rec, "window_young", [])),
         "ended": "ctrl-c" if ended_by_ctrl_c else ("last frame" if status == "complete" else "error"),
         "wall_s": wall_s,
         "young_meaning": _young_meaning(config, mesh),
@@ -1243,6 +1329,12 @@ def _report(loop: _Loop, reporter: Reporter, names: list[str], dofs: int, mesh: 
     else:
         mats = ", ".join(f"{nm}: E={e:.4g} Pa ν={v:.3f}" for nm, e, v in zip(names, E, nu))
     stop = " (stopped early)" if interrupted else ""
+    cals = getattr(rec, "calibrations", [])
+    if cals:  # adam, images: the anchor calibration's fits (E(t) holds each with --hold-fit)
+        held = " (E(t) holds each from its last frame)" if _holds_fit(config) else ""
+        reporter.info(f"{len(cals)} calibration fit(s){held}: " + "; ".join(
+            f"frames {c['frames'][0]}–{c['frames'][1]} E=" + " ".join(f"{e:.4g}" for e in c["young"]) + " Pa"
+            for c in cals))
     reporter.summary(f"adapted {len(rec.frames)} frames{stop} {config.mode} in {backend.space} space from "
                      f"{'markers' if config.loss == 'markers' else 'images'}: {mats} "
                      f"({'E of the material, P2 tets' if mesh.order == 2 else 'effective E of this linear mesh'}); "

@@ -48,6 +48,7 @@ from stages.forces import (FORCE_EXTRAPOLATE, FORCE_SUBSTEPS, FORCE_THETA, adapt
 from stages.progress import Reporter, SilentReporter
 from stages.render.ply import covariance_to_scale_rotation, write_ply
 from stages.results import StressField, gaussian_anchor, material_setting, previous_states, recorded_capture
+from stages.results import window_young
 from stages.results import compute_stress as results_stress
 from stages.sim import stress as st
 from stages.sim.quadrature import element_order, shape_values
@@ -618,8 +619,11 @@ def write_plots(seq: Sequence, field: StressField | None, force_rows: list[Force
         written.append(path)
 
     fig, (a0, a1) = plt.subplots(2, 1, figsize=(7, 5.5), sharex=True)
+    window = window_young(ad)  # --hold-fit: E(t) holds the fits; the window's own estimate dotted
     for r, nm in enumerate(ad.region_names):
         line, = a0.plot(t, ad.young[:, r], marker=".", label=nm)
+        if window is not None:
+            a0.plot(t, window[:, r], ":", lw=1, color=line.get_color(), label=f"{nm}: the window's own (Adam)")
         sd = np.asarray(getattr(ad, "young_sigma", np.full(ad.young.shape, np.nan)))[:, r]
         if np.any(np.isfinite(sd)):  # the estimator's E ± σ as a band
             a0.fill_between(t, np.maximum(ad.young[:, r] - sd, 1e-12 * ad.young[:, r]), ad.young[:, r] + sd,

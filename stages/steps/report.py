@@ -37,7 +37,7 @@ from stages.errors import RslError
 from stages.forces import FORCE_SUBSTEPS, adapted_forces, filter_model, replay_substeps
 from stages.progress import Reporter, SilentReporter
 from stages.render.image_loss import ImageLoss
-from stages.results import compute_stress, gaussian_anchor, material_setting, recorded_capture
+from stages.results import compute_stress, gaussian_anchor, material_setting, recorded_capture, window_young
 from stages.workspace import artefact_state, write_text_atomic
 
 REPORT_FILE = "report.html"
@@ -239,9 +239,15 @@ def section_material(ctx: Context) -> str:
     t = ad.frames
     fig, (a0, a1) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     notes = []
+    window = window_young(ad)
+    if window is not None:
+        notes.append("E(t) holds each calibration fit until the next change of material (rsl adapt --hold-fit); "
+                     "the dotted line is the sliding window's own estimate.")
     for r, name in enumerate(ad.region_names):
         c = f"C{r % 10}"
         a0.plot(t, ad.young[:, r], marker=".", color=c, label=f"{name} estimated")
+        if window is not None:
+            a0.plot(t, window[:, r], ":", lw=1, color=c, label=f"{name} window's own")
         a1.plot(t, ad.poisson[:, r], marker=".", color=c, label=f"{name} estimated")
         for ax, val, sig, log in ((a0, ad.young[:, r], sig_e, True), (a1, ad.poisson[:, r], sig_nu, False)):
             if sig is not None and np.any(np.isfinite(np.asarray(sig)[:, r])):
