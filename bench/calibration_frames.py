@@ -185,15 +185,22 @@ def write(rows: list[dict], out: Path) -> None:
           f"Machine: {data['machine']}; date {data['date']}.  Produced by `bench/calibration_frames.py`.\n\n"
           "![minimum over b](calibration_frames.png)\n")
     (out / "calibration_frames.md").write_text(md)
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for r in rows:
-        ax.plot([m["frames"] for m in r["minima"]], [m["young_min"] / r["e_true"] for m in r["minima"]], "o-",
-                label=f"{r['capture']}, truth N={r.get('truth_substeps') or '?'}, S={r['substeps']}")
-    ax.axhline(1.0, color="k", lw=1)
-    ax.axhspan(0.97, 1.03, color="0.9")
-    ax.set_xlabel("b (frames 0..b−1 in the loss)")
-    ax.set_ylabel("E at the loss minimum / E_true")
-    ax.legend(fontsize=8)
+    starts = sorted({r["start"] for r in rows})
+    fig, axes = plt.subplots(1, len(starts), figsize=(5.2 * len(starts), 4.2), sharey=True, squeeze=False)
+    truths = sorted({r.get("truth_substeps") or 0 for r in rows})
+    steps = sorted({r["substeps"] for r in rows})
+    for ax, start in zip(axes[0], starts):
+        for r in (r for r in rows if r["start"] == start):
+            n = r.get("truth_substeps") or 0
+            ax.plot([m["frames"] for m in r["minima"]], [m["young_min"] / r["e_true"] for m in r["minima"]],
+                    color=f"C{truths.index(n)}", ls=("-", "--", ":", "-.")[steps.index(r["substeps"]) % 4],
+                    marker="o", ms=3, label=f"truth N={n or '?'}, S={r['substeps']}")
+        ax.axhline(1.0, color="k", lw=1)
+        ax.axhspan(0.97, 1.03, color="0.9")
+        ax.set_title(f"start = {start}")
+        ax.set_xlabel("b (frames 0..b−1 in the loss)")
+    axes[0][0].set_ylabel("E at the loss minimum / E_true")
+    axes[0][-1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5))
     fig.tight_layout()
     fig.savefig(out / "calibration_frames.png", dpi=110)
     print("\n".join(lines))
