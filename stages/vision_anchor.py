@@ -79,6 +79,7 @@ class AnchorMaterial:
         self.apart_from: int | None = None
         self.later: list[int] = []  # the frames at which rule 5 saw a later change (after apart_from)
         self._later: tuple[list, list] = ([], [])  # rule 5's (p per frame, deviations) since the last change
+        self._quiet = 0  # frames rule 5 still passes over after a fit (restart_watch's ``quiet``)
         self.hist: list[np.ndarray] = []  # p per frame since the level's history (re)started
         self.devs: list[np.ndarray] = []  # log E − level (R,) per untied frame with a level, since the restart
         self.tests: list[tuple[int, float, float, bool]] = []
@@ -95,17 +96,18 @@ class AnchorMaterial:
         None: none seen."""
         return self.later[-1] if self.later else self.apart_from
 
-    def calibrated(self, p: np.ndarray, T: int) -> None:
+    def calibrated(self, p: np.ndarray, T: int, quiet: int = 0) -> None:
         """Rule 0: p_a = p (2R,), the material fitted to the first frames, held from frame T on (no own steps, no
-        tests; rule 5 still watches for later changes, which limit the lead-in)."""
+        tests; rule 5 still watches for later changes, which limit the lead-in; ``quiet``: restart_watch's)."""
         self.p, self.apart_from, self.fixed = np.array(p, float), T, True
-        self.restart_watch(p)
+        self.restart_watch(p, quiet)
 
-    def restart_watch(self, p: np.ndarray) -> None:
+    def restart_watch(self, p: np.ndarray, quiet: int = 0) -> None:
         """Rule 5 restarts at p (2R,), the window's θ (re)fitted: with the anchor calibrated, p is rule 5's level
         from then on (a fit to all the frames since the last change, not a median of the sliding window's steps,
-        which follow a step of E slowly enough to drag a running level along and hide it)."""
-        self._later = ([np.array(p, float)], [])
+        which follow a step of E slowly enough to drag a running level along and hide it).  Rule 5 passes over the
+        next ``quiet`` frames: a restarted Adam's first steps are lr in size whatever the gradient."""
+        self._later, self._quiet = ([np.array(p, float)], []), int(quiet)
 
     def held(self, T: int, tied: bool) -> np.ndarray | None:
         """Before frame T's steps: p_a held apart from the window's p, or None while tied (``tied``: the window holds
@@ -193,6 +195,9 @@ class AnchorMaterial:
         """Rule 5, once apart: rule 2's candidate against the level of the frames since the last change; a candidate
         is a later change at T (appended to :attr:`later`) and restarts that history."""
         if self.change <= 0:  # c = 0: every sign-consistent wobble would be a candidate
+            return
+        if self._quiet > 0:
+            self._quiet -= 1
             return
         hist, devs = self._later
         if self.fixed:  # rule 0: the level is the last fit (restart_watch), the history's only entry

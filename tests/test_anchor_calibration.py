@@ -183,6 +183,24 @@ def test_a_calibrated_anchor_is_held_whatever_the_window_does():
     assert rule.tests == [] and len(rule.later) == 1 and 17 <= rule.later[0] <= 19, rule.later
 
 
+def test_rule_5_passes_over_the_quiet_frames_after_a_fit():
+    """restart_watch(p, quiet): the window's log E away from the fit in the first ``quiet`` frames (a restarted
+    Adam's lr-sized first steps) is no change; the same excursion later is one."""
+    kick = [1.6, 1.6, 1.0, 1.0, 1.0, 1.0]  # E / fit per frame after the fit
+    seen = []
+    for quiet in (0, 3):
+        rule = AnchorMaterial(np.array([np.log(0.5 * E_TRUE), 0.0]), np.array([0.15, 0.05]), 0.5, 1, 0.4, 3, 0)
+        rule.calibrated(np.array([np.log(E_TRUE), 0.1]), 8, quiet)
+        for T, e in enumerate(kick, start=9):
+            rule.end_frame(T, np.array([np.log(e * E_TRUE), 0.1]), False, lambda F, p: 0.0)
+        seen.append(list(rule.later))
+    assert seen[0][:1] == [10] and seen[1] == [], seen  # (quiet 0: the kick, and its return to the fit)
+    rule.restart_watch(np.array([np.log(E_TRUE), 0.1]), quiet=1)
+    for T, e in enumerate([1.0] + kick, start=20):  # the kick after the quiet frame: seen
+        rule.end_frame(T, np.array([np.log(e * E_TRUE), 0.1]), False, lambda F, p: 0.0)
+    assert rule.later[:1] == [22], rule.later
+
+
 def test_adam_restart_makes_the_next_step_a_first_step():
     g = np.array([3.0, -0.01])
     used = Adam(np.array([0.15, 0.05]), beta1=0.5)

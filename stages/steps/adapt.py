@@ -250,11 +250,10 @@ class AdaptConfig:
     every frame since the change, which the sliding window's Adam steps (--lr in log E each, whatever the gradient,
     after Adam's restart), from states simulated with its own lagging estimates, only move away from.  The window
     runs on as rule 5's detector of the next change, from states simulated with the fit (each new frame once more,
-    with the fit: what a later change is located against) and with Adam's moments kept from the growing window (a
-    restarted Adam's first steps, --lr whatever the gradient, look like a change); during a recalibration's growing
-    window E(t) is its estimate.
-    A material that drifts slowly is followed in steps of rule 5's threshold.  --no-hold-fit: E(t) is the sliding
-    window's Adam estimate at every frame.  Measured: accuracy_notes.md, thirteenth stop."""
+    with the fit: what a later change is located against), passing over the w frames after each fit (a restarted
+    Adam's first steps, --lr whatever the gradient, look like a change); during a recalibration's growing window E(t)
+    is its estimate.  A material that drifts slowly is followed in steps of rule 5's threshold.  --no-hold-fit: E(t)
+    is the sliding window's Adam estimate at every frame.  Measured: accuracy_notes.md, thirteenth stop."""
 
 
 def resolve_estimator(config: AdaptConfig) -> str:
@@ -724,16 +723,16 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                 times += t3
                 for i, t in enumerate(sim):
                     loop.stored[t] = states[i]
+                # Adam restarts from the fit: the growing window's larger gradients, kept, would shrink the next
+                # steps (and, with E(t) held, slow the detection of the next change); its first steps are lr in size
+                # whatever the gradient, so rule 5 passes over the next w frames while E(t) holds the fit
+                quiet = w if holding else 0
                 if anchor.fixed:  # a recalibration after a later change: the anchor stays, rule 5 restarts
-                    anchor.restart_watch(params)
+                    anchor.restart_watch(params, quiet)
                 else:
-                    anchor.calibrated(params, T)
+                    anchor.calibrated(params, T, quiet)
                     obj.want_anchor_grad = False  # p_a is held: no anchor part to move it by
-                # Adam restarts from the fit (the growing window's larger gradients, kept, would shrink the next
-                # steps), except while E(t) holds the fits: the window then only detects, and a fresh Adam's first
-                # steps (lr whatever the gradient) saw the dinosaur's constant E change (accuracy_notes.md, 13th stop)
-                if not holding:
-                    adam.restart()
+                adam.restart()
                 calibrating = False
                 calib_p = params.copy()  # the material of the frames since the last change
                 fit_e, fit_nu = theta_from_params(params[:R], params[R:], loop.prange)
@@ -820,7 +819,7 @@ def _relocate_with_fits(loop: _Loop, T: int, p_old: np.ndarray, p_fit: np.ndarra
     start = c
     for step in (-1, 1):
         if c != start:
-            break  # the walk down moved: the splits above the start cost more
+            break  # a walk down that moved ends the search
         k = start + step
         while k in candidates:
             cost, p = split(k, best_p, True)
