@@ -743,9 +743,8 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
             E, nu = theta_from_params(params[:R], params[R:], loop.prange)
             if anchor is not None:
                 rec.window_young.append(E.tolist())
-            if holding and anchor.fixed and not calibrating:
-                E, nu = theta_from_params(calib_p[:R], calib_p[R:], loop.prange)  # the last fit, held
-            if anchor is not None:
+                if holding and anchor.fixed and not calibrating:
+                    E, nu = theta_from_params(calib_p[:R], calib_p[R:], loop.prange)  # the last fit, held
 
                 def explains(F, p):  # Σ loss over the frames F simulated from the start with θ(p), anchored there
                     _, fl, _, t3 = obj(list(range(F[-1] + 1)), p, loop.before(0), False)
@@ -768,6 +767,38 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                          s_per_frame=rec.t_tot[-1])
 
 
+class _Splits:
+    """The frames c0..T after a later change of material, split at k: c0..k−1 simulated with the old material p_old
+    from the stored states before c0 (once, here), k..T with a new θ from the old material's states before k.
+    ``times`` (3,) accumulates."""
+
+    def __init__(self, loop: _Loop, T: int, p_old: np.ndarray, c0: int, times: np.ndarray):
+        self.obj, self.c0, self.times = loop.objective, c0, times
+        self.span = list(range(c0, T + 1))
+        states, self.old_losses, _, t3 = self.obj(self.span, p_old, loop.before(c0), False)
+        times[:] += t3
+        self.past = [*loop.before(c0), *states]  # past[t − c0 + 2] = x_t with the old material (past[:2]: before c0)
+
+    def frames(self, k: int) -> list[int]:
+        """k..T."""
+        return self.span[k - self.c0:]
+
+    def before(self, k: int) -> np.ndarray:
+        """The old material's states x_{k−2}, x_{k−1}."""
+        return np.stack(self.past[k - self.c0:k - self.c0 + 2])
+
+    def cost(self, k: int, p: np.ndarray) -> float:
+        """L(k) = Σ_{t=c0..k−1} loss_t(p_old) + Σ_{t=k..T} loss_t(p)."""
+        _, new_losses, _, t3 = self.obj(self.frames(k), p, self.before(k), False)
+        self.times[:] += t3
+        return float(np.sum(self.old_losses[:k - self.c0]) + np.sum(new_losses))
+
+    def store(self, loop: _Loop, c: int) -> None:
+        """Frames c0..c−1 stored as simulated with the old material."""
+        for t in range(self.c0, c):
+            loop.stored[t] = self.past[t - self.c0 + 2]
+
+
 def _locate_change(loop: _Loop, T: int, p_old: np.ndarray, p_new: np.ndarray, candidates: range,
                    times: np.ndarray) -> int:
     """The first frame c of a later change of material seen at frame T (rule 5 of stages/vision_anchor.py), among
@@ -775,22 +806,14 @@ def _locate_change(loop: _Loop, T: int, p_old: np.ndarray, p_new: np.ndarray, ca
     material p_old (the last calibration's fit) and c..T with p_new (the window's p at T), from the stored states
     before c0 = min(candidates).  The frames before c are stored as simulated with p_old: the recalibration's
     window starts at c from a past of the old material.  ``times`` (3,) accumulates."""
-    obj, c0 = loop.objective, candidates[0]
-    span = list(range(c0, T + 1))
-    states, old_losses, _, t3 = obj(span, p_old, loop.before(c0), False)
-    times[:] += t3
-    past = [*loop.before(c0), *states]  # past[t − c0 + 2] = x_t with the old material (past[:2]: before c0)
-    best = (float(np.sum(old_losses)), candidates[-1])  # no frame of the new material: the last candidate
-    for c in [*candidates[1:], c0]:
-        _, new_losses, _, t3 = obj(span[c - c0:], p_new, np.stack(past[c - c0:c - c0 + 2]), False)
-        times[:] += t3
-        cost = float(np.sum(old_losses[:c - c0]) + np.sum(new_losses))
+    splits = _Splits(loop, T, p_old, candidates[0], times)
+    best = (float(np.sum(splits.old_losses)), candidates[-1])  # no frame of the new material: the last candidate
+    for c in [*candidates[1:], candidates[0]]:
+        cost = splits.cost(c, p_new)
         if cost < best[0]:
             best = (cost, c)
-    c = best[1]
-    for t in range(c0, c):
-        loop.stored[t] = past[t - c0 + 2]
-    return c
+    splits.store(loop, best[1])
+    return best[1]
 
 
 def _relocate_with_fits(loop: _Loop, T: int, p_old: np.ndarray, p_fit: np.ndarray, c: int, candidates: range,
@@ -801,33 +824,21 @@ def _relocate_with_fits(loop: _Loop, T: int, p_old: np.ndarray, p_fit: np.ndarra
     walking while L falls (c0 = min(candidates)).  Comparing splits at one θ favours the split that θ was fitted to
     (a fit that took in a frame of the old material is lower, and that frame then looks new).  The frames before the
     split are stored as simulated with p_old.  Returns (c, p_c); ``times`` (3,) accumulates."""
-    obj, c0 = loop.objective, candidates[0]
-    span = list(range(c0, T + 1))
-    states, old_losses, _, t3 = obj(span, p_old, loop.before(c0), False)
-    times[:] += t3
-    past = [*loop.before(c0), *states]  # past[t − c0 + 2] = x_t with the old material (past[:2]: before c0)
-
-    def split(k: int, p: np.ndarray, fit: bool) -> tuple[float, np.ndarray]:
-        before = np.stack(past[k - c0:k - c0 + 2])
-        if fit:
-            p = _calibrate_anchor(obj, span[k - c0:], p, before, loop.young_range, times, hold_poisson)
-        _, new_losses, _, t3 = obj(span[k - c0:], p, before, False)
-        times[:] += t3
-        return float(np.sum(old_losses[:k - c0]) + np.sum(new_losses)), p
-
-    best_cost, best_p = split(c, p_fit, False)
+    splits = _Splits(loop, T, p_old, candidates[0], times)
+    best_cost, best_p = splits.cost(c, p_fit), p_fit
     start = c
     for step in (-1, 1):
         if c != start:
             break  # a walk down that moved ends the search
         k = start + step
         while k in candidates:
-            cost, p = split(k, best_p, True)
+            p = _calibrate_anchor(loop.objective, splits.frames(k), best_p, splits.before(k), loop.young_range, times,
+                                  hold_poisson)
+            cost = splits.cost(k, p)
             if cost >= best_cost:
                 break
             c, best_cost, best_p, k = k, cost, p, k + step
-    for t in range(c0, c):
-        loop.stored[t] = past[t - c0 + 2]
+    splits.store(loop, c)
     return c, best_p
 
 
