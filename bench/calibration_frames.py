@@ -16,6 +16,15 @@ cumulative loss and its neighbours.  One simulation per E and time step serves e
     .venv/bin/python bench/calibration_frames.py --build WORK [--truth-substeps 3 24 48] [--starts equilibrium rest] \\
         [--substeps 6 3 12]
 
+    .venv/bin/python bench/calibration_frames.py --segments --case CAP WS [...] [--window 8] [--substeps 6]
+    .venv/bin/python bench/calibration_frames.py --segments --merge RUN1/calibration_segments.json ...
+
+--segments: the same check for a recalibration after each step of E_true (frame c*: E_old → E_new): frames
+0..c−1 simulated once with the truth's E(t) — the old material on c*..c−1 when the split c comes after the
+change —, frames c..c+W−1 with each grid value × E_new (stages.sweep.sweep, past_young), for the splits
+c = c* − 1, c*, c* + 1 (a change located one frame early, right, late).  Its curvature beside the first
+calibration's tells how sharply the frames after the step locate E.  Writes calibration_segments.{md,json}.
+
 CAP/WS: a capture of bench/accuracy.py (its --work folder: the capture and its workspace after
 calibrate → tetrahedralize → segment → fit-gaussians); --build makes them (build()).  Writes
 calibration_frames.{md,json,png} in --out.
@@ -41,6 +50,7 @@ os.environ.setdefault("JAX_ENABLE_X64", "1")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 SCALES = (0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.15)  # the grid, E / E_true
+SEGMENT_SCALES = (0.7, 0.8, 0.9, 1.0, 1.1, 1.2, 1.35)  # --segments: the grid, E / E_new (wider: flatter losses)
 
 
 def build(work: Path, truth_substeps: list[int], starts: list[str]) -> list[list[str]]:
@@ -111,9 +121,17 @@ def main() -> None:
     ap.add_argument("--first", type=int, default=6, help="the smallest b reported (default 6)")
     ap.add_argument("--substeps", type=int, nargs="+", default=[6, 3])
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
+    ap.add_argument("--segments", action="store_true",
+                    help="the frames after each step of E_true instead of the first frames (see above)")
+    ap.add_argument("--window", type=int, default=8, help="--segments: frames in the loss after the split (8)")
+    ap.add_argument("--offsets", type=int, nargs="+", default=[-1, 0, 1],
+                    help="--segments: the splits c = c* + offset (default -1 0 1)")
+    ap.add_argument("--changes", type=int, nargs="+", default=None,
+                    help="--segments: only the steps of E_true at these frames (default every step)")
     args = ap.parse_args()
     if args.merge:
-        write([r for f in args.merge for r in json.loads(f.read_text())["rows"]], args.out)
+        rows = [r for f in args.merge for r in json.loads(f.read_text())["rows"]]
+        (write_segments if args.segments else write)(rows, args.out)
         return
     if args.build:
         args.case = (args.case or []) + build(args.build, args.truth_substeps, args.starts)
@@ -124,6 +142,9 @@ def main() -> None:
     from stages.capture import load_capture, read_truth
     from stages.sweep import sweep
 
+    if args.segments:
+        write_segments(segments(args.case, args.substeps, args.window, args.offsets, args.changes), args.out)
+        return
     rows = []
     for cap_dir, ws in args.case:
         cap = load_capture(Path(cap_dir))
@@ -148,6 +169,79 @@ def main() -> None:
             print(f"{Path(cap_dir).name} S={S}: " + ", ".join(
                 f"b={m['frames']}: {m['young_min'] / e_true:.3f}" for m in per), flush=True)
     write(rows, args.out)
+
+
+def segments(cases: list, substeps: list[int], window: int, offsets=(-1, 0, 1), changes=None) -> list[dict]:
+    """Per case, step of E_true (at the frames ``changes``, default every step), split c = c* + offset and S: the
+    minimum and curvature of the image loss of frames c..c+window−1 over E_new × SEGMENT_SCALES, the frames before c
+    simulated with the truth's E(t) (the old material up to c − 1)."""
+    from stages.artefacts import MeshArtefact
+    from stages.capture import load_capture, read_truth
+    from stages.sweep import sweep
+
+    rows = []
+    for cap_dir, ws in cases:
+        cap = load_capture(Path(cap_dir))
+        truth = read_truth(cap)
+        young = np.asarray(truth.young, float)
+        poisson = float(np.asarray(truth.poisson, float)[0, 0])
+        mesh = MeshArtefact.load(Path(ws) / "mesh.h5")
+        steps = [c for c in range(1, len(young)) if not np.allclose(young[c], young[c - 1])
+                 and (changes is None or c in changes)]
+        for cs in steps:
+            e_old, e_new = float(young[cs - 1, 0]), float(young[cs, 0])
+            for c in (cs + o for o in offsets):
+                if c + window > len(young):
+                    continue
+                past = np.array([young[t] if t < cs else young[cs - 1] for t in range(c)])
+                for S in substeps:
+                    t0 = time.time()
+                    res = sweep(cap, mesh, [e_new * x for x in SEGMENT_SCALES], "vision", frames=(c, c + window),
+                                workspace=Path(ws), poisson=poisson, substeps=S, past_young=past,
+                                reporter=lambda m: print(f"  {Path(cap_dir).name} c={c} S={S}: {m}", flush=True))
+                    m = minima(res.young, res.frame_loss, window)[-1]
+                    rows.append({"capture": Path(cap_dir).name, "start": cap.start,
+                                 "truth_substeps": truth_substeps(Path(cap_dir)), "change": cs, "split": c,
+                                 "e_old": e_old, "e_new": e_new, "substeps": S, "window": window,
+                                 "young_min": m["young_min"], "interior": m["interior"],
+                                 "curvature": m["curvature"], "grid": res.young.tolist(),
+                                 "frame_loss": res.frame_loss.tolist(), "n_vertices": res.info["n_vertices"],
+                                 "order": res.info["order"], "seconds": round(time.time() - t0, 1)})
+                    print(f"{Path(cap_dir).name} step {e_old:.3g}→{e_new:.3g} at {cs}, split {c}, S={S}: minimum "
+                          f"{m['young_min'] / e_new:.3f} E_new, curvature {m['curvature']:.3g}", flush=True)
+    return rows
+
+
+def write_segments(rows: list[dict], out: Path) -> None:
+    """calibration_segments.{md,json} in ``out``, rows by capture, step, split and S."""
+    rows = sorted(rows, key=lambda r: (r["capture"], r["change"], r["split"], r["substeps"]))
+    out.mkdir(parents=True, exist_ok=True)
+    data = {"machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} CPUs, {platform.python_version()}",
+            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), "rows": rows}
+    (out / "calibration_segments.json").write_text(json.dumps(data, indent=1))
+    lines = ["| capture | start | truth substeps N | step of E_true | split c (located) | adapt substeps S | "
+             "frames in the loss | E at the minimum / E_new | curvature d² ln L / d(ln E)² | time (s) |",
+             "| --- | --- | ---: | --- | --- | ---: | --- | ---: | ---: | ---: |"]
+    for r in rows:
+        off = r["split"] - r["change"]
+        where = "right" if off == 0 else (f"{-off} early" if off < 0 else f"{off} late")
+        lines.append(f"| {r['capture']} | {r['start']} | {r.get('truth_substeps') or '?'} | {r['e_old']:.3g} → "
+                     f"{r['e_new']:.3g} Pa at frame {r['change']} | {r['split']} ({where}) | {r['substeps']} | "
+                     f"{r['split']}–{r['split'] + r['window'] - 1} | {r['young_min'] / r['e_new']:.3f}"
+                     f"{'' if r['interior'] else ' (grid end)'} | {r['curvature']:.3g} | {r['seconds']:.0f} |")
+    md = ("# After a step of E: where the image loss of the frames after the split is lowest, given the past\n\n"
+          "E at the minimum of L(E) = Σ_{t=c..c+W−1} image loss_t over a grid of fixed E "
+          f"({', '.join(f'{s:g}' for s in SEGMENT_SCALES)} × E_new, parabola in log E), divided by E_new: "
+          "frames 0..c−1 simulated once in full space with the truth's E(t) — the old material on the frames from "
+          "the change to c − 1 when the split c comes after the change, the new one on frame c* − 1 when it comes "
+          "before — and frames c.. continued with each grid value (stages.sweep.sweep, past_young); ν at the "
+          "truth's; the Gaussians re-bound to frame 0 of that past.  This is the loss `rsl adapt`'s recalibration "
+          "fits after rule 5 has located a change at c (its own past, ν and space aside).  Curvature: "
+          "d² ln L / d(ln E)² at the minimum; the first calibration's (frames 0..8) is in calibration_frames.md.\n\n"
+          + "\n".join(lines) + "\n\n"
+          f"Machine: {data['machine']}; date {data['date']}.  Produced by `bench/calibration_frames.py --segments`.\n")
+    (out / "calibration_segments.md").write_text(md)
+    print("\n".join(lines))
 
 
 def write(rows: list[dict], out: Path) -> None:

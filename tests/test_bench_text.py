@@ -68,3 +68,18 @@ def test_hand_written_notes_exist_and_are_dated(name: str) -> None:
     date = json.loads((RESULTS / f"{name}.json").read_text())["date"][:10]
     assert date in text  # the note names the run it reads
     assert f"{name}_notes.md" in (RESULTS / f"{name}.md").read_text()
+
+
+def test_calibration_segments_text_follows_the_rows(tmp_path) -> None:
+    """bench/calibration_frames.py --segments: each row's minimum / E_new, where the split lies against the change
+    and the grid-end flag come from the row (here one made-up row changed), rows sorted by capture, step, split, S."""
+    mod = load_bench("calibration_frames")
+    rows = json.loads((RESULTS / "calibration_segments.json").read_text())["rows"]
+    made = copy.deepcopy(rows)
+    made[0].update(young_min=0.777 * made[0]["e_new"], interior=False, split=made[0]["change"] + 2)
+    mod.write_segments(made[::-1], tmp_path)
+    md = (tmp_path / "calibration_segments.md").read_text()
+    assert "| 2 late) |" not in md and "(2 late)" in md and "0.777 (grid end)" in md
+    assert md.index("bar_equilibrium") < md.index("bar_rest")
+    for r in rows[1:]:
+        assert f"{r['young_min'] / r['e_new']:.3f}" in md

@@ -46,3 +46,49 @@ def test_marker_sweep_is_lowest_at_the_truth_on_rsls_own_model(box, tmp_path, st
     other = "rest" if start == "equilibrium" else "equilibrium"
     wrong = sweep(cap, mesh, grid, "markers", poisson=0.45, start=other)
     assert wrong.loss.min() > 1e3 * res.loss[2] + 1e-12  # the wrong start cannot reproduce the markers
+
+
+def test_a_continued_simulation_repeats_the_uninterrupted_one(box, tmp_path):
+    """continue_fixed from a simulate_from_start run's last states (last_states) gives, float for float, the frames
+    the uninterrupted run gives after them, with substeps too."""
+    from stages.sim.scene import frame_inputs, make_scene
+    from stages.sim.static import simulate_from_start
+    from stages.sweep import continue_fixed, last_states
+
+    path, v, t = box
+    cap = load_capture(run(SynthConfig(mesh=path, out=tmp_path / "cap", scenario="cable", cameras=1, frames=8,
+                                       resolution=32, markers=12, calib_views=0, young=6e4, size=0.2)))
+    ctl = cap.controls()
+    pm = prepare_mesh(v, t, 0.2, "")
+    mesh = mesh_artefact(pm.vertices, pm.tets, cap.density)
+    scene = make_scene(mesh, ctl, "stable_neohookean", cap.dt, cap.gravity)
+    E, nu = np.array([5e4]), np.array([0.4])
+    for S in (1, 3):
+        states: list = []
+        X = simulate_from_start(scene, lambda f: frame_inputs(scene, ctl, f), E, nu, 8, "equilibrium", S,
+                                states=states)
+        head: list = []
+        Xa = simulate_from_start(scene, lambda f: frame_inputs(scene, ctl, f), E, nu, 4, "equilibrium", S,
+                                 states=head)
+        Xb = continue_fixed(scene, ctl, E, nu, last_states(Xa, head), range(4, 8), S)
+        np.testing.assert_array_equal(Xb, X[4:])
+
+
+def test_a_sweep_after_a_step_of_e_given_the_past_is_lowest_at_the_new_e(box, tmp_path):
+    """past_young: frames 0..4 simulated with the truth's E (6e4), frames 5..9 with each grid value: on rsl's own
+    model the loss of frames 5..9 vanishes at the new E (1.8e5) and is lowest there; swept from frame 0 with one E
+    (no past) the same frames are not reproduced by any grid value."""
+    path, v, t = box
+    out = run(SynthConfig(mesh=path, out=tmp_path / "step", scenario="cable", cameras=1, frames=10, resolution=32,
+                          markers=12, calib_views=0, young=6e4, young_schedule="6e4@0,1.8e5@5", size=0.2))
+    cap = load_capture(out)
+    pm = prepare_mesh(v, t, 0.2, "")
+    mesh = mesh_artefact(pm.vertices, pm.tets, cap.density)
+    grid = 1.8e5 * np.array([0.7, 0.85, 1.0, 1.15, 1.3])
+    res = sweep(cap, mesh, grid, "markers", frames=(5, 10), poisson=0.45, past_young=np.full((5, 1), 6e4))
+    assert res.interior and res.i_min == 2 and res.young_min == pytest.approx(1.8e5, rel=0.01)
+    assert res.loss[2] < 1e-12 * res.loss.max()
+    plain = sweep(cap, mesh, grid, "markers", frames=(5, 10), poisson=0.45)
+    assert plain.loss.min() > 1e3 * res.loss[2] + 1e-12
+    with pytest.raises(ValueError, match="past_young"):
+        sweep(cap, mesh, grid, "markers", frames=(5, 10), poisson=0.45, past_young=np.full((4, 1), 6e4))
