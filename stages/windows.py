@@ -222,6 +222,14 @@ class WindowObjective:
         dXa[-1, :len(ga)] = ga
         return self.win.backward(list(range(k)), E, nu, sa, None, dXa)
 
+    def simulate(self, frames: Sequence[int], p: np.ndarray, before: np.ndarray) -> tuple[np.ndarray, float]:
+        """(states (w, …), forward seconds) of ``frames`` simulated with θ(p) from ``before``: what :meth:`__call__`
+        simulates, without the observation's loss (no render)."""
+        E, nu = theta_from_params(p[:self.R], p[self.R:], self.prange)
+        t0 = time.perf_counter()
+        states = self.win.forward(list(frames), E, nu, before)
+        return states, time.perf_counter() - t0
+
     def __call__(self, frames: Sequence[int], p: np.ndarray, before: np.ndarray, need_grad: bool = True,
                  lead: int = 0):
         """(states (w, …), per-frame losses (w − lead,), dL/dp (2R,) or None, (forward_s, backward_s, loss_s)).

@@ -383,6 +383,21 @@ def test_lead_in_frames_are_simulated_and_differentiated_but_not_observed(beam):
     assert not np.allclose(g, g2, rtol=1e-3)
 
 
+def test_the_objectives_simulate_gives_its_states_without_the_loss(beam):
+    """WindowObjective.simulate: the states __call__ simulates (the same floats), with no observation evaluated
+    (adapt --hold-fit simulates each new frame with the held fit this way)."""
+    cap, ws = beam
+    obj, backend = _objective(cap, ws, "markers")
+    frames, before, p = _window(backend, 6, 3)
+    states, _, _, _ = obj(frames, p, before, False)
+    calls = []
+    loss = obj.obs.loss
+    obj.obs.loss = lambda *a: calls.append(1) or loss(*a)
+    sim, seconds = obj.simulate(frames, p, before)
+    np.testing.assert_array_equal(sim, states)
+    assert calls == [] and seconds > 0
+
+
 def _gappy_capture(cap: Path, root: Path, frac: float = 0.4, empty_frames=(7,), seed: int = 0) -> Path:
     """A copy of the capture whose markers.csv drops a random fraction of the (frame > 0, marker) observations
     and every observation of the frames ``empty_frames`` (motion-capture gaps)."""

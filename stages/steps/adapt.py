@@ -696,8 +696,8 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                 if idle:
                     break  # θ does not move: the next steps would repeat this one
             if holding and anchor.fixed and not calibrating:  # the past is the held fit's: frame T simulated with it
-                states_fit, _, _, t3 = obj([T], calib_p, loop.before(T), False)
-                times += t3
+                states_fit, t_sim = obj.simulate([T], calib_p, loop.before(T))
+                times[0] += t_sim
                 loop.stored[T] = states_fit[0]
             else:
                 for i, t in enumerate(sim):

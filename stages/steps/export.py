@@ -47,8 +47,8 @@ from stages.forces import (FORCE_EXTRAPOLATE, FORCE_SUBSTEPS, FORCE_THETA, adapt
                            replay_substeps, trajectory_forces)
 from stages.progress import Reporter, SilentReporter
 from stages.render.ply import covariance_to_scale_rotation, write_ply
-from stages.results import StressField, gaussian_anchor, material_setting, previous_states, recorded_capture
-from stages.results import window_young
+from stages.results import (StressField, gaussian_anchor, material_setting, previous_states, recorded_capture,
+                            window_young)
 from stages.results import compute_stress as results_stress
 from stages.sim import stress as st
 from stages.sim.quadrature import element_order, shape_values
