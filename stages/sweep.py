@@ -78,32 +78,6 @@ def simulate_fixed(scene, controls, young: np.ndarray, poisson: np.ndarray, fram
                                substeps, **step_kw)
 
 
-def continue_fixed(scene, controls, young: np.ndarray, poisson: np.ndarray, last: tuple[np.ndarray, np.ndarray],
-                   frames: range, substeps: int = 1, **step_kw) -> np.ndarray:
-    """Positions (len(frames), n, 3) of ``frames`` continued from ``last`` = (x, x_prev) — the last state of frame
-    frames[0] − 1 and the (sub)step state before it — with constant per-region young (R,) Pa / poisson (R,), each
-    frame ``substeps`` implicit-Euler steps as stages.sim.static.simulate_from_start takes them (the same floats
-    as that simulation's frames when ``last`` comes from its ``states``: :func:`last_states`)."""
-    import stages.sim.scene as sc
-
-    fine = scene if substeps == 1 else dataclasses.replace(scene, dt=scene.dt / substeps)
-    xp, xpp = (np.array(a, np.float64) for a in last)
-    out = np.empty((len(frames), scene.n_vertices, 3))
-    for i, t in enumerate(frames):
-        for k in range(1, substeps + 1):
-            x, _ = sc.step(fine, sc.frame_inputs(scene, controls, t - 1 + k / substeps if k < substeps else t),
-                           young, poisson, xp, xpp, None, frame=t, **step_kw)
-            xpp, xp = xp, x
-        out[i] = xp
-    return out
-
-
-def last_states(X: np.ndarray, states: list) -> tuple[np.ndarray, np.ndarray]:
-    """(x, x_prev) at the end of the last frame of a simulate_from_start run (positions X, its ``states`` list):
-    what :func:`continue_fixed` continues from."""
-    return X[-1], states[-1][0]
-
-
 def marker_loss_curve(X_of: Callable[[float], np.ndarray], faces: np.ndarray, markers: np.ndarray,
                       grid: Sequence[float], frames: Sequence[int]) -> np.ndarray:
     """Per grid value: the per-frame marker loss (K, T) with markers bound to the simulated frame-0 surface
@@ -174,9 +148,10 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
     vision): the Gaussians bound to the fit frame simulated with this E for every grid value (None: with each).
     ``past_young`` (a, R) Pa: frames 0..a−1 simulated once with this E per frame (a history of the material, e.g.
     the truth's before a step of E; ν as above), frames a..b−1 continued from them with each grid value
-    (:func:`continue_fixed`): the loss of the frames after a change of material, given the past (a = frames[0])."""
+    (stages.sim.static.continue_frames): the loss of the frames after a change of material, given the past
+    (a = frames[0])."""
     from stages.sim.scene import frame_inputs, make_scene  # JAX and numba physics: loaded on use
-    from stages.sim.static import simulate_from_start
+    from stages.sim.static import continue_frames, last_states, simulate_from_start
 
     start = start or getattr(capture, "start", "equilibrium")
     ctl = capture.controls()
@@ -223,8 +198,8 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
             if past is None:
                 cache[e] = simulate_fixed(scene, ctl, young, nu, T_sim, start, substeps)
             else:
-                cache[e] = np.concatenate([past, continue_fixed(scene, ctl, young, nu, last, range(a, T_sim),
-                                                                substeps)])
+                cache[e] = np.concatenate([past, continue_frames(scene, lambda f: frame_inputs(scene, ctl, f), young,
+                                                                 nu, range(a, T_sim), *last, substeps)])
             if reporter is not None:
                 reporter(f"E = {e:.4g} Pa simulated")
         return cache[e]

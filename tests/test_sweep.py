@@ -49,11 +49,10 @@ def test_marker_sweep_is_lowest_at_the_truth_on_rsls_own_model(box, tmp_path, st
 
 
 def test_a_continued_simulation_repeats_the_uninterrupted_one(box, tmp_path):
-    """continue_fixed from a simulate_from_start run's last states (last_states) gives, float for float, the frames
+    """continue_frames from a simulate_from_start run's last states (last_states) gives, float for float, the frames
     the uninterrupted run gives after them, with substeps too."""
     from stages.sim.scene import frame_inputs, make_scene
-    from stages.sim.static import simulate_from_start
-    from stages.sweep import continue_fixed, last_states
+    from stages.sim.static import continue_frames, last_states, simulate_from_start
 
     path, v, t = box
     cap = load_capture(run(SynthConfig(mesh=path, out=tmp_path / "cap", scenario="cable", cameras=1, frames=8,
@@ -70,7 +69,8 @@ def test_a_continued_simulation_repeats_the_uninterrupted_one(box, tmp_path):
         head: list = []
         Xa = simulate_from_start(scene, lambda f: frame_inputs(scene, ctl, f), E, nu, 4, "equilibrium", S,
                                  states=head)
-        Xb = continue_fixed(scene, ctl, E, nu, last_states(Xa, head), range(4, 8), S)
+        Xb = continue_frames(scene, lambda f: frame_inputs(scene, ctl, f), E, nu, range(4, 8),
+                             *last_states(Xa, head), S)
         np.testing.assert_array_equal(Xb, X[4:])
 
 

@@ -268,34 +268,54 @@ def start_state(scene: sc.Scene, inputs0: sc.FrameInputs, young, poisson, start:
 def simulate_from_start(scene: sc.Scene, inputs_at, young, poisson, frames: int, start: str, substeps: int = 1,
                         callback=None, x0=None, states: list | None = None, **step_kw) -> np.ndarray:
     """Positions (T, n, 3) of frames 0..T−1 under the start convention of docs/capture.md:
-    x_0 = :func:`start_state`, x_{−1} = x_{−2} = x_0, and frame t ≥ 1 = ``substeps`` implicit-Euler steps of
-    Δt / substeps (scene.dt = Δt, the frame interval) from frame t − 1, the inputs of substep k taken at the
-    fractional frame t − 1 + k / substeps (``inputs_at(frame: float) -> FrameInputs``), θ of frame t.
+    x_0 = :func:`start_state`, x_{−1} = x_{−2} = x_0, and frames t ≥ 1 by :func:`continue_frames` from (x_0, x_0).
     young/poisson (T, R) or (R,).  x0 (optional) replaces the start state.  ``states`` (optional list)
     receives, per frame, (x_{t−1}, x_{t−2}) at the substep level (what the last step was taken from)."""
     T, R = frames, scene.n_regions
     young, poisson = sc._per_frame(young, T, R), sc._per_frame(poisson, T, R)
     if substeps < 1:
         raise ValueError(f"substeps must be at least 1, not {substeps}")
-    fine = scene if substeps == 1 else dataclasses.replace(scene, dt=scene.dt / substeps)
     x = (start_state(scene, inputs_at(0), young[0], poisson[0], start) if x0 is None
          else np.array(x0, np.float64))
     out = np.empty((T, scene.n_vertices, 3))
     out[0] = x
     if states is not None:
         states.append((x.copy(), x.copy()))
-    xp, xpp = x, x
     if callback is not None:
         callback(0)
-    for t in range(1, T):
+    if T > 1:
+        out[1:] = continue_frames(scene, inputs_at, young[1:], poisson[1:], range(1, T), x, x, substeps, callback,
+                                  states, **step_kw)
+    return out
+
+
+def continue_frames(scene: sc.Scene, inputs_at, young, poisson, frames: range, x_prev, x_prev2, substeps: int = 1,
+                    callback=None, states: list | None = None, **step_kw) -> np.ndarray:
+    """Positions (len(frames), n, 3) of the consecutive ``frames`` from x_prev (the state of frame frames[0] − 1)
+    and x_prev2 (the (sub)step state before it): frame t = ``substeps`` implicit-Euler steps of Δt / substeps
+    (scene.dt = Δt, the frame interval), the inputs of substep k taken at the fractional frame t − 1 + k / substeps
+    (``inputs_at(frame: float) -> FrameInputs``), θ of frame t.  young/poisson (len(frames), R) or (R,).
+    ``states`` and ``callback`` as :func:`simulate_from_start`'s; :func:`last_states` of a run is what continues it
+    (the same floats as the uninterrupted run)."""
+    young, poisson = (sc._per_frame(a, len(frames), scene.n_regions) for a in (young, poisson))
+    fine = scene if substeps == 1 else dataclasses.replace(scene, dt=scene.dt / substeps)
+    xp, xpp = np.array(x_prev, np.float64), np.array(x_prev2, np.float64)
+    out = np.empty((len(frames), scene.n_vertices, 3))
+    for i, t in enumerate(frames):
         for k in range(1, substeps + 1):
             xpp_step, xp_step = xpp, xp
-            x, _ = sc.step(fine, inputs_at(t - 1 + k / substeps if k < substeps else t), young[t], poisson[t], xp,
+            x, _ = sc.step(fine, inputs_at(t - 1 + k / substeps if k < substeps else t), young[i], poisson[i], xp,
                            xpp, None, frame=t, **step_kw)
             xpp, xp = xp, x
-        out[t] = x
+        out[i] = x
         if states is not None:
             states.append((xp_step, xpp_step))
         if callback is not None:
             callback(t)
     return out
+
+
+def last_states(X: np.ndarray, states: list) -> tuple[np.ndarray, np.ndarray]:
+    """(x, x_prev) at the end of the last frame of a :func:`simulate_from_start` run (positions X, its ``states``
+    list): what :func:`continue_frames` continues from."""
+    return X[-1], states[-1][0]
