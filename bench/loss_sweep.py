@@ -1,8 +1,8 @@
 """Loss sweep: is each loss lowest at the true E on a capture rsl did not make?
 
 A synthetic capture whose truth uses another discretisation than rsl adapt (quadratic tets — on a once
-refined mesh in the full mode —, 3 implicit substeps per frame, hard Dirichlet handles) is made by
-`rsl synth` from sample_data/bar (a cable pulls the free end of the bar held at the other, constant E),
+refined mesh in the full mode —, 3 implicit substeps per frame or --truth-substeps N, hard Dirichlet handles)
+is made by `rsl synth` from sample_data/bar (a cable pulls the free end of the bar held at the other, constant E),
 for each start state (equilibrium, rest).  Over a grid of fixed E (ν held at the truth's), the whole-sequence
 loss is computed with the full-space forward simulation from the capture's declared start
 (stages/sweep.py): the marker loss on rsl's own discretisations of the shipped mesh (P1, P1 refined once,
@@ -15,12 +15,15 @@ through the grid minimum and its neighbours; its ratio to E_true is the loss's b
 --quick: P2 truth on the shipped mesh (no refinement); full: P2 on the once-refined mesh; both 20
 frames and 9 grid points (--scales: other E/E_true values).  --starts equilibrium / --starts rest run one start
 state (two processes can share the work), --rows picks the rows, --merge A.json B.json writes the report of
-separate runs (a row of a later file replaces the same start/loss/mesh row of an earlier one).  With
+separate runs (a row of a later file replaces the same start/truth/loss/mesh row of an earlier one).  With
 RSL_BENCH_REUSE=1 in the environment, captures, meshes and Gaussians already in --work are reused.
 
 Two vision rows test a cause of the vision loss's bias each, on the same workspace: "visions3" simulates 3
 implicit substeps per frame (the truth's time step), "visionanchor" binds the Gaussians, for every E of the grid,
-to the fit frame simulated with E_true (the anchor's own dependence on E switched off).
+to the fit frame simulated with E_true (the anchor's own dependence on E switched off).  "p2adapt" and
+"visionadapt" simulate as many substeps per frame as rsl adapt does by default (AdaptConfig.substeps): the loss
+its estimator minimises.  --truth-substeps 24 makes a truth converged in time (docs/results/calibration_frames.md:
+24 and 48 agree within 0.5 %), so that a row's bias is rsl's, not the 3-substep truth's own time step.
 """
 from __future__ import annotations
 
@@ -46,12 +49,12 @@ E_TRUE = 1.0e5
 POISSON = 0.45
 
 
-def make_capture(out: Path, start: str, frames: int, refine: int, resolution: int) -> float:
-    """The truth capture (P2, refined ``refine`` times, 3 substeps, hard handles); returns synth seconds (0 when
-    RSL_BENCH_REUSE finds it made)."""
+def make_capture(out: Path, start: str, frames: int, refine: int, resolution: int, substeps: int = 3) -> float:
+    """The truth capture (P2, refined ``refine`` times, ``substeps`` implicit steps per frame, hard handles);
+    returns synth seconds (0 when RSL_BENCH_REUSE finds it made)."""
     t0 = time.perf_counter()
     pl.foreign_capture(out, pl.bar_cable(young=E_TRUE), start=start, frames=frames, cameras=2,
-                       resolution=resolution, refine=refine, substeps=3, poisson=POISSON)
+                       resolution=resolution, refine=refine, substeps=substeps, poisson=POISSON)
     return time.perf_counter() - t0
 
 
@@ -80,10 +83,15 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
     ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_loss_sweep"))
     ap.add_argument("--starts", default="equilibrium,rest", help="start states to run, comma-separated")
-    ap.add_argument("--rows", default="p1,p1r,p2,p2s3,wrongstart,vision",
+    ap.add_argument("--rows", default="p1,p1r,p2,p2s3,p2adapt,wrongstart,vision,visionadapt",
                     help="rows to compute: p1, p1r (P1 refined once), p2, p2s3 (P2 with 3 substeps per frame), "
+                         "p2adapt (P2 with rsl adapt's default substeps per frame), "
                          "wrongstart (P1 assuming the other start), vision, visions3 (vision, 3 substeps per "
-                         "frame), visionanchor (vision, Gaussians bound to the fit frame simulated with E_true)")
+                         "frame), visionadapt (vision, rsl adapt's default substeps per frame), visionanchor "
+                         "(vision, Gaussians bound to the fit frame simulated with E_true)")
+    ap.add_argument("--truth-substeps", type=int, default=3,
+                    help="implicit steps per frame of the truth (default 3; 24: a truth converged in time, "
+                         "docs/results/calibration_frames.md)")
     ap.add_argument("--scales", default="", help="grid of E / E_true, comma-separated (default: 9 values, "
                                                 "0.55-1.4)")
     ap.add_argument("--merge", type=Path, nargs="*", default=None,
@@ -99,7 +107,7 @@ def main() -> None:
             ws = a.work / f"ws_{c['start']}"  # runs made before the label named the element order: read it
             if c["loss"] == "vision" and "tetrahedralize" not in c["adapt_mesh"] and (ws / "mesh.h5").is_file():
                 c["adapt_mesh"] = _vision_label(ws)
-            merged[(c["start"], c["loss"], c["adapt_mesh"])] = c
+            merged[(c["start"], _truth_substeps(c), c["loss"], c["adapt_mesh"])] = c
         cases = list(merged.values())
         starts = list(dict.fromkeys(c["start"] for c in cases))
         cases.sort(key=lambda c: starts.index(c["start"]))  # new rows beside their start's
@@ -108,7 +116,10 @@ def main() -> None:
 
     from stages.artefacts import KIND_FILES, MeshArtefact
     from stages.capture import load_capture
+    from stages.steps.adapt import AdaptConfig
     from stages.sweep import sweep
+
+    s_adapt = AdaptConfig.substeps  # rsl adapt's substeps per frame (the dataclass default)
 
     frames, refine = (20, 0) if a.quick else (20, 1)
     scales = (np.array([0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.25, 1.4]) if a.quick else
@@ -119,14 +130,17 @@ def main() -> None:
     a.work.mkdir(parents=True, exist_ok=True)
     cases = []
     for start in a.starts.split(","):
-        cap_dir = a.work / f"bar_cable_{start}"
-        t_synth = make_capture(cap_dir, start, frames, refine, 96)
+        n_truth = a.truth_substeps
+        cap_dir = a.work / (f"bar_cable_{start}" if n_truth == 3 else f"bar_cable_{start}_n{n_truth}")
+        t_synth = make_capture(cap_dir, start, frames, refine, 96, n_truth)
         cap = load_capture(cap_dir)
-        truth_desc = f"P2{' refined ×1' if refine else ''}, 3 substeps, hard handles"
+        truth_desc = f"P2{' refined ×1' if refine else ''}, {n_truth} substeps, hard handles"
         print(f"capture {cap_dir.name}: synth {t_synth:.0f} s", flush=True)
         rows = a.rows.split(",")
         for key, label, order, ref, sub in (("p1", "P1", 1, 0, 1), ("p1r", "P1 refined ×1", 1, 1, 1),
-                                            ("p2", "P2", 2, 0, 1), ("p2s3", "P2, 3 substeps per frame", 2, 0, 3)):
+                                            ("p2", "P2", 2, 0, 1), ("p2s3", "P2, 3 substeps per frame", 2, 0, 3),
+                                            ("p2adapt", f"P2, {s_adapt} substeps per frame (rsl adapt's default)", 2,
+                                             0, s_adapt)):
             if key not in rows:
                 continue
             t0 = time.perf_counter()
@@ -146,10 +160,12 @@ def main() -> None:
             _partial(cases, a.out, a.quick)
         for key, suffix, kw in (("vision", "", {}), ("visionanchor", ", Gaussians bound to frame 0 simulated with "
                                                                   "E_true", {"anchor_young": E_TRUE}),
-                                ("visions3", ", 3 substeps per frame", {"substeps": 3})):
+                                ("visions3", ", 3 substeps per frame", {"substeps": 3}),
+                                ("visionadapt", f", {s_adapt} substeps per frame (rsl adapt's default)",
+                                 {"substeps": s_adapt})):
             if a.no_vision or key not in rows:
                 continue
-            ws = a.work / f"ws_{start}"
+            ws = a.work / (f"ws_{start}" if n_truth == 3 else f"ws_{start}_n{n_truth}")
             try:
                 pipeline(cap_dir, ws)
                 mesh = MeshArtefact.load(ws / KIND_FILES["mesh"])
@@ -179,8 +195,14 @@ def _vision_label(ws: Path) -> str:
     return f"P{2 if np.asarray(tets).shape[1] == 10 else 1} (rsl tetrahedralize)"
 
 
+def _truth_substeps(c: dict) -> int:
+    """The truth's implicit steps per frame of a row (rows measured before it was recorded: 3, their truth's)."""
+    return int(c.get("truth_substeps", 3))
+
+
 def _case(start, truth, loss, adapt_mesh, res, seconds) -> dict:
-    return {"start": start, "truth": truth, "loss": loss, "adapt_mesh": adapt_mesh,
+    return {"start": start, "truth": truth, "truth_substeps": int(truth.split(" substeps")[0].split()[-1]),
+            "loss": loss, "adapt_mesh": adapt_mesh,
             "n_vertices": res.info["n_vertices"], "n_elements": res.info["n_elements"],
             "frames": res.info["frames"], "young_true": E_TRUE, "young_min": res.young_min,
             "ratio": res.young_min / E_TRUE, "interior": res.interior, "grid": res.young.tolist(),
@@ -191,7 +213,7 @@ def _case(start, truth, loss, adapt_mesh, res, seconds) -> dict:
 def _row(c: dict) -> str:
     edge = "" if c["interior"] else " (grid end)"
     g = np.asarray(c["grid"]) / c["young_true"]
-    return (f"| {c['start']} | {c['loss']} | {c['adapt_mesh']} | {c['n_vertices']} | "
+    return (f"| {c['start']} | {_truth_substeps(c)} | {c['loss']} | {c['adapt_mesh']} | {c['n_vertices']} | "
             f"{len(g)}: {g.min():.2f}–{g.max():.2f} | "
             f"{c['young_min']:.4g}{edge} | {c['ratio']:.3f} | {100 * (c['ratio'] - 1):+.1f} % | "
             f"{c['seconds']:.0f} | {c.get('date', '—')} |")
@@ -208,12 +230,14 @@ def write(cases: list[dict], out: Path, quick: bool) -> None:
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "mode": "quick" if quick else "full", "cases": cases}
     (out / "loss_sweep.json").write_text(json.dumps(data, indent=1))
-    head = ("| start | loss | rsl's mesh | vertices | grid: points, E/E_true | E at the minimum (Pa) | E_min / E_true "
-            "| bias | time (s) | measured (UTC) |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    head = ("| start | truth substeps per frame | loss | rsl's mesh | vertices | grid: points, E/E_true | "
+            "E at the minimum (Pa) | E_min / E_true | bias | time (s) | measured (UTC) |\n"
+            "| --- | ---: | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     table = "\n".join([head] + [_row(c) for c in cases])
     within = [c for c in cases if abs(c["ratio"] - 1) <= 0.03]
     md = (f"# Loss sweep: where each loss is lowest\n\n"
-          f"Truth: {cases[0]['truth']} (`rsl synth --truth-order 2 --substeps 3 --handles hard`), "
+          f"Truth: {cases[0]['truth'].split(', ')[0]}, hard handles, N substeps per frame (column 2) "
+          f"(`rsl synth --truth-order 2 --substeps N --handles hard`), "
           f"sample_data/bar pulled by a cable, E_true = {E_TRUE:g} Pa, ν = {POISSON}; frames "
           f"{cases[0]['frames'][0]}–{cases[0]['frames'][1] - 1}; mode {data['mode']}.  Whole-sequence loss over a "
           f"grid of fixed E (per row), full-space simulation from the capture's declared start, minimum refined by "

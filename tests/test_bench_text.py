@@ -83,3 +83,27 @@ def test_calibration_segments_text_follows_the_rows(tmp_path) -> None:
     assert md.index("bar_equilibrium") < md.index("bar_rest")
     for r in rows[1:]:
         assert f"{r['young_min'] / r['e_new']:.3f}" in md
+
+
+def test_loss_sweep_keeps_truths_of_other_time_steps_apart(tmp_path, monkeypatch) -> None:
+    """bench/loss_sweep.py --merge: a row against a truth with 24 substeps per frame sits beside the same
+    start/loss/mesh row against the 3-substep truth (rows of older runs, without truth_substeps, are 3-substep
+    ones), each with its own truth column, and the count of minima within 3 % follows the ratios."""
+    mod = load_bench("loss_sweep")
+    old = json.loads((RESULTS / "loss_sweep.json").read_text())
+    row = copy.deepcopy(old["cases"][0])
+    row.pop("truth_substeps", None)
+    far = dict(row, truth="P2 refined ×1, 24 substeps, hard handles", truth_substeps=24, ratio=1.021,
+               young_min=1.021 * row["young_true"])
+    near = dict(row, ratio=0.5, young_min=0.5 * row["young_true"])
+    (tmp_path / "a.json").write_text(json.dumps(dict(old, cases=[near])))
+    (tmp_path / "b.json").write_text(json.dumps(dict(old, cases=[far])))
+    monkeypatch.setattr("sys.argv", ["loss_sweep", "--merge", str(tmp_path / "a.json"), str(tmp_path / "b.json"),
+                                     "--out", str(tmp_path / "out"), "--work", str(tmp_path / "work")])
+    mod.main()
+    md = (tmp_path / "out" / "loss_sweep.md").read_text()
+    lines = [ln for ln in md.splitlines() if ln.startswith(f"| {row['start']} |")]
+    assert len(lines) == 2
+    assert any("| 3 |" in ln and "| 0.500 |" in ln for ln in lines)
+    assert any("| 24 |" in ln and "| 1.021 |" in ln for ln in lines)
+    assert "1 of 2 minima lie within 3 % of E_true" in md
