@@ -200,6 +200,19 @@ def _truth_substeps(c: dict) -> int:
     return int(c.get("truth_substeps", 3))
 
 
+def _at_adapt_default(cases: list[dict]) -> str:
+    """' At rsl adapt's default substeps per frame (the loss it minimises): against the N-substep truth k of m within
+    3 % (loss start E_min/E_true, ...); ...' from the rows so labelled, or ''."""
+    rows = [c for c in cases if "rsl adapt's default" in c["adapt_mesh"]]
+    parts = []
+    for n in sorted({_truth_substeps(c) for c in rows}):
+        cs = [c for c in rows if _truth_substeps(c) == n]
+        ok = sum(abs(c["ratio"] - 1) <= 0.03 for c in cs)
+        each = ", ".join(f"{c['loss']} {c['start']} {c['ratio']:.3f}" for c in cs)
+        parts.append(f"against the {n}-substep truth {ok} of {len(cs)} within 3 % ({each})")
+    return f"  At rsl adapt's default substeps per frame (the loss it minimises): {'; '.join(parts)}." if parts else ""
+
+
 def _case(start, truth, loss, adapt_mesh, res, seconds) -> dict:
     return {"start": start, "truth": truth, "truth_substeps": int(truth.split(" substeps")[0].split()[-1]),
             "loss": loss, "adapt_mesh": adapt_mesh,
@@ -235,6 +248,7 @@ def write(cases: list[dict], out: Path, quick: bool) -> None:
             "| --- | ---: | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     table = "\n".join([head] + [_row(c) for c in cases])
     within = [c for c in cases if abs(c["ratio"] - 1) <= 0.03]
+    default_rows = _at_adapt_default(cases)
     md = (f"# Loss sweep: where each loss is lowest\n\n"
           f"Truth: {cases[0]['truth'].split(', ')[0]}, hard handles, N substeps per frame (column 2) "
           f"(`rsl synth --truth-order 2 --substeps N --handles hard`), "
@@ -242,14 +256,16 @@ def write(cases: list[dict], out: Path, quick: bool) -> None:
           f"{cases[0]['frames'][0]}–{cases[0]['frames'][1] - 1}; mode {data['mode']}.  Whole-sequence loss over a "
           f"grid of fixed E (per row), full-space simulation from the capture's declared start, minimum refined by "
           f"a parabola in log E.\n\n{table}\n\n"
-          f"{len(within)} of {len(cases)} minima lie within 3 % of E_true.\n\n"
+          f"{len(within)} of {len(cases)} minima lie within 3 % of E_true.{default_rows}\n\n"
           f"Machine: {data['machine']}; date {data['date']}.  Produced by `bench/loss_sweep.py"
           f"{' --quick' if quick else ''}`.\n\n![loss over E](loss_sweep.png)\n")
     (out / "loss_sweep.md").write_text(md)
     starts = sorted({c["start"] for c in cases})
-    fig, axes = plt.subplots(1, len(starts), figsize=(5.5 * len(starts), 4), squeeze=False)
-    for ax, st in zip(axes[0], starts):
-        for c in (c for c in cases if c["start"] == st):
+    truths = sorted({_truth_substeps(c) for c in cases})  # one row of panels per truth time step
+    fig, axes = plt.subplots(len(truths), len(starts), figsize=(6.5 * len(starts), 4.5 * len(truths)),
+                             squeeze=False)
+    for (n, st), ax in zip([(n, st) for n in truths for st in starts], axes.ravel()):
+        for c in (c for c in cases if c["start"] == st and _truth_substeps(c) == n):
             y = np.asarray(c["loss_values"])
             ax.plot(np.asarray(c["grid"]) / E_TRUE, y / y.min(), "o-", ms=3, label=f"{c['loss']}, {c['adapt_mesh']}")
             ax.axvline(c["ratio"], color=ax.lines[-1].get_color(), ls=":", lw=1)
@@ -258,8 +274,8 @@ def write(cases: list[dict], out: Path, quick: bool) -> None:
         ax.set_yscale("log")
         ax.set_xlabel("E / E_true")
         ax.set_ylabel("loss / its minimum")
-        ax.set_title(f"start = {st}")
-        ax.legend(fontsize=7)
+        ax.set_title(f"start = {st}, truth {n} substeps per frame")
+        ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(out / "loss_sweep.png", dpi=110)
     print(table)

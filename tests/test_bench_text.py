@@ -88,13 +88,14 @@ def test_calibration_segments_text_follows_the_rows(tmp_path) -> None:
 def test_loss_sweep_keeps_truths_of_other_time_steps_apart(tmp_path, monkeypatch) -> None:
     """bench/loss_sweep.py --merge: a row against a truth with 24 substeps per frame sits beside the same
     start/loss/mesh row against the 3-substep truth (rows of older runs, without truth_substeps, are 3-substep
-    ones), each with its own truth column, and the count of minima within 3 % follows the ratios."""
+    ones), each with its own truth column, and the counts of minima within 3 % (all rows; those at rsl adapt's
+    default substeps per truth) follow the ratios."""
     mod = load_bench("loss_sweep")
     old = json.loads((RESULTS / "loss_sweep.json").read_text())
     row = copy.deepcopy(old["cases"][0])
     row.pop("truth_substeps", None)
     far = dict(row, truth="P2 refined ×1, 24 substeps, hard handles", truth_substeps=24, ratio=1.021,
-               young_min=1.021 * row["young_true"])
+               young_min=1.021 * row["young_true"], adapt_mesh="P2, 6 substeps per frame (rsl adapt's default)")
     near = dict(row, ratio=0.5, young_min=0.5 * row["young_true"])
     (tmp_path / "a.json").write_text(json.dumps(dict(old, cases=[near])))
     (tmp_path / "b.json").write_text(json.dumps(dict(old, cases=[far])))
@@ -107,3 +108,5 @@ def test_loss_sweep_keeps_truths_of_other_time_steps_apart(tmp_path, monkeypatch
     assert any("| 3 |" in ln and "| 0.500 |" in ln for ln in lines)
     assert any("| 24 |" in ln and "| 1.021 |" in ln for ln in lines)
     assert "1 of 2 minima lie within 3 % of E_true" in md
+    assert f"against the 24-substep truth 1 of 1 within 3 % ({row['loss']} {row['start']} 1.021)" in md
+    assert "3-substep truth" not in md  # the 3-substep row is not at adapt's default
