@@ -146,7 +146,7 @@ def main() -> None:
             t0 = time.perf_counter()
             res = sweep(cap, shipped_mesh(cap.density, order), grid, "markers", refine=ref, poisson=POISSON,
                         substeps=sub)
-            cases.append(_case(start, truth_desc, "markers", label, res, time.perf_counter() - t0))
+            cases.append(_case(start, truth_desc, n_truth, "markers", label, res, time.perf_counter() - t0))
             print(_row(cases[-1]), flush=True)
             _partial(cases, a.out, a.quick)
         # the start convention's weight: rsl's P1 model assuming the other start state than the capture's
@@ -154,7 +154,7 @@ def main() -> None:
         if "wrongstart" in rows:
             t0 = time.perf_counter()
             res = sweep(cap, shipped_mesh(cap.density, 1), grid, "markers", poisson=POISSON, start=other)
-            cases.append(_case(start, truth_desc, "markers", f"P1, assuming start = {other}", res,
+            cases.append(_case(start, truth_desc, n_truth, "markers", f"P1, assuming start = {other}", res,
                                time.perf_counter() - t0))
             print(_row(cases[-1]), flush=True)
             _partial(cases, a.out, a.quick)
@@ -174,7 +174,7 @@ def main() -> None:
             except (SystemExit, Exception) as e:  # the pipeline is another helper's: report, keep the markers
                 print(f"vision sweep for start = {start} failed: {e}", flush=True)
                 continue
-            cases.append(_case(start, truth_desc, "vision", _vision_label(ws) + suffix, res,
+            cases.append(_case(start, truth_desc, n_truth, "vision", _vision_label(ws) + suffix, res,
                                time.perf_counter() - t0))
             print(_row(cases[-1]), flush=True)
             _partial(cases, a.out, a.quick)
@@ -213,9 +213,8 @@ def _at_adapt_default(cases: list[dict]) -> str:
     return f"  At rsl adapt's default substeps per frame (the loss it minimises): {'; '.join(parts)}." if parts else ""
 
 
-def _case(start, truth, loss, adapt_mesh, res, seconds) -> dict:
-    return {"start": start, "truth": truth, "truth_substeps": int(truth.split(" substeps")[0].split()[-1]),
-            "loss": loss, "adapt_mesh": adapt_mesh,
+def _case(start, truth, truth_substeps, loss, adapt_mesh, res, seconds) -> dict:
+    return {"start": start, "truth": truth, "truth_substeps": truth_substeps, "loss": loss, "adapt_mesh": adapt_mesh,
             "n_vertices": res.info["n_vertices"], "n_elements": res.info["n_elements"],
             "frames": res.info["frames"], "young_true": E_TRUE, "young_min": res.young_min,
             "ratio": res.young_min / E_TRUE, "interior": res.interior, "grid": res.young.tolist(),
