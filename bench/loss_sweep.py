@@ -131,7 +131,8 @@ def main() -> None:
     cases = []
     for start in a.starts.split(","):
         n_truth = a.truth_substeps
-        cap_dir = a.work / (f"bar_cable_{start}" if n_truth == 3 else f"bar_cable_{start}_n{n_truth}")
+        tag = "" if n_truth == 3 else f"_n{n_truth}"  # the folders of a truth with other substeps than 3
+        cap_dir = a.work / f"bar_cable_{start}{tag}"
         t_synth = make_capture(cap_dir, start, frames, refine, 96, n_truth)
         cap = load_capture(cap_dir)
         truth_desc = f"P2{' refined ×1' if refine else ''}, {n_truth} substeps, hard handles"
@@ -165,7 +166,7 @@ def main() -> None:
                                  {"substeps": s_adapt})):
             if a.no_vision or key not in rows:
                 continue
-            ws = a.work / (f"ws_{start}" if n_truth == 3 else f"ws_{start}_n{n_truth}")
+            ws = a.work / f"ws_{start}{tag}"
             try:
                 pipeline(cap_dir, ws)
                 mesh = MeshArtefact.load(ws / KIND_FILES["mesh"])

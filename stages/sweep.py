@@ -180,6 +180,9 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
     T_sim = b
     cache: dict[float, np.ndarray] = {}
 
+    def inputs_at(f: float):  # the controls at a (fractional) frame
+        return frame_inputs(scene, ctl, f)
+
     past = None
     if past_young is not None:
         past_young = np.asarray(past_young, float).reshape(-1, len(names))
@@ -187,8 +190,8 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
             raise ValueError(f"past_young should hold the {a} frames before the swept ones (frames[0] ≥ 1), not "
                              f"{len(past_young)}")
         states: list = []
-        past = simulate_from_start(scene, lambda f: frame_inputs(scene, ctl, f), past_young, np.tile(nu, (a, 1)),
-                                   a, start, substeps, states=states)
+        past = simulate_from_start(scene, inputs_at, past_young, np.tile(nu, (a, 1)), a, start, substeps,
+                                   states=states)
         last = last_states(past, states)
 
     def X_of(e: float) -> np.ndarray:
@@ -198,8 +201,8 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
             if past is None:
                 cache[e] = simulate_fixed(scene, ctl, young, nu, T_sim, start, substeps)
             else:
-                cache[e] = np.concatenate([past, continue_frames(scene, lambda f: frame_inputs(scene, ctl, f), young,
-                                                                 nu, range(a, T_sim), *last, substeps)])
+                cache[e] = np.concatenate([past, continue_frames(scene, inputs_at, young, nu, range(a, T_sim), *last,
+                                                                 substeps)])
             if reporter is not None:
                 reporter(f"E = {e:.4g} Pa simulated")
         return cache[e]
