@@ -931,6 +931,9 @@ class AdaptArtefact:
     extra: dict = field(default_factory=dict)
     young_sigma: np.ndarray | None = None  # (T, R) Pa, σ of E per frame (NaN where unknown, e.g. Adam)
     poisson_sigma: np.ndarray | None = None  # (T, R), σ of ν per frame (NaN where unknown)
+    # (2, n, 3) m, x_{−1} and x_0: the state before frame 0 and frame 0's own, as estimated for a capture filmed
+    # mid-motion ([capture] start = "moving"; the force replay starts there); None for the other starts
+    start_positions: np.ndarray | None = None
 
     kind = "adapt"
 
@@ -955,6 +958,8 @@ class AdaptArtefact:
             f.attrs["extra"] = json.dumps(_jsonable(self.extra))
             for k in ("young_sigma", "poisson_sigma"):
                 _put(f, k, np.asarray(getattr(self, k), np.float64))
+            if self.start_positions is not None:
+                _put(f, "start_positions", np.asarray(self.start_positions, np.float64))
         return Path(path)
 
     @classmethod
@@ -977,6 +982,8 @@ class AdaptArtefact:
             for k in ("young_sigma", "poisson_sigma"):  # absent from older files: NaN (unknown)
                 if k in r.f:
                     out[k] = r.array(k, shape=(t, nreg), finite=False)
+            if "start_positions" in r.f:
+                out["start_positions"] = r.array("start_positions", shape=(2, out["positions"].shape[1], 3))
             extra = json.loads(r.attr("extra", "{}"))
             status = str(extra.get("status", "complete")) if isinstance(extra, dict) else "complete"
             if status != "complete" and not allow_partial:

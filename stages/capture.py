@@ -52,7 +52,7 @@ KNOWN_KEYS: dict[str, tuple[str, ...]] = {
     "calibration": ("board",),
     "synth": ("*",),  # written by `rsl synth`: a record of how the capture was made
 }
-START_STATES = ("equilibrium", "rest")  # [capture] start: what frame 0 shows
+START_STATES = ("equilibrium", "rest", "moving")  # [capture] start: what frame 0 shows (docs/capture.md)
 # controls.json: object -> its keys.
 CONTROLS_KEYS: dict[str, tuple[str, ...]] = {
     "controls": ("handles", "loads", "obstacles", "friction"),
@@ -540,7 +540,7 @@ def load_capture(root: str | Path) -> Capture:
     name = cap.get("name", root.name)
     start = cap.get("start", "equilibrium")
     if start not in START_STATES:
-        v.fail("capture.start", f"should be \"equilibrium\" or \"rest\", found {json.dumps(start)}.")
+        v.fail("capture.start", f"should be \"equilibrium\", \"rest\" or \"moving\", found {json.dumps(start)}.")
     return Capture(root, str(name), fps, gravity, list(cams), mesh_path, density, material, raw, str(start))
 
 

@@ -157,13 +157,17 @@ def adapted_forces(scene, controls, adapt, start: str | None, substeps: int, int
     positions (:func:`trajectory_forces`; ``internal()`` gives their internal forces (T, n, 3) N).  θ(t) of the
     replay: :func:`replay_theta` with rule ``theta``, adapt.h5's young_sigma / poisson_sigma and ``model`` (the gn
     filter's random walk, :func:`filter_model`; without it "smoothed" keeps the recorded θ(t)).
+    A capture filmed mid-motion (``start`` "moving") is replayed from the states before frame 0 that adapt
+    estimated (adapt.h5 start_positions), or, without them, uses the recorded positions.
     Returns (rows, applied (T, n, 3) N, a phrase naming the source)."""
-    if getattr(adapt, "mode", "online") == "online" and start is not None and replayable(adapt.frames):
+    before = getattr(adapt, "start_positions", None)
+    if (getattr(adapt, "mode", "online") == "online" and start is not None and replayable(adapt.frames)
+            and (start != "moving" or before is not None)):
         young, poisson, how = replay_theta(adapt.young, adapt.poisson, getattr(adapt, "extra", None), theta,
                                            getattr(adapt, "young_sigma", None), getattr(adapt, "poisson_sigma", None),
                                            model)
         rows, applied, _ = replay_forces(scene, controls, young, poisson, start, substeps, contact_distance, reporter,
-                                         extrapolate)
+                                         extrapolate, before)
         steps = (f"Richardson-extrapolated from {substeps} and {2 * substeps} substeps per frame" if extrapolate
                  else f"{substeps} substep(s) per frame")
         return rows, applied, f"full-space replay of the controls with {how}, {steps}"
@@ -180,14 +184,18 @@ def replayable(frames: np.ndarray) -> bool:
 
 def replay_forces(scene, controls, young: np.ndarray, poisson: np.ndarray, start: str, substeps: int = 1,
                   contact_distance: float = 1.0e-3, reporter: Reporter = SilentReporter(),
-                  extrapolate: bool = False) -> tuple[list[tuple[int, st.SetForce]], np.ndarray, np.ndarray]:
+                  extrapolate: bool = False, before: np.ndarray | None = None
+                  ) -> tuple[list[tuple[int, st.SetForce]], np.ndarray, np.ndarray]:
     """Forces of the controls re-simulated in the full space (module doc): frames 0..T−1 from the ``start`` state
-    (docs/capture.md), θ(t) = young/poisson (T, R), ``substeps`` implicit-Euler steps per frame; with
+    (docs/capture.md; "moving": from ``before`` = (x_{−2}, x_{−1}) (2, n, 3) m, stages.sim.static.simulate_from_start),
+    θ(t) = young/poisson (T, R), ``substeps`` implicit-Euler steps per frame; with
     ``extrapolate``, :func:`richardson` of the replays with S and 2S substeps, frame by frame.  Returns
     (rows [(frame, SetForce)], applied per-vertex force (T, n, 3) N, replayed positions (T, n, 3) m)."""
     if extrapolate:
-        coarse = replay_forces(scene, controls, young, poisson, start, substeps, contact_distance, reporter)
-        fine = replay_forces(scene, controls, young, poisson, start, 2 * substeps, contact_distance, reporter)
+        coarse = replay_forces(scene, controls, young, poisson, start, substeps, contact_distance, reporter,
+                               before=before)
+        fine = replay_forces(scene, controls, young, poisson, start, 2 * substeps, contact_distance, reporter,
+                             before=before)
         return (richardson_rows(coarse[0], fine[0]), richardson(coarse[1], fine[1]), richardson(coarse[2], fine[2]))
     from stages.sim.scene import frame_inputs
     from stages.sim.static import simulate_from_start
@@ -196,7 +204,7 @@ def replay_forces(scene, controls, young: np.ndarray, poisson: np.ndarray, start
     states: list = []
     with reporter.task(f"forces (full-space replay, {substeps} substep(s))", T) as task:
         X = simulate_from_start(scene, lambda f: frame_inputs(scene, controls, f), young, poisson, T, start,
-                                substeps, callback=lambda _t: task.advance(1), states=states)
+                                substeps, callback=lambda _t: task.advance(1), states=states, before=before)
     rows, applied, _ = step_forces(scene, controls, X, states, np.asarray(young), np.asarray(poisson), substeps,
                                    contact_distance)
     return rows, applied, X

@@ -30,6 +30,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from stages.artefacts import KIND_FILES, CamerasArtefact, GaussiansArtefact, MasksArtefact, read_provenance
+from stages.errors import RslError
 from stages.observations import read_frame, render_backgrounds, target_image
 from stages.occluders import has_occluders, ignore_mask
 from stages.render.image_loss import ImageLoss
@@ -154,6 +155,10 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
     from stages.sim.static import continue_frames, last_states, simulate_from_start
 
     start = start or getattr(capture, "start", "equilibrium")
+    if start == "moving":
+        raise RslError(f"{capture.toml_path}: the loss sweep simulates every E from the start state, which a capture "
+                       f"filmed mid-motion (start = \"moving\") does not give; pass start \"rest\" or "
+                       f"\"equilibrium\" for a capture that starts there.")
     ctl = capture.controls()
     if refine:
         v, t, reg = mesh.vertices, mesh.tets, mesh.tet_region

@@ -22,11 +22,17 @@ class StartWindow:
     shape, or the static equilibrium under the frame-0 controls solved with θ — with x_{−1} = x_{−2} = x_0;
     frame t ≥ 1 is an implicit-Euler step from (x_{t−1}, x_{t−2}).  A window that holds frame 0 differentiates
     through the static solve (stages.sim.static); other windows start from their two stored states.
+    ``moving`` (a capture filmed mid-motion, stages/moving_start.py): frame 0 and the state before it are the
+    static equilibrium x_e(θ) under the frame-0 controls plus estimated offsets, x_0 = x_e + Δ_0, x_{−1} = x_e +
+    Δ_{−1}: a window that holds frame 0 takes ``before`` = (Δ_{−1}, Δ_0) (None: zero, the equilibrium at rest),
+    which the Gauss–Newton state correction estimates; frame t ≥ 1 is a step as above.
     θ = (E (R,), ν (R,)) is shared by the window frames."""
 
+    KINDS = ("rest", "equilibrium", "moving")
+
     def __init__(self, backend: WindowBackend, kind: str = "rest"):
-        if kind not in ("rest", "equilibrium"):
-            raise RslError(f"the start state should be 'rest' or 'equilibrium', found '{kind}'.")
+        if kind not in self.KINDS:
+            raise RslError(f"the start state should be 'rest', 'equilibrium' or 'moving', found '{kind}'.")
         self.backend, self.kind = backend, kind
         self._x0 = None  # the last x_0: the warm start of the next static solve
         # ``memo`` (GNWindow.memo): frames of the last trajectory simulated with θ from two known states are taken
@@ -73,6 +79,12 @@ class StartWindow:
     def forward(self, frames: Sequence[int], E, nu, before) -> np.ndarray:
         """States (w, …) of ``frames``; ``before`` = [state t0−2, state t0−1] (unused when frames[0] = 0)."""
         b, w = self.backend, len(frames)
+        if frames[0] == 0 and self.kind == "moving":
+            xm1, x0 = self._moving_start(E, nu, before)
+            if w == 1:
+                return x0[None]
+            rest = b.forward(list(frames[1:]), self._tile(E, w - 1), self._tile(nu, w - 1), np.stack([xm1, x0]))
+            return np.concatenate([x0[None], rest])
         if frames[0] != 0:
             memo = self.memo
             if memo:
@@ -90,9 +102,37 @@ class StartWindow:
         rest = b.forward(list(frames[1:]), self._tile(E, w - 1), self._tile(nu, w - 1), np.stack([x0, x0]))
         return np.concatenate([x0[None], rest])
 
+    def _moving_start(self, E, nu, before) -> tuple[np.ndarray, np.ndarray]:
+        """(x_{−1}, x_0) of a moving start: x_e(θ) (the static equilibrium, kept in ``_x0``: the next solve's warm
+        start) plus the offsets ``before`` = (Δ_{−1}, Δ_0) (None: zero)."""
+        xe = self.backend.start(E, nu, "equilibrium", self._x0)
+        self._x0 = xe
+        if before is None:
+            return xe, xe
+        return xe + np.asarray(before[0]), xe + np.asarray(before[1])
+
+    @staticmethod
+    def _moving_states(states, before) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x_e, x_{−1}, x_0) of a moving start's window from its forward's states and offsets (no solve)."""
+        x0 = np.asarray(states[0])
+        if before is None:
+            return x0, x0, x0
+        xe = x0 - np.asarray(before[1])
+        return xe, xe + np.asarray(before[0]), x0
+
     def backward(self, frames, E, nu, states, before, dL_dX) -> tuple[np.ndarray, np.ndarray]:
         """(dL/dE, dL/dν) (R,) of a loss of the window's positions, dL_dX (w, n, 3)."""
         b, w = self.backend, len(frames)
+        if frames[0] == 0 and self.kind == "moving":  # through x_e(θ), which moves x_0 and x_{−1} alike
+            xe, xm1, x0 = self._moving_states(states, before)
+            g = b.state_grad(x0, dL_dX[0])
+            gE, gN = np.zeros(len(E)), np.zeros(len(E))
+            if w > 1:
+                dE, dn, gb = b.backward_before(list(frames[1:]), self._tile(E, w - 1), self._tile(nu, w - 1),
+                                               states[1:], np.stack([xm1, x0]), dL_dX[1:])
+                gE, gN, g = dE.sum(0), dn.sum(0), g + gb[0] + gb[1]
+            a, c = b.start_adjoint(E, nu, "equilibrium", xe, g)
+            return gE + a, gN + c
         if frames[0] != 0:
             dE, dn = b.backward(list(frames), self._tile(E, w), self._tile(nu, w), states, before, dL_dX)
             return dE.sum(0), dn.sum(0)
@@ -109,7 +149,16 @@ class StartWindow:
     def sensitivity(self, frames, E, nu, states, before, d_young, d_poisson, d_before=None) -> np.ndarray:
         """dX/dp (k, w, n, 3) along k directions (θ shared by the window; d_before on the stored states)."""
         b, w = self.backend, len(frames)
-        if frames[0] != 0:
+        if frames[0] == 0 and self.kind == "moving":  # x_e(θ)'s sensitivity, plus d_before on the offsets
+            xe, xm1, x0 = self._moving_states(states, before)
+            Se = b.start_sensitivity(E, nu, "equilibrium", xe, d_young, d_poisson)[:, None]  # (k, 1, state)
+            Sb = np.concatenate([Se, Se], axis=1) + (0.0 if d_before is None else np.asarray(d_before, float))
+            S = Sb[:, 1:]
+            if w > 1:
+                Sd = b.state_sensitivity(list(frames[1:]), self._tile(E, w - 1), self._tile(nu, w - 1), states[1:],
+                                         np.stack([xm1, x0]), d_young, d_poisson, Sb)
+                S = np.concatenate([S, Sd], axis=1)
+        elif frames[0] != 0:
             S = b.state_sensitivity(list(frames), self._tile(E, w), self._tile(nu, w), states, before, d_young,
                                     d_poisson, d_before)
         else:
@@ -198,18 +247,21 @@ class WindowObjective:
         self.anchor_own = False  # the online loop estimates p_a (AdaptConfig.vision_anchor "estimated")
         self.want_anchor_grad = False
         self.last_anchor_g: np.ndarray | None = None
+        # a moving start (StartWindow): the estimated offset Δ_0 of frame 0 from x_e(θ), which the anchor adds (held
+        # fixed in derivatives: adapt._online_gn alternates it with the window's solve); None: zero
+        self.anchor_offset: np.ndarray | None = None
         self._held: tuple[np.ndarray, np.ndarray] | None = None  # (p_a, x_f(θ(p_a))) of the last held anchor
 
     def anchor_positions(self, E: np.ndarray, nu: np.ndarray) -> np.ndarray:
         """The anchor frame (0 for markers, the Gaussians' fit frame for images) simulated with θ under the start
-        convention (frame 0 = x_0(θ)), positions (n, 3)."""
+        convention (frame 0 = x_0(θ); a moving start: x_e(θ) + :attr:`anchor_offset`), positions (n, 3)."""
         k = self.anchor_frame + 1
         aE, anu, X = getattr(self, "_anchor_states", (None, None, None))
         if not (getattr(self.win, "memo", False) and X is not None and np.array_equal(aE, E)
                 and np.array_equal(anu, nu)):  # (memo: the last anchor of this θ, the same floats to rebind at)
             X = self.win.forward(list(range(k)), E, nu, None)
             self._anchor_states = (np.array(E, float), np.array(nu, float), X)  # reused by the anchor's adjoint
-        return self.backend.decode(X[-1:])[0]
+        return self.backend.decode(X[-1:] + (0.0 if self.anchor_offset is None else self.anchor_offset))[0]
 
     def _anchor_adjoint(self, E: np.ndarray, nu: np.ndarray, ga: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(dL/dE, dL/dν) (R,) through the anchor x_f(θ): dL/dx_f = ``ga`` (n, 3) back through the simulation of

@@ -5,7 +5,7 @@ Pure: no files, no printing.  stages/capture.py parses controls.json into these 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +59,16 @@ class Track:
     @staticmethod
     def constant(value: np.ndarray, is_pose: bool = False) -> "Track":
         return Track(np.array([0]), np.asarray(value, dtype=np.float64)[None], is_pose)
+
+    def shifted(self, frames: int) -> "Track":
+        """The track seen ``frames`` frames later: its at(f) is self.at(f + frames) for every f ≥ 0 (keyframes
+        moved back by ``frames``; the ones falling before 0 give way to the value at 0)."""
+        f = self.frames - int(frames)
+        keep = f >= 0
+        if keep.any() and f[keep][0] == 0:
+            return Track(f[keep], self.values[keep].copy(), self.is_pose)
+        return Track(np.concatenate([[0], f[keep]]), np.concatenate([self.at(frames)[None], self.values[keep]]),
+                     self.is_pose)
 
 
 # =========================================================================== controls
@@ -173,6 +183,13 @@ class Controls:
                  [o.poses for o in self.obstacles]
         n = [t.n_frames for t in tracks if t.n_frames > 1]
         return max(n) if n else None
+
+    def shifted(self, frames: int) -> "Controls":
+        """The controls seen ``frames`` frames later (a capture that starts at frame ``frames`` of this one):
+        every track :meth:`Track.shifted`, everything else shared."""
+        return Controls([replace(h, poses=h.poses.shifted(frames)) for h in self.handles],
+                        [replace(ld, force=ld.force.shifted(frames)) for ld in self.loads],
+                        [replace(o, poses=o.poses.shifted(frames)) for o in self.obstacles], self.friction)
 
     def to_json(self) -> dict:
         def track(t: Track, key: str) -> dict:

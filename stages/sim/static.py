@@ -251,7 +251,7 @@ def _dgrad_dtheta(sm):
 
 
 # =========================================================================== a sequence from a declared start
-START_STATES = ("equilibrium", "rest")
+START_STATES = ("equilibrium", "rest")  # the starts start_state solves; "moving" starts from given states
 
 
 def start_state(scene: sc.Scene, inputs0: sc.FrameInputs, young, poisson, start: str, **kw) -> np.ndarray:
@@ -266,25 +266,36 @@ def start_state(scene: sc.Scene, inputs0: sc.FrameInputs, young, poisson, start:
 
 
 def simulate_from_start(scene: sc.Scene, inputs_at, young, poisson, frames: int, start: str, substeps: int = 1,
-                        callback=None, x0=None, states: list | None = None, **step_kw) -> np.ndarray:
+                        callback=None, x0=None, states: list | None = None, before=None, **step_kw) -> np.ndarray:
     """Positions (T, n, 3) of frames 0..T−1 under the start convention of docs/capture.md:
     x_0 = :func:`start_state`, x_{−1} = x_{−2} = x_0, and frames t ≥ 1 by :func:`continue_frames` from (x_0, x_0).
     young/poisson (T, R) or (R,).  x0 (optional) replaces the start state.  ``states`` (optional list)
-    receives, per frame, (x_{t−1}, x_{t−2}) at the substep level (what the last step was taken from)."""
+    receives, per frame, (x_{t−1}, x_{t−2}) at the substep level (what the last step was taken from).
+    start "moving" (a capture filmed mid-motion): frame 0 is given, ``before`` = (x_{−1}, x_0) (2, n, 3), and frame 1
+    steps from x_0 and the substep state before it interpolated, x_0 + (x_{−1} − x_0) / substeps (as
+    stages.window_backends.Substepped restarts); ``states``' frame-0 entry takes the interpolation's substeps."""
     T, R = frames, scene.n_regions
     young, poisson = sc._per_frame(young, T, R), sc._per_frame(poisson, T, R)
     if substeps < 1:
         raise ValueError(f"substeps must be at least 1, not {substeps}")
-    x = (start_state(scene, inputs_at(0), young[0], poisson[0], start) if x0 is None
-         else np.array(x0, np.float64))
+    xp2 = None  # the substep state before frame 0's
+    if start == "moving":
+        if before is None:
+            raise ValueError("a moving start needs the state before frame 0 and frame 0's (before)")
+        xm1, x = (np.array(b, np.float64) for b in before)
+        xp2 = x + (xm1 - x) / substeps
+    else:
+        x = (start_state(scene, inputs_at(0), young[0], poisson[0], start) if x0 is None
+             else np.array(x0, np.float64))
+    xp2 = x if xp2 is None else xp2
     out = np.empty((T, scene.n_vertices, 3))
     out[0] = x
     if states is not None:
-        states.append((x.copy(), x.copy()))
+        states.append((xp2.copy(), (2 * xp2 - x) if start == "moving" else x.copy()))
     if callback is not None:
         callback(0)
     if T > 1:
-        out[1:] = continue_frames(scene, inputs_at, young[1:], poisson[1:], range(1, T), x, x, substeps, callback,
+        out[1:] = continue_frames(scene, inputs_at, young[1:], poisson[1:], range(1, T), x, xp2, substeps, callback,
                                   states, **step_kw)
     return out
 

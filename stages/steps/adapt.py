@@ -68,6 +68,7 @@ from stages.window_model import Observation, WindowBackend
 from stages.workspace import prepare_workspace
 from stages.window_backends import (FullSpace, Guarded, ReducedSpace, SolveCollapsed, SolveGuard, StoredStates,
                                     substepped)
+from stages.moving_start import start_basis, start_directions, start_prior
 from stages.observations import MarkerObservation, VisionObservation
 from stages.windows import (STATE_PRIOR_SCALE, GNWindow, StartWindow, StaticWindow, WindowObjective, controls_static,
                             past_directions, sigma_from_cov, state_directions)
@@ -342,15 +343,22 @@ class _Loop:
     first: int
     last: int | None
     reporter: Reporter
+    moving: object = None  # start = "moving": its offsets' directions (stages.moving_start.StartBasis), else None
 
-    def state_at(self, t: int) -> np.ndarray:
-        """The stored state of frame t; before frame 0, x_{−1} = x_{−2} = x_0 (the start convention)."""
-        t = max(t, 0)
-        return self.stored[t] if t in self.stored else self.backend.rest_state  # (a window holding frame 0 ignores it)
+    def before_keys(self, t0: int) -> tuple[int, int]:
+        """The stored frames whose states a window starting at frame t0 ≥ 1 starts from: (t0 − 2, t0 − 1), frame 0
+        for one before it (x_{−1} = x_0, the start convention) — except with a moving start, whose x_{−1} is
+        estimated (stored as frame −1)."""
+        return (max(t0 - 2, -1 if self.moving is not None else 0), max(t0 - 1, 0))
 
     def before(self, t0: int) -> np.ndarray:
-        """The two stored states (x_{t0−2}, x_{t0−1}) a window starting at frame t0 starts from."""
-        return np.stack([self.state_at(t0 - 2), self.state_at(t0 - 1)])
+        """The two stored states a window starting at frame t0 starts from (:meth:`before_keys`); a window holding
+        frame 0 ignores them, except with a moving start, whose offsets (Δ_{−1}, Δ_0) it takes: zero, estimated
+        anew by each such window (StartWindow)."""
+        if self.moving is not None and t0 == 0:
+            return np.zeros((2,) + np.shape(self.backend.rest_state))
+        return np.stack([self.stored[t] if t in self.stored else self.backend.rest_state
+                         for t in self.before_keys(t0)])
 
     def online_frames(self):
         """The frames of an online run, in order; with --follow it waits for each (and ends after
@@ -419,6 +427,14 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
                        f"{config.mode}.")
     if config.iters_per_frame < 1 or config.offline_iters < 1:
         raise RslError(f"{capture.toml_path}: --iters-per-frame and --offline-iters must be at least 1.")
+    if capture.start == "moving" and config.loss != "markers":
+        raise RslError(f"{capture.toml_path}: start = \"moving\" (frame 0 filmed mid-motion) is supported with "
+                       f"markers only (--loss markers): rsl estimates the frame-0 shape and velocity from them, and "
+                       f"the Gaussians would need that shape to be fitted.")
+    if capture.start == "moving" and (estimator != "gn" or config.mode != "online"):
+        raise RslError(f"{capture.toml_path}: start = \"moving\" needs --estimator gn --mode online (its windows "
+                       f"estimate the states before frame 0 together with E and ν); this run is {estimator} "
+                       f"{config.mode}.")
     if config.refine and config.space != "full":
         raise RslError(f"{ws / KIND_FILES['subspace']}: --refine needs --space full (the subspace is "
                        f"trained on mesh.h5's vertices).")
@@ -459,12 +475,15 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     backend = Guarded(backend, SolveGuard(sim_mesh.vertices, sim_mesh.tets, names, capture.toml_path, mat.young))
     poisson0 = np.array([config.poisson_init if config.poisson_init is not None else mat.region_poisson(r)
                          for r in names], float)
+    moving = None  # start = "moving": the directions of frame 0's estimated offsets (stages/moving_start.py)
     if config.loss == "markers":
         # Markers bind to the simulated frame-0 surface; the binding is refreshed as θ changes
-        # (frame 0 is x_0(θ): with start = "equilibrium" it depends on θ).
-        x0 = backend.decode(StartWindow(backend, capture.start).forward([0], young0, poisson0, None))[0]
-        obs = MarkerObservation(capture, x0, mesh.surface_faces, n)
+        # (frame 0 is x_0(θ): with start = "equilibrium" or "moving" it depends on θ).
+        s0 = StartWindow(backend, capture.start).forward([0], young0, poisson0, None)[0]
+        obs = MarkerObservation(capture, backend.decode(s0[None])[0], mesh.surface_faces, n)
         inputs_used.append(capture.markers_path)
+        if capture.start == "moving":
+            moving = start_basis(backend, s0, young0, poisson0)
         if obs.far > 0.05:
             reporter.warn(f"{capture.markers_path}: a frame-0 marker lies {obs.far:.1%} of the object size "
                           f"away from the frame-0 surface simulated with the initial E; is the marker frame the "
@@ -505,6 +524,9 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     status = "failed"
     failure: BaseException | None = None
 
+    if moving is not None and first > 0:
+        raise RslError(f"{capture.toml_path}: start = \"moving\" needs the frame range to start at frame 0 "
+                       f"(--frames {first}:…): the state before frame 0 is estimated from the first frames.")
     # Frames before the range: a plain forward simulation with the initial θ.
     if first > 0:
         with reporter.task("simulating frames before the range", None):
@@ -558,7 +580,7 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     ctrl_c = CtrlC()
     config = dataclasses.replace(config, gn_trust=resolve_gn_trust(config, obs.kind))  # (adapt.h5 records it)
     loop = _Loop(config, obs, backend, objective, stored, rec, prange, mat.young_range, first, last,
-                 CheckedReporter(reporter, ctrl_c))
+                 CheckedReporter(reporter, ctrl_c), moving)
     try:
         ctrl_c.install()
         if config.mode != "online" and last is None:
@@ -955,6 +977,43 @@ at an estimate taken without evaluation may exceed its first-order prediction, c
 simulates and renders it, before that frame's step must again pass the Levenberg–Marquardt test."""
 
 
+MOVING_REBINDS = 20
+"""A moving start (stages/moving_start.py): at most this many re-bindings of the markers per window that holds
+frame 0.  The markers bind to the nearest points of the estimated frame 0, x_e(θ) + Δ_0, which the window's solve
+moves; they are bound again and the window solved again (an alternation, as in ICP: the binding is held fixed in
+each solve, where letting it slide with Δ_0 made E run off) until the bound points move by less than
+MOVING_REBIND_TOL of the object's size.  Cable-pulled beam filmed 8 frames into its motion, the same model
+otherwise, 24 / 16 frames, median E / E_true over the second half: bound once per window (0 re-bindings) 0.965 /
+1.126, 5 re-bindings 0.987 / 1.016, 20 (the tolerance reached in the later windows) 0.993 / 1.001; bound to the
+truth's frame 0 and held, 1.000 (accuracy_notes.md, sixteenth stop)."""
+MOVING_REBIND_TOL = 1e-5
+"""The RMS motion of the bound marker points between two re-bindings (:data:`MOVING_REBINDS`) under which the
+binding is taken as converged, as a fraction of the object's size (2 µm on a 0.2 m object: a tenth of the smallest
+marker noise the estimator assumes, MarkerObservation.noise_floor).  The alternation converges slowly (on the beam
+below, the bound points moved 0.74 mm, then 0.20, 0.13, 0.10 … 0.009 mm at the 20th re-binding of the first
+window, 4 µm at the first of the second)."""
+
+
+def _rebind_moving_start(gn: GNWindow, objective: WindowObjective, res, lin, frames, prior, before, D, sigma,
+                         obs, iterations: int, scale: float, rec):
+    """A moving start's window holding frame 0 (:data:`MOVING_REBINDS`): the anchor moved to the solve's frame 0,
+    x_e(θ) + Δ_0, the window solved again from its estimate, until the markers' bound points on frame 0 move by
+    less than MOVING_REBIND_TOL × the object's size.  Returns the last solve's (res, lin); the count goes to
+    ``rec.moving_rebinds``."""
+    count = 0
+    for count in range(1, MOVING_REBINDS + 1):
+        objective.anchor_offset = gn.last_before[1].copy()
+        x = objective.anchor_positions(*gn.theta(res.p)[:2])
+        before_pts = obs.binding.positions(x)
+        obs.rebind(x)
+        moved = float(np.sqrt(np.mean(np.sum((obs.binding.positions(x) - before_pts) ** 2, axis=-1))))
+        if moved <= MOVING_REBIND_TOL * float(np.linalg.norm(np.ptp(x, axis=0))):
+            break
+        res, lin = _gn_solve(gn, frames, res.p, prior, before, D, sigma, obs, iterations, scale, None)
+    rec.moving_rebinds = getattr(rec, "moving_rebinds", []) + [count]
+    return res, lin
+
+
 def _correction_kind(option: str, obs_kind: str, restart: bool, modes_failed: bool) -> str | None:
     """Which correction of the window's starting states a gn window estimates (AdaptConfig.state_correction):
     "states" (markers), "past" (asked for, with images — each direction costs 2 renders per frame and camera in
@@ -1005,6 +1064,12 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     # less than --poisson-information × its arrival cost does (estimator.marginal_information): ν trades against
     # E, and a window that cannot tell them apart moves ν with the model error and E with it
     hold_nu = np.zeros(R, bool)
+    # a moving start: the prior σ of the shape and velocity offsets of (x_{−1}, x_0) (moving_start.start_prior),
+    # and their estimate so far (each window holding frame 0 starts from it)
+    start_sigma, start_c = None, None
+    if loop.moving is not None:
+        size = float(np.linalg.norm(np.ptp(backend.decode(backend.rest_state[None])[0], axis=0)))
+        start_sigma = start_prior(loop.moving, obs.P, size)
 
     def window_setup(t0: int):
         """(D, prior, p0, past_dirs) of a window starting at t0: the correction of its starting states
@@ -1013,6 +1078,8 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
         kind = _correction_kind(config.state_correction, obs.kind, bool(changes) and t0 == changes[-1],
                                 modes_failed)
         sc, past_dirs = None, False
+        if loop.moving is not None and t0 == 0:  # a moving start: the offsets of x_{−1}, x_0 are unknowns
+            sc, kind = (start_directions(loop.moving), start_sigma), None
         if kind == "states":
             try:
                 sc = state_directions(backend, stored, t0, first, STATE_PRIOR_SCALE, gn.theta(p_th)[:2])
@@ -1028,7 +1095,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             D, sd = sc
             prior = Prior(np.concatenate([filt.prior.mean, np.zeros(len(D))]),
                           block_diag(filt.prior.cov, np.diag(sd ** 2)))
-            p0 = np.concatenate([p_th, np.zeros(len(D))])
+            p0 = np.concatenate([p_th, start_c if start_c is not None and t0 == 0 else np.zeros(len(D))])
         return D, prior, p0, past_dirs
 
     with gn.blas_limit(obs.kind), loop.reporter.task(f"adapt online gn ({backend.space}, {obs.kind}, w={w})",
@@ -1042,7 +1109,8 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             z_innov = float("nan")
             primed = None  # the solve's first evaluation, made by the change test (GNWindow.shared_innovation)
             if (sigma is not None and config.change_threshold > 0 and T >= 2 and len(frames) > 1
-                    and (not changes or T - changes[-1] > w)):  # at most once per window length
+                    and (not changes or T - changes[-1] > w)  # at most once per window length
+                    and (loop.moving is None or T >= w)):  # (a moving start: once the velocity is estimated)
                 # innovation test (stages.estimator.ChangeDetector): the new frame simulated from the stored
                 # states with the predicted θ, its residuals against the noise level the windows reach
                 if gn.shared_innovation and obs.kind == "vision":  # from the window's linearisation at the
@@ -1078,6 +1146,11 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                     rec.changes = changes
                     primed = None
             rec.innovation.append(z_innov)
+            if loop.moving is not None and t0 >= 1 and objective.rebind:
+                # a moving start, the windows past frame 0: the markers stay bound to frame 0 as estimated (x_e(θ) +
+                # Δ_0 with a later θ would move the bound points with the sag of that θ, and the states with them)
+                obs.rebind(backend.decode(stored[0][None])[0])
+                objective.rebind = False
             if primed is None:
                 D, prior, p0, past_dirs = window_setup(t0)
             if sigma is None:  # the first window: the noise level seen at the initial θ (conservative)
@@ -1089,6 +1162,9 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                 solve_prior = condition(solve_prior, R + j, p0[R + j])
             res, (r_lin, J_lin) = _gn_solve(gn, frames, p0, solve_prior, before, D, sigma, obs,
                                             config.iters_per_frame, scale, primed)
+            if loop.moving is not None and t0 == 0:  # the markers re-bound to the estimated frame 0 until it holds
+                res, (r_lin, J_lin) = _rebind_moving_start(gn, objective, res, (r_lin, J_lin), frames, solve_prior,
+                                                           before, D, sigma, obs, config.iters_per_frame, scale, rec)
             if hold_nu.any():  # σ (and the information test) with ν's own prior: held, ν is not known better
                 res.cov_scaled = posterior_cov(res.jacobian, res.weights, sigma ** 2 * res.scale2, prior, res.jtwj)
             held_now = hold_nu.copy()
@@ -1113,7 +1189,12 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                 # "past" correction (whose directions are the before states' own sensitivities)
                 sens[t] = S[:k_th, i] + (S[k_th:2 * k_th, i] if past_dirs and D is not None else 0.0)
             if D is not None and t0 >= 1:  # the corrected starting states replace the stored ones
-                stored[max(t0 - 2, 0)], stored[t0 - 1] = gn.last_before[0], gn.last_before[1]
+                k2, k1 = loop.before_keys(t0)
+                stored[k2], stored[k1] = gn.last_before[0], gn.last_before[1]
+            elif D is not None:  # a moving start: x_{−1} = x_0 − Δ_0 + Δ_{−1} (frame 0's state is stored above)
+                start_c = res.p[k_th:].copy()
+                stored[-1] = gn.last_states[0] - gn.last_before[1] + gn.last_before[0]
+                objective.anchor_offset = gn.last_before[1].copy()  # the markers' binding: x_e(θ) + Δ_0 from here
             # σ from the covariance with the noise level this window's own residuals show (RSS/dof, Huber-
             # consistent: estimator.residual_scale2), the ν bounds and the model-error floor (sigma_from_cov)
             sE, sN = sigma_from_cov(gn, res.p, res.cov_scaled[:k_th, :k_th], config.model_error,
@@ -1283,13 +1364,18 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         "wall_s": wall_s,
         "young_meaning": _young_meaning(config, mesh),
     }
+    start_positions = None
+    if loop.moving is not None and -1 in loop.stored:  # start = "moving": the estimated x_{−1}, x_0 (the force
+        start_positions = backend.decode(np.stack([loop.stored[-1], loop.stored[0]]))[:, :mesh.n_vertices]  # replay's)
+        # per window holding frame 0, the markers' re-bindings to the estimated frame 0 (MOVING_REBINDS)
+        extra["moving_start_rebinds"] = list(getattr(loop.rec, "moving_rebinds", []))
     art = AdaptArtefact(
         frames=frames, young=np.asarray(rec.young), poisson=np.asarray(rec.poisson), z=backend.z(states),
         positions=X, loss=np.asarray(rec.loss), time_forward_s=np.asarray(rec.t_fwd),
         time_backward_s=np.asarray(rec.t_bwd), time_render_s=np.asarray(rec.t_ren),
         time_total_s=np.asarray(rec.t_tot), region_names=names, mode=config.mode, space=backend.space,
         loss_kind=obs.kind, window=config.window if config.mode == "online" else len(frames), extra=extra,
-        **_sigmas(rec))
+        start_positions=start_positions, **_sigmas(rec))
     path = ws / (KIND_FILES["adapt"] if status == "complete" else PARTIAL_ADAPT)
     art.save(path, Provenance.make(config, inputs_used))
     if status == "complete":

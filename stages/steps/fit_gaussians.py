@@ -140,6 +140,10 @@ def fit_pose(cap, mesh: MeshArtefact, frame: int) -> tuple[np.ndarray, dict]:
     names = list(scene.region_names)
     young = np.array([cap.material.region_young(r) for r in names], float)
     poisson = np.array([cap.material.region_poisson(r) for r in names], float)
+    if cap.start == "moving":
+        raise RslError(f"{cap.toml_path}: start = \"moving\" (frame 0 filmed mid-motion): rsl cannot pose the mesh "
+                       f"as frame {frame} shows it (its shape and velocity are estimated from markers by rsl adapt "
+                       f"--loss markers); fit at the rest shape with --pose rest, or use markers.")
     start = cap.start if (scene.handles or scene.obstacles) else "rest"
     state = {"pose": "capture", "start": start, "declared_start": cap.start, "frame": int(frame), "regions": names,
              "young": young.tolist(), "poisson": poisson.tolist()}

@@ -13,7 +13,8 @@ temporary folder renamed into place):
     truth/object.mesh (linear truth) or truth/object.vtu (quadratic truth)
 
 Frame 0 is the declared start state ([capture] start, docs/capture.md): the static equilibrium under the
-frame-0 controls or the rest shape, at rest; later frames are ``--substeps`` implicit steps each.  The truth
+frame-0 controls or the rest shape, at rest, or (``--start moving``) the object mid-motion, ``--lead-frames``
+simulated frames after one of those; later frames are ``--substeps`` implicit steps each.  The truth
 may use another discretisation than rsl adapt will (``--truth-order 2``, ``--truth-refine K``, substeps, hard
 handles): object.obj is always the rest surface of the given mesh, the truth mesh stays in truth/.
 """
@@ -117,10 +118,16 @@ class SynthConfig:
     """Supersampling factor of the rasterizer (anti-aliasing); masks are coverage ≥ ½."""
     newton_iterations: int = 300
     """Most Newton iterations per time step before the simulation gives up."""
-    start: Literal["auto", "equilibrium", "rest"] = "auto"
+    start: Literal["auto", "equilibrium", "rest", "moving"] = "auto"
     """What frame 0 shows (written as [capture] start): equilibrium — the object at rest in its static
     equilibrium under gravity and the frame-0 controls; rest — the rest shape, released at t = 0; auto —
-    equilibrium, or rest when nothing holds the object (drop)."""
+    equilibrium, or rest when nothing holds the object (drop); moving — the object mid-motion, its deformation
+    and velocity unknown to rsl: the capture begins --lead-frames frames into the simulation."""
+    lead_frames: int = 8
+    """With --start moving, the number of frames simulated before the capture's frame 0, from the scenario's
+    own start state (what auto resolves to: equilibrium when handles hold the object, rest otherwise); the
+    capture shows simulated frames K..K+frames−1 (K = lead_frames) as its frames 0..frames−1, and the
+    --young-schedule frames count from its frame 0 (the lead-in has frame 0's E)."""
     truth_order: int = 1
     """Element order of the truth simulation: 1 (linear tets) or 2 (quadratic, 10-node tets)."""
     truth_refine: int = 0
@@ -464,11 +471,12 @@ def capture_toml(sections: dict[str, dict]) -> str:
 
 # =========================================================================== the truth
 def resolve_start(start: str, controls: Controls) -> str:
-    """The declared start state: "auto" is equilibrium, or rest when nothing holds the object (no handle)."""
+    """The declared start state: "auto" is equilibrium, or rest when nothing holds the object (no handle);
+    "moving" stays moving (its lead-in starts from what "auto" resolves to)."""
     if start == "auto":
         return "equilibrium" if controls.handles else "rest"
-    if start not in ("equilibrium", "rest"):
-        raise RslError(f"--start {start!r} is unknown; use equilibrium, rest or auto.")
+    if start not in ("equilibrium", "rest", "moving"):
+        raise RslError(f"--start {start!r} is unknown; use equilibrium, rest, moving or auto.")
     if start == "equilibrium" and not controls.handles:
         raise RslError("--start equilibrium needs an object held by handles; nothing holds it in this scenario "
                        "(it would fall): use --start rest.")
@@ -540,8 +548,11 @@ def _check_config(c: SynthConfig) -> None:
         raise RslError(f"--truth-order should be 1 or 2, found {c.truth_order}.")
     if c.handles not in ("spring", "hard"):
         raise RslError(f"--handles {c.handles!r} is unknown; use spring or hard.")
-    if c.start not in ("auto", "equilibrium", "rest"):
-        raise RslError(f"--start {c.start!r} is unknown; use equilibrium, rest or auto.")
+    if c.start not in ("auto", "equilibrium", "rest", "moving"):
+        raise RslError(f"--start {c.start!r} is unknown; use equilibrium, rest, moving or auto.")
+    if c.start == "moving" and c.lead_frames < 1:
+        raise RslError(f"--lead-frames should be at least 1 with --start moving (the frames simulated before "
+                       f"the capture's frame 0), found {c.lead_frames}.")
     if not 0 <= c.truth_refine <= 3:
         raise RslError(f"--truth-refine should lie in 0..3 (each level multiplies the tets by 8), found "
                        f"{c.truth_refine}.")
@@ -588,8 +599,11 @@ def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
 
     c = config
     _check_config(c)
+    lead = c.lead_frames if c.start == "moving" else 0  # simulated frames before the capture's frame 0
+    n_sim = lead + c.frames
     cols, rows, square = parse_board(c.board, c.resolution)
-    schedule = young_schedule(c.young_schedule, c.young, c.frames, c.ramp)
+    schedule = young_schedule(c.young_schedule, c.young, c.frames, c.ramp)  # per capture frame
+    schedule = np.concatenate([np.full(lead, schedule[0]), schedule])  # per simulated frame
     region_e = parse_region(c.region)[1] if c.region else None
     gravity = np.array([0.0, 0.0, -9.81])
     rng = np.random.default_rng(c.seed)
@@ -603,36 +617,44 @@ def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
     young = np.tile(schedule[:, None], (1, R))
     if region_e is not None:
         young[:, 1] = region_e
-    poisson = np.full((c.frames, R), c.poisson)
+    poisson = np.full((n_sim, R), c.poisson)
     _, _, masses = rest_quantities(mesh.vertices, mesh.tets, c.density)
-    ctl, notes = scenario_controls(c.scenario, mesh.vertices, mesh.faces, c.frames, float(masses.sum()),
+    ctl, notes = scenario_controls(c.scenario, mesh.vertices, mesh.faces, n_sim, float(masses.sum()),
                                    gravity, float(young.max()), c.amplitude, hard=c.handles == "hard")
     if c.clamp:  # a visible clamp over the first handle's vertices (stages/occluders.py)
         if not ctl.handles:
             raise RslError(f"--clamp needs a handle to draw; the {c.scenario} scenario has none.")
         ctl.handles[0].visual = clamp_visual(mesh.vertices[ctl.handles[0].select.select(mesh.vertices)])
-    controls_json = ctl.to_json()
+    # the simulation runs on the controls as JSON gives them back; controls.json holds them ``lead`` frames on
+    # (its frame f is simulated frame f + lead, the same floats)
+    sim_ctl = parse_controls(json.loads(json.dumps(ctl.to_json())), Path("controls.json"))
+    controls_json = ctl.shifted(lead).to_json()
     ctl = parse_controls(json.loads(json.dumps(controls_json)), Path("controls.json"))  # exactly what is written
     art = mesh_artefact(mesh, c.density, ctl)
 
     start = resolve_start(c.start, ctl)
+    sim_start = resolve_start("auto", ctl) if start == "moving" else start
+    start_desc = f"moving (after {lead} lead-in frames from {sim_start})" if lead else start
     tmesh, tart = truth_mesh(mesh, c.density, c.truth_refine, c.truth_order)
 
     # ---------------------------------------------------------------- simulate
-    scene = make_scene(tart, ctl, c.model, 1.0 / c.fps, gravity)
+    scene = make_scene(tart, sim_ctl, c.model, 1.0 / c.fps, gravity)
     states: list = []
     with reporter.task(f"simulating {c.scenario} (truth: P{c.truth_order}, {len(tart.tets)} tets, "
-                       f"{c.substeps} substep{'s' * (c.substeps > 1)}, {c.handles} handles, start {start})",
-                       c.frames) as task:
+                       f"{c.substeps} substep{'s' * (c.substeps > 1)}, {c.handles} handles, start {start_desc})",
+                       n_sim) as task:
         try:
-            X = simulate_from_start(scene, lambda f: frame_inputs(scene, ctl, f), young, poisson, c.frames, start,
-                                    c.substeps, callback=lambda _t: task.advance(1), states=states,
+            X = simulate_from_start(scene, lambda f: frame_inputs(scene, sim_ctl, f), young, poisson, n_sim,
+                                    sim_start, c.substeps, callback=lambda _t: task.advance(1), states=states,
                                     max_iterations=c.newton_iterations)
         except SimulationError as e:
             raise RslError(f"{c.mesh}: the truth simulation failed: {e}") from None
     if not np.all(np.isfinite(X)):
         raise RslError("the simulation produced non-finite positions.")
-    forces = truth_forces(scene, ctl, X, states, young, poisson, c.substeps, c.fps)
+    forces = [[t - lead, (t - lead) / c.fps, *rest]  # simulated frame t is the capture's frame t − lead
+              for t, _, *rest in truth_forces(scene, sim_ctl, X, states, young, poisson, c.substeps, c.fps)
+              if t >= lead]
+    X, young, poisson = X[lead:], young[lead:], poisson[lead:]  # the capture's frames
 
     # ---------------------------------------------------------------- views
     lo = np.minimum(X.min(axis=(0, 1)), mesh.vertices.min(0))
@@ -664,7 +686,10 @@ def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
 
     tmp = _prepare_out(Path(c.out), c.overwrite)
     try:
-        notes.update(start=start, truth_vertices=int(len(tart.vertices)), truth_tets=int(len(tart.tets)))
+        notes.update(start=start, truth_vertices=int(len(tart.vertices)), truth_tets=int(len(tart.tets)),
+                     lead_frames=lead)
+        if lead:
+            notes["lead_start"] = sim_start
         _write_capture(tmp, c, mesh, tmesh, ctl, controls_json, X, young, poisson, cams, backgrounds,
                        (cols, rows, square), poses, notes, rng, reporter, start, forces)
         out = Path(c.out)
@@ -682,7 +707,7 @@ def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
                   f" (truth: P{c.truth_order}, {len(tart.vertices)} vertices / {len(tart.tets)} tets, "
                   f"{c.substeps} substeps, {c.handles} handles)")
     reporter.summary(f"{out}: {c.scenario}, {c.frames} frames × {c.cameras} cameras at {c.resolution}², "
-                     f"{len(art.vertices)} vertices / {len(art.tets)} tets{truth_desc}, start {start}, "
+                     f"{len(art.vertices)} vertices / {len(art.tets)} tets{truth_desc}, start {start_desc}, "
                      f"{e_desc}{reg}, ν {c.poisson}, "
                      f"max displacement {disp * 1000:.1f} mm, {len(poses)} board views "
                      f"(chessboard:{cols}x{rows}:{square:g})")
