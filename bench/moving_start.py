@@ -10,7 +10,9 @@ initialised at 0.5 E_true, its default substeps; each capture once as declared a
 capture.toml saying `start = "equilibrium"` (a copy).  Per row: the median relative error of E over the settled
 frames (≥ w + 5), the median settled E / E_true, the RMS distance of the simulated surface to the truth's (all
 frames; the truth surface is on its own mesh, so compared through the markers: their positions on rsl's mesh
-against markers.csv), the median per-frame time.
+against markers.csv), the median per-frame time, and from `rsl evaluate` the force error (the handle forces of
+the full-space replay, from the declared start, against truth/forces.csv) and the mean symmetric surface distance
+to the truth.
 
     nice .venv/bin/python bench/moving_start.py [--frames 24] [--leads 8,0] [--space reduced] [--out docs/results]
 """
@@ -71,10 +73,13 @@ def run_lead(work: Path, lead: int, frames: int, max_tets: int, space: str) -> l
         try:
             pl.adapt(c, ws, "--space", space, "--loss", "markers", "--estimator", "gn", "--window", WINDOW,
                      "--young-init", f"{0.5 * E_TRUE:g}")
+            pl.evaluate(c, ws, "--psnr-frames", 0, "--no-plot")
         except RuntimeError as e:
             rows.append({**base, "error": str(e)[-500:]})
             print(_row(rows[-1]), flush=True)
             continue
+        ev = json.loads((ws / "evaluation.json").read_text())
+        forces = ev.get("forces") or {}
         a = AdaptArtefact.load(ws / "adapt.h5")
         yt = truth.young[np.asarray(a.frames)][:, 0]
         y = np.asarray(a.young)[:, 0]
@@ -95,22 +100,28 @@ def run_lead(work: Path, lead: int, frames: int, max_tets: int, space: str) -> l
                      "time_per_frame_s": float(np.median(a.time_total_s)),
                      "changes": list(a.extra.get("material_changes_detected", [])),
                      "rebinds": list(a.extra.get("moving_start_rebinds", [])),
+                     "force_error": forces.get("median_relative_error"), "force_source": forces.get("source"),
+                     "surface_error_mm": (1e3 * ev["vertex_error_mean_m"] if isinstance(
+                         ev.get("vertex_error_mean_m"), (int, float)) else None),
                      "young": y.tolist(), "young_true": yt.tolist()})
         print(_row(rows[-1]), flush=True)
     return rows
 
 
 HEADER = ("| capture (lead-in frames) | declared start | space | median settled E error (%) | median settled E / E_true | "
-          "marker RMS, all frames (mm) | marker RMS, frames 0–4 (mm) | s / frame | changes detected | re-bindings |\n"
-          "|---|---|---|---:|---:|---:|---:|---:|---|---|")
+          "marker RMS, all frames (mm) | marker RMS, frames 0–4 (mm) | surface error (mm) | force error (%) | "
+          "s / frame | changes detected | re-bindings |\n"
+          "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|")
 
 
 def _row(r: dict) -> str:
     cap = f"{r['capture_start']} ({r['lead_frames']})"
     if "error" in r:
-        return f"| {cap} | {r['declared']} | {r['space']} | failed | — | — | — | — | — | — |"
+        return f"| {cap} | {r['declared']} | {r['space']} | failed | — | — | — | — | — | — | — | — |"
+    fe, se = r.get("force_error"), r.get("surface_error_mm")
     return (f"| {cap} | {r['declared']} | {r['space']} | {100 * r['median_error']:.1f} | {r['median_ratio']:.3f} | "
-            f"{r['marker_rms_mm']:.2f} | {r['marker_rms_first5_mm']:.2f} | {r['time_per_frame_s']:.2f} | "
+            f"{r['marker_rms_mm']:.2f} | {r['marker_rms_first5_mm']:.2f} | {'—' if se is None else f'{se:.2f}'} | "
+            f"{'—' if fe is None else f'{100 * fe:.1f}'} | {r['time_per_frame_s']:.2f} | "
             f"{', '.join(map(str, r['changes'])) or 'none'} | {', '.join(map(str, r['rebinds'])) or '—'} |")
 
 
@@ -124,7 +135,10 @@ def summary(rows: list[dict]) -> list[str]:
             out.append(f"- Filmed from {lead} frames into the motion: declared moving, median settled E error "
                        f"{100 * mv['median_error']:.1f} % (E / E_true {mv['median_ratio']:.3f}); declared "
                        f"equilibrium {100 * eq['median_error']:.1f} % ({eq['median_ratio']:.3f}); marker RMS over "
-                       f"frames 0–4 {mv['marker_rms_first5_mm']:.2f} against {eq['marker_rms_first5_mm']:.2f} mm.")
+                       f"frames 0–4 {mv['marker_rms_first5_mm']:.2f} against {eq['marker_rms_first5_mm']:.2f} mm"
+                       + (f"; force error {100 * mv['force_error']:.1f} against {100 * eq['force_error']:.1f} %"
+                          if mv.get("force_error") is not None and eq.get("force_error") is not None else "")
+                       + ".")
     for r in rows:
         if r["lead_frames"] == 0 and r["declared"] == "moving" and "error" not in r:
             ctl = [q for q in rows if q["lead_frames"] == 0 and q["declared"] == "equilibrium" and "error" not in q]
@@ -160,7 +174,7 @@ def write(rows: list[dict], out: Path, plan: dict) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=24)
-    ap.add_argument("--leads", default="8,0", help="lead-in frames of each capture (0: the equilibrium control)")
+    ap.add_argument("--leads", default="4,8,16,0", help="lead-in frames of each capture (0: the equilibrium control)")
     ap.add_argument("--max-tets", type=int, default=1500)
     ap.add_argument("--space", default="reduced", choices=("reduced", "full"))
     ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_moving_start"))

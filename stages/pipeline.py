@@ -60,6 +60,39 @@ def _has_cameras(capture: Path | None) -> bool:
         return True
 
 
+MOVING_SKIPS = ("segment", "fit-gaussians")
+"""The stages that do not apply to a capture filmed mid-motion ([capture] start = "moving"): the Gaussians are fitted
+to a frame-0 pose that such a capture does not give; rsl adapt identifies it from markers (docs/capture.md)."""
+
+
+def _moving(capture: Path | None) -> bool:
+    """Whether capture.toml says start = "moving" (an unreadable capture: no; the stages will say what is wrong)."""
+    if capture is None:
+        return False
+    try:
+        return load_capture(capture).start == "moving"
+    except RslError:
+        return False
+
+
+def not_applicable(s: Stage, cams: bool, moving: bool) -> str | None:
+    """Why stage ``s`` does not apply to the capture (it lists cameras: ``cams``; it starts mid-motion: ``moving``),
+    or None when it does."""
+    if s.needs_cameras and not cams:
+        return "not applicable: the capture lists no camera"
+    if moving and s.name in MOVING_SKIPS:
+        return "not applicable: a capture filmed mid-motion (start = \"moving\") is adapted from its markers"
+    return None
+
+
+def with_capture_defaults(overrides: dict[str, dict[str, Any]] | None, moving: bool) -> dict[str, dict[str, Any]]:
+    """``overrides`` with what the capture implies: a moving start adapts from markers (adapt.loss) unless set."""
+    out = {k: dict(v) for k, v in (overrides or {}).items()}
+    if moving:
+        out.setdefault("adapt", {}).setdefault("loss", "markers")
+    return out
+
+
 def selected(until: str | None = None, only: list[str] | None = None) -> list[Stage]:
     """The stages to consider: all in order, up to ``until``, or just ``only``."""
     if only:
@@ -96,10 +129,12 @@ def plan(capture: Path | None, workspace: Path, *, until: str | None = None, onl
     steps: list[Step] = []
     remade: set[str] = set()
     hashes: dict[str, str] = {}
-    cams = _has_cameras(capture)
+    cams, moving = _has_cameras(capture), _moving(capture)
+    overrides = with_capture_defaults(overrides, moving)
     for s in selected(until, only):
-        if s.needs_cameras and not cams:
-            steps.append(Step(s, "skip", "not applicable: the capture lists no camera"))
+        why_not = not_applicable(s, cams, moving)
+        if why_not:
+            steps.append(Step(s, "skip", why_not))
             continue
         config = s.make_config(capture, workspace, (overrides or {}).get(s.name))
         action, why = ("run", "--force") if force else decide(s, config, Path(workspace), remade, hashes)
@@ -114,13 +149,15 @@ def run_pipeline(capture: Path | None, workspace: Path, reporter: Reporter = Sil
                  overrides: dict[str, dict[str, Any]] | None = None) -> list[Step]:
     """Run the selected stages in order; stop at the first failure (an RslError naming the stage)."""
     workspace = Path(workspace)
-    cams = _has_cameras(capture)
-    stages = [s for s in selected(until, only) if cams or not s.needs_cameras]
+    cams, moving = _has_cameras(capture), _moving(capture)
+    stages = [s for s in selected(until, only) if not not_applicable(s, cams, moving)]
     if not stages:
         raise RslError(f"{capture}: nothing to run; the selected stages need cameras and capture.toml lists none.")
     if len(stages) < len(selected(until, only)):
-        reporter.info("the capture lists no camera: calibrate, segment and fit-gaussians do not apply")
-    overrides = overrides or {}
+        reporter.info("the capture lists no camera: calibrate, segment and fit-gaussians do not apply" if not cams
+                      else "the capture was filmed mid-motion (start = \"moving\"): segment and fit-gaussians do "
+                           "not apply, adapt uses the markers")
+    overrides = with_capture_defaults(overrides, moving)
     mods = {s.name: s.load() for s in stages}  # every selected stage importable before any runs
     steps: list[Step] = []
     remade: set[str] = set()

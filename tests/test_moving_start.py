@@ -17,7 +17,9 @@ from stages.errors import RslError
 from stages.moving_start import START_MOTION_SCALE, StartBasis, start_directions, start_prior
 from stages.sim.static import simulate_from_start
 from stages.windows import StartWindow
+from stages.window_backends import ReducedSpace, substepped
 from test_adapt_substeps import POISSON, YOUNG, _directions, _full_backend, _inputs_at, _scene
+from test_adapt_substeps import full, reduced  # noqa: F401  (module-scoped fixtures: the scene, a PCA subspace)
 
 
 @pytest.fixture(scope="module")
@@ -36,28 +38,36 @@ def test_zero_offsets_are_the_equilibrium_start(held):
     assert np.allclose(mv, eq, rtol=0, atol=1e-10)
 
 
-def test_moving_window_gradient_and_sensitivity_match_finite_differences(held):
+@pytest.mark.parametrize("space", ["full", "reduced"])
+def test_moving_window_gradient_and_sensitivity_match_finite_differences(held, reduced, space):
     """dX/dp along E, ν (through x_e(θ), which moves x_0 and x_{−1} alike) and along the offsets, and dL/dθ by the
-    adjoint, against central differences; offsets of about a millimetre (a start in motion)."""
-    scene, at = held
-    b = _full_backend(scene, at, 2, rtol=1e-12)
+    adjoint, against central differences, 2 substeps per frame; offsets of about a millimetre (a start in motion;
+    in the reduced space a PCA subspace of r = 6, offsets of z)."""
+    if space == "full":
+        scene, at = held
+        b = _full_backend(scene, at, 2, rtol=1e-12)
+        shape = scene.rest.shape
+    else:
+        scene, at, model = reduced
+        b = substepped(ReducedSpace(model, at), 2, at)
+        b.fine.rtol = 1e-12
+        shape = np.shape(model.z_rest)
     frames = [0, 1, 2]
     rng = np.random.default_rng(7)
-    shape = scene.rest.shape
     before = 1e-3 * rng.normal(size=(2,) + shape)
     win = StartWindow(b, "moving")
     states = win.forward(frames, YOUNG, POISSON, before)
     assert np.allclose(states[0], StartWindow(b, "equilibrium").forward([0], YOUNG, POISSON, None)[0] + before[1],
-                       atol=1e-10)
-    v = rng.normal(size=states.shape)
+                       atol=1e-9)
+    v = rng.normal(size=b.decode(states).shape)  # dL/dX of positions
     gE, gN = win.backward(frames, YOUNG, POISSON, states, before, v)
     de, dn, db = _directions(shape, rng)
-    Sens = win.sensitivity(frames, YOUNG, POISSON, states, before, de, dn, db)
+    Sens = win.sensitivity(frames, YOUNG, POISSON, states, before, de, dn, db)  # positions (k, w, n, 3)
     h = 1e-4
     for j in range(len(de)):
         def at_h(s):
-            return StartWindow(b, "moving").forward(frames, YOUNG + s * h * de[j], POISSON + s * h * dn[j],
-                                                    before + s * h * db[j])
+            return b.decode(StartWindow(b, "moving").forward(frames, YOUNG + s * h * de[j], POISSON + s * h * dn[j],
+                                                             before + s * h * db[j]))
         fd = (at_h(1) - at_h(-1)) / (2 * h)
         assert np.linalg.norm(fd) > 0
         assert np.linalg.norm(Sens[j] - fd) <= 1e-5 * np.linalg.norm(fd), j
@@ -194,3 +204,40 @@ def test_capture_toml_names_the_three_starts(moving_beam, tmp_path):
     toml.write_text(re.sub(r'start = "\w+"', 'start = "swinging"', toml.read_text()))
     with pytest.raises(RslError, match=r'"equilibrium", "rest" or "moving", found "swinging"'):
         load_capture(bad)
+
+
+def test_rsl_run_adapts_a_moving_capture_from_its_markers(moving_beam, tmp_path):
+    """`rsl run` on a capture filmed mid-motion: segment and fit-gaussians do not apply (said so in the plan), and
+    adapt takes the markers unless --set adapt.loss says otherwise."""
+    from stages.pipeline import plan, with_capture_defaults
+
+    cap, _, _ = moving_beam
+    steps = {st.stage.name: st for st in plan(cap, tmp_path / "ws")}
+    for name in ("segment", "fit-gaussians"):
+        assert steps[name].action == "skip" and "filmed mid-motion" in steps[name].reason
+    assert steps["adapt"].action == "run" and steps["tetrahedralize"].action == "run"
+    assert with_capture_defaults(None, True) == {"adapt": {"loss": "markers"}}
+    assert with_capture_defaults({"adapt": {"loss": "vision"}}, True) == {"adapt": {"loss": "vision"}}
+    assert with_capture_defaults({"export": {"forces": "true"}}, False) == {"export": {"forces": "true"}}
+
+
+def test_anderson_mixing_solves_a_linear_fixed_point_that_the_plain_iteration_creeps_to():
+    """adapt._anderson on u = A u + b (A symmetric, spectral radius 0.95, N = 4): with ANDERSON ≥ N earlier iterates
+    it reaches the fixed point after N + 1 steps, to rounding; the plain step (one iterate) is still far off."""
+    from stages.steps.adapt import _anderson
+
+    rng = np.random.default_rng(3)
+    Q, _ = np.linalg.qr(rng.normal(size=(4, 4)))
+    A = Q @ np.diag([0.95, 0.9, 0.5, -0.3]) @ Q.T
+    b = rng.normal(size=4)
+    u_star = np.linalg.solve(np.eye(4) - A, b)
+
+    def run(m: int, steps: int = 8) -> float:
+        u, hist = np.zeros(4), []
+        for _ in range(steps):
+            hist = (hist + [(u.copy(), A @ u + b)])[-(m + 1):]
+            u = _anderson(hist)
+        return float(np.linalg.norm(u - u_star) / np.linalg.norm(u_star))
+
+    assert run(4) <= 1e-8
+    assert run(0) >= 0.1
