@@ -1,8 +1,8 @@
 """Captures filmed mid-motion (`[capture] start = "moving"`): E from rsl adapt when it estimates frame 0's shape and
 velocity, against declaring the start an equilibrium (what a capture had to claim before), in the same run.
 
-Captures by `rsl synth` of sample_data/bar pulled by a cable (constant E_true), truth on P2 tets with 3 substeps per
-frame and hard handles (bench/_pipeline.foreign_capture): `--start moving --lead-frames K` (the capture begins K
+Captures by `rsl synth` of sample_data/bar pulled by a cable (or, `--scene dino`, sample_data/dino pushed by a sphere:
+contact), constant E_true, truth on P2 tets with 3 substeps per frame and hard handles (bench/_pipeline.foreign_capture): `--start moving --lead-frames K` (the capture begins K
 frames into a simulation from the equilibrium) for each K, and the plain equilibrium start (K = 0) as the control.
 rsl adapt runs online on its own P2 mesh (`rsl tetrahedralize --order 2 --max-tets M`), in the reduced space (its
 default; a subspace of r = 12 trained on the capture's scenario) or the full space, markers, gn, window 3, E
@@ -14,7 +14,8 @@ against markers.csv), the median per-frame time, and from `rsl evaluate` the for
 the full-space replay, from the declared start, against truth/forces.csv) and the mean symmetric surface distance
 to the truth.
 
-    nice .venv/bin/python bench/moving_start.py [--frames 24] [--leads 8,0] [--space reduced] [--out docs/results]
+    nice .venv/bin/python bench/moving_start.py [--scene bar|dino] [--frames 24] [--leads 4,8,16,0] [--space reduced]
+        [--out docs/results] [--merge A.json B.json]
 """
 from __future__ import annotations
 
@@ -53,23 +54,27 @@ def declared_copy(cap: Path, out: Path, start: str) -> Path:
     return out
 
 
-def run_lead(work: Path, lead: int, frames: int, max_tets: int, space: str) -> list[dict]:
+SCENES = {"bar": lambda: pl.bar_cable(young=E_TRUE), "dino": lambda: pl.dino_push(E_TRUE)}
+
+
+def run_lead(work: Path, scene: str, lead: int, frames: int, max_tets: int, space: str) -> list[dict]:
     from stages.artefacts import AdaptArtefact
     from stages.capture import load_capture, read_truth
     from stages.observations import MarkerObservation
 
     start = "moving" if lead else "equilibrium"
     extra = ["--lead-frames", lead] if lead else []
-    cap = pl.foreign_capture(work / f"cap_k{lead}", pl.bar_cable(young=E_TRUE), start=start, frames=frames,
-                             cameras=1, resolution=32, substeps=TRUTH_SUBSTEPS, poisson=POISSON, extra=extra)
-    ws = pl.mesh(cap, work / f"ws_k{lead}", order=2, max_tets=max_tets, calibrate=False)
+    tag = f"k{lead}" if scene == "bar" else f"{scene}_k{lead}"  # (the bar's folders as first named)
+    cap = pl.foreign_capture(work / f"cap_{tag}", SCENES[scene](), start=start, frames=frames, cameras=1,
+                             resolution=32, substeps=TRUTH_SUBSTEPS, poisson=POISSON, extra=extra)
+    ws = pl.mesh(cap, work / f"ws_{tag}", order=2, max_tets=max_tets, calibrate=False)
     if space == "reduced":
         pl.subspace(cap, ws, frames=frames, dim=12)
     truth = read_truth(load_capture(cap))
     rows = []
     for declared in (["moving", "equilibrium"] if lead else ["equilibrium", "moving"]):
-        c = cap if declared == start else declared_copy(cap, work / f"cap_k{lead}_as_{declared}", declared)
-        base = {"lead_frames": lead, "capture_start": start, "declared": declared, "space": space}
+        c = cap if declared == start else declared_copy(cap, work / f"cap_{tag}_as_{declared}", declared)
+        base = {"scene": scene, "lead_frames": lead, "capture_start": start, "declared": declared, "space": space}
         try:
             pl.adapt(c, ws, "--space", space, "--loss", "markers", "--estimator", "gn", "--window", WINDOW,
                      "--young-init", f"{0.5 * E_TRUE:g}")
@@ -108,14 +113,14 @@ def run_lead(work: Path, lead: int, frames: int, max_tets: int, space: str) -> l
     return rows
 
 
-HEADER = ("| capture (lead-in frames) | declared start | space | median settled E error (%) | median settled E / E_true | "
+HEADER = ("| scene | capture (lead-in frames) | declared start | space | median settled E error (%) | median settled E / E_true | "
           "marker RMS, all frames (mm) | marker RMS, frames 0–4 (mm) | surface error (mm) | force error (%) | "
           "s / frame | changes detected | re-bindings |\n"
-          "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|")
+          "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|")
 
 
 def _row(r: dict) -> str:
-    cap = f"{r['capture_start']} ({r['lead_frames']})"
+    cap = f"{r.get('scene', 'bar')} | {r['capture_start']} ({r['lead_frames']})"
     if "error" in r:
         return f"| {cap} | {r['declared']} | {r['space']} | failed | — | — | — | — | — | — | — | — |"
     fe, se = r.get("force_error"), r.get("surface_error_mm")
@@ -128,11 +133,12 @@ def _row(r: dict) -> str:
 def summary(rows: list[dict]) -> list[str]:
     """Per mid-motion capture: the declared-moving row's settled error against the declared-equilibrium row's."""
     out = []
-    for lead in sorted({r["lead_frames"] for r in rows if r["lead_frames"]}):
-        by = {r["declared"]: r for r in rows if r["lead_frames"] == lead and "error" not in r}
+    for scene, lead in sorted({(r.get("scene", "bar"), r["lead_frames"]) for r in rows if r["lead_frames"]}):
+        by = {r["declared"]: r for r in rows
+              if r.get("scene", "bar") == scene and r["lead_frames"] == lead and "error" not in r}
         if "moving" in by and "equilibrium" in by:
             mv, eq = by["moving"], by["equilibrium"]
-            out.append(f"- Filmed from {lead} frames into the motion: declared moving, median settled E error "
+            out.append(f"- {scene}, filmed from {lead} frames into the motion: declared moving, median settled E error "
                        f"{100 * mv['median_error']:.1f} % (E / E_true {mv['median_ratio']:.3f}); declared "
                        f"equilibrium {100 * eq['median_error']:.1f} % ({eq['median_ratio']:.3f}); marker RMS over "
                        f"frames 0–4 {mv['marker_rms_first5_mm']:.2f} against {eq['marker_rms_first5_mm']:.2f} mm"
@@ -141,9 +147,10 @@ def summary(rows: list[dict]) -> list[str]:
                        + ".")
     for r in rows:
         if r["lead_frames"] == 0 and r["declared"] == "moving" and "error" not in r:
-            ctl = [q for q in rows if q["lead_frames"] == 0 and q["declared"] == "equilibrium" and "error" not in q]
+            ctl = [q for q in rows if q["lead_frames"] == 0 and q["declared"] == "equilibrium" and "error" not in q
+                   and q.get("scene", "bar") == r.get("scene", "bar")]
             if ctl:
-                out.append(f"- Control, a capture that does start at its equilibrium: declared moving "
+                out.append(f"- {r.get('scene', 'bar')}, control, a capture that does start at its equilibrium: declared moving "
                            f"{100 * r['median_error']:.1f} %, declared equilibrium {100 * ctl[0]['median_error']:.1f} %.")
     return out
 
@@ -157,7 +164,7 @@ def write(rows: list[dict], out: Path, plan: dict) -> None:
         f"Python {platform.python_version()}"}
     (out / "moving_start.json").write_text(json.dumps(data, indent=1))
     md = ["# Captures filmed mid-motion: frame 0's shape and velocity estimated", "",
-          f"Bar pulled by a cable, E_true = {E_TRUE:g} Pa, ν = {POISSON}; truth P2, {TRUTH_SUBSTEPS} substeps per "
+          f"Bar pulled by a cable (scene bar), dinosaur pushed by a sphere (dino), E_true = {E_TRUE:g} Pa, ν = {POISSON}; truth P2, {TRUTH_SUBSTEPS} substeps per "
           f"frame, hard handles, {plan['frames']} frames; `--start moving --lead-frames K` begins K frames into a "
           f"simulation from the equilibrium. rsl adapt: P2 mesh (`--max-tets {plan['max_tets']}`), "
           f"{plan['space']} space, markers, gn, window {WINDOW}, E from 0.5 E_true, default substeps; each capture as declared and with its "
@@ -173,6 +180,9 @@ def write(rows: list[dict], out: Path, plan: dict) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="bar", choices=sorted(SCENES))
+    ap.add_argument("--merge", nargs="+", type=Path, default=None,
+                    help="write the page from the rows of these moving_start.json files (a row in several: the last file's)")
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--leads", default="4,8,16,0", help="lead-in frames of each capture (0: the equilibrium control)")
     ap.add_argument("--max-tets", type=int, default=1500)
@@ -180,12 +190,21 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_moving_start"))
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
     a = ap.parse_args()
+    if a.merge:
+        runs = [json.loads(f.read_text()) for f in a.merge]
+        latest: dict = {}
+        for run in runs:
+            for r in run["cases"]:
+                latest[(r.get("scene", "bar"), r["lead_frames"], r["declared"], r["space"])] = r
+        write(list(latest.values()), a.out, runs[0]["plan"])
+        print("\n".join(summary(list(latest.values()))))
+        return
     leads = [int(k) for k in a.leads.split(",") if k.strip()]
-    plan = {"frames": a.frames, "leads": leads, "max_tets": a.max_tets, "space": a.space}
+    plan = {"frames": a.frames, "leads": leads, "max_tets": a.max_tets, "space": a.space, "scene": a.scene}
     print(HEADER, flush=True)
     rows = []
     for lead in leads:
-        rows += run_lead(a.work, lead, a.frames, a.max_tets, a.space)
+        rows += run_lead(a.work, a.scene, lead, a.frames, a.max_tets, a.space)
     write(rows, a.out, plan)
     print("\n".join(summary(rows)))
 

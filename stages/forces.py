@@ -157,8 +157,8 @@ def adapted_forces(scene, controls, adapt, start: str | None, substeps: int, int
     positions (:func:`trajectory_forces`; ``internal()`` gives their internal forces (T, n, 3) N).  θ(t) of the
     replay: :func:`replay_theta` with rule ``theta``, adapt.h5's young_sigma / poisson_sigma and ``model`` (the gn
     filter's random walk, :func:`filter_model`; without it "smoothed" keeps the recorded θ(t)).
-    A capture filmed mid-motion (``start`` "moving") is replayed from the states before frame 0 that adapt
-    estimated (adapt.h5 start_positions), or, without them, uses the recorded positions.
+    A capture filmed mid-motion (``start`` "moving") is replayed from the x_{−1}, x_0 that adapt estimated (adapt.h5
+    start_positions), or, without them, uses the recorded positions.
     Returns (rows, applied (T, n, 3) N, a phrase naming the source)."""
     before = getattr(adapt, "start_positions", None)
     if (getattr(adapt, "mode", "online") == "online" and start is not None and replayable(adapt.frames)
@@ -187,7 +187,7 @@ def replay_forces(scene, controls, young: np.ndarray, poisson: np.ndarray, start
                   extrapolate: bool = False, before: np.ndarray | None = None
                   ) -> tuple[list[tuple[int, st.SetForce]], np.ndarray, np.ndarray]:
     """Forces of the controls re-simulated in the full space (module doc): frames 0..T−1 from the ``start`` state
-    (docs/capture.md; "moving": from ``before`` = (x_{−2}, x_{−1}) (2, n, 3) m, stages.sim.static.simulate_from_start),
+    (docs/capture.md; "moving": from ``before`` = (x_{−1}, x_0) (2, n, 3) m, stages.sim.static.simulate_from_start),
     θ(t) = young/poisson (T, R), ``substeps`` implicit-Euler steps per frame; with
     ``extrapolate``, :func:`richardson` of the replays with S and 2S substeps, frame by frame.  Returns
     (rows [(frame, SetForce)], applied per-vertex force (T, n, 3) N, replayed positions (T, n, 3) m)."""

@@ -110,3 +110,31 @@ def test_loss_sweep_keeps_truths_of_other_time_steps_apart(tmp_path, monkeypatch
     assert "1 of 2 minima lie within 3 % of E_true" in md
     assert f"against the 24-substep truth 1 of 1 within 3 % ({row['loss']} {row['start']} 1.021)" in md
     assert "3-substep truth" not in md  # the 3-substep row is not at adapt's default
+
+
+def test_moving_start_page_follows_its_rows(tmp_path) -> None:
+    """bench/moving_start.py: the summary sentences carry the rows' own errors, per scene and lead-in; a row in
+    several merged files is the last file's."""
+    m = load_bench("moving_start")
+    d = json.loads((RESULTS / "moving_start.json").read_text())
+    rows = copy.deepcopy(d["cases"])
+    for r in rows:
+        if r["lead_frames"] == 8 and r["declared"] == "moving":
+            r["median_error"], r["median_ratio"] = 0.123, 1.123
+    text = "\n".join(m.summary(rows))
+    assert "bar, filmed from 8 frames into the motion: declared moving, median settled E error 12.3 % (E / E_true " \
+           "1.123)" in text
+    assert text.count("filmed from") == len({r["lead_frames"] for r in rows if r["lead_frames"]})
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    a.write_text(json.dumps(d))
+    b.write_text(json.dumps({**d, "cases": rows}))
+    import sys
+
+    argv = sys.argv
+    try:
+        sys.argv = ["moving_start.py", "--merge", str(a), str(b), "--out", str(tmp_path / "out")]
+        m.main()
+    finally:
+        sys.argv = argv
+    page = (tmp_path / "out" / "moving_start.md").read_text()
+    assert "12.3 % (E / E_true 1.123)" in page and page.count("| bar |") == len(rows)
