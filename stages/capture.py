@@ -299,9 +299,12 @@ def check_controls_keys(data: dict, path: Path) -> None:
 
 
 def check_obstacles_clear(controls: Controls, vertices: np.ndarray, path: Path | str = "controls.json",
-                          tolerance: float = 0.01) -> None:
+                          tolerance: float = 0.01, start: str = "equilibrium") -> None:
     """An obstacle must not start inside the object: at frame 0, no rest vertex (n, 3) may lie deeper inside a
-    plane, sphere or box obstacle than ``tolerance`` × the object's size (its bounding-box diagonal)."""
+    plane, sphere or box obstacle than ``tolerance`` × the object's size (its bounding-box diagonal).  With a
+    capture filmed mid-motion (``start`` "moving") an obstacle may already press the object at frame 0, which rsl
+    does not model (frame 0 is solved from the equilibrium under the frame-0 controls, begun at the rest shape):
+    the sentence says so."""
     v = np.asarray(vertices, dtype=np.float64)
     size = float(np.linalg.norm(v.max(0) - v.min(0)))
     for o in controls.obstacles:
@@ -314,6 +317,11 @@ def check_obstacles_clear(controls: Controls, vertices: np.ndarray, path: Path |
         else:
             depth = np.min(o.half_extents - np.abs(pl), axis=1)
         inside = depth > tolerance * size
+        if np.any(inside) and start == "moving":
+            raise CaptureError(f"{path}: obstacle '{o.name}' already presses into the rest shape at frame 0 "
+                               f"({int(inside.sum())} rest vertices up to {1000 * float(depth.max()):.1f} mm deep), "
+                               f"and a capture filmed mid-motion (start = \"moving\") with a contact at frame 0 is "
+                               f"not supported yet; begin the capture before the obstacle touches the object.")
         if np.any(inside):
             raise CaptureError(f"{path}: obstacle '{o.name}' starts inside the object at frame 0 ({int(inside.sum())} "
                                f"rest vertices up to {1000 * float(depth.max()):.1f} mm deep); move it out of the "

@@ -142,6 +142,11 @@ CASES = {
     "sphere obstacle inside the rest shape": (_sphere_inside, None, [*MARKERS, "--frames", "0:2"],
                                               ["controls.json: obstacle 'pusher' starts inside the object at "
                                                "frame 0", "move it out of the rest shape"]),
+    "sphere obstacle inside the rest shape, moving start": (
+        lambda cap: (_sphere_inside(cap), edit(cap / "capture.toml", 'start = "equilibrium"', 'start = "moving"')),
+        None, [*MARKERS, "--frames", "0:2"],
+        ["controls.json: obstacle 'pusher' already presses into the rest shape at frame 0",
+         "filmed mid-motion (start = \"moving\") with a contact at frame 0 is not supported yet"]),
     "--young-init outside young_range": (None, None, [*MARKERS, "--frames", "0:2", "--young-init", "1"],
                                          ["capture.toml: --young-init 1 Pa lies outside [material] young_range"]),
     "--young-init 1 collapses the start state": (WIDE, None, [*MARKERS, "--frames", "0:2", "--young-init", "1"],

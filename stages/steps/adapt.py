@@ -444,7 +444,7 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     mesh = MeshArtefact.load(mesh_path)
     check_mesh_source(mesh_path, capture.mesh_path)
     controls = capture.controls()
-    check_obstacles_clear(controls, mesh.vertices, capture.controls_path)
+    check_obstacles_clear(controls, mesh.vertices, capture.controls_path, start=capture.start)
     sim_mesh = _refined_mesh(mesh, config.refine) if config.refine else mesh
     scene = make_scene(sim_mesh, controls, capture.material.model, capture.dt, capture.gravity)
     n = mesh.n_vertices

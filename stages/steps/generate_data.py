@@ -281,7 +281,7 @@ def run(config: GenerateDataConfig, reporter: Reporter = SilentReporter()) -> Pa
     mesh = MeshArtefact.load(mesh_path)
     check_mesh_source(mesh_path, cap.mesh_path)
     controls = cap.controls()
-    check_obstacles_clear(controls, mesh.vertices, cap.controls_path)
+    check_obstacles_clear(controls, mesh.vertices, cap.controls_path, start=cap.start)
     mat = cap.material
     plans = plan_sequences(c, controls, mat.young_range, mat.poisson_range, len(mesh.region_names))
     tasks = [(mesh, p, mat.model, cap.dt, cap.gravity, c.newton_iterations) for p in plans]
