@@ -348,9 +348,9 @@ class _Loop:
     moving: object = None  # start = "moving": its offsets' directions (stages.moving_start.StartBasis), else None
 
     def before_keys(self, t0: int) -> tuple[int, int]:
-        """The stored frames whose states a window starting at frame t0 ≥ 1 starts from: (t0 − 2, t0 − 1), frame 0
-        for one before it (x_{−1} = x_0, the start convention) — except with a moving start, whose x_{−1} is
-        estimated (stored as frame −1)."""
+        """The stored frames whose states a window starting at frame t0 starts from: (t0 − 2, t0 − 1), frame 0 for
+        one before it (x_{−1} = x_0, the start convention) — except with a moving start, whose x_{−1} is estimated
+        (stored as frame −1)."""
         return (max(t0 - 2, -1 if self.moving is not None else 0), max(t0 - 1, 0))
 
     def before(self, t0: int) -> np.ndarray:
@@ -991,9 +991,7 @@ truth's frame 0 and held, 1.000 (accuracy_notes.md, sixteenth stop)."""
 MOVING_REBIND_TOL = 1e-5
 """The RMS motion of the bound marker points between two re-bindings (:data:`MOVING_REBINDS`) under which the
 binding is taken as converged, as a fraction of the object's size (2 µm on a 0.2 m object: a tenth of the smallest
-marker noise the estimator assumes, MarkerObservation.noise_floor).  The alternation converges slowly (on the beam
-below, the bound points moved 0.74 mm, then 0.20, 0.13, 0.10 … 0.009 mm at the 20th re-binding of the first
-window, 4 µm at the first of the second)."""
+marker noise the estimator assumes, MarkerObservation.noise_floor)."""
 
 
 def _rebind_moving_start(gn: GNWindow, objective: WindowObjective, res, lin, frames, prior, before, D, sigma,
@@ -1223,7 +1221,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             if D is not None and t0 >= 1:  # the corrected starting states replace the stored ones
                 k2, k1 = loop.before_keys(t0)
                 stored[k2], stored[k1] = gn.last_before[0], gn.last_before[1]
-            elif D is not None:  # a moving start: x_{−1} = x_0 − Δ_0 + Δ_{−1} (frame 0's state is stored above)
+            elif D is not None and loop.moving is not None:  # x_{−1} = x_0 − Δ_0 + Δ_{−1} (x_0 stored above)
                 start_c = res.p[k_th:].copy()
                 stored[-1] = gn.last_states[0] - gn.last_before[1] + gn.last_before[0]
                 objective.anchor_offset = gn.last_before[1].copy()  # the markers' binding: x_e(θ) + Δ_0 from here
