@@ -241,3 +241,29 @@ def test_anderson_mixing_solves_a_linear_fixed_point_that_the_plain_iteration_cr
 
     assert run(4) <= 1e-8
     assert run(0) >= 0.1
+
+
+def test_a_moving_start_may_show_an_obstacle_already_pressing():
+    """check_obstacles_clear: a sphere 2 % of the object's size inside its rest shape at frame 0 is an error for a
+    declared start, allowed for a capture filmed mid-motion (up to MOVING_CONTACT_DEPTH), and one 30 % deep is an
+    error for both."""
+    from pathlib import Path
+
+    from stages.capture import CaptureError, check_obstacles_clear, parse_controls
+
+    g = np.linspace(-0.1, 0.1, 11)
+    v = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)  # size: diagonal 0.346 m
+    size = float(np.linalg.norm(np.ptp(v, axis=0)))
+
+    def controls(depth: float):  # a sphere whose surface lies ``depth`` × size inside the grid's +x face
+        r = 0.05
+        c = 0.1 + r - depth * size
+        return parse_controls({"obstacles": [{"name": "pusher", "shape": "sphere", "radius": r,
+                                              "poses": [[c, 0, 0, 1, 0, 0, 0]]}]}, Path("controls.json"))
+
+    with pytest.raises(CaptureError, match="starts inside the object at frame 0"):
+        check_obstacles_clear(controls(0.02), v, start="equilibrium")
+    check_obstacles_clear(controls(0.02), v, start="moving")
+    for start in ("equilibrium", "moving"):
+        with pytest.raises(CaptureError, match="inside"):
+            check_obstacles_clear(controls(0.3), v, start=start)

@@ -90,9 +90,9 @@ def _resize(cap: Path) -> None:
         write_image(p, cv2.resize(read_image(p), (64, 64)))
 
 
-def _sphere_inside(cap: Path) -> None:
+def _sphere_inside(cap: Path, radius: float = 0.02) -> None:
     data = json.loads((cap / "controls.json").read_text())
-    data["obstacles"] = [{"name": "pusher", "shape": "sphere", "radius": 0.02}]
+    data["obstacles"] = [{"name": "pusher", "shape": "sphere", "radius": radius}]
     (cap / "controls.json").write_text(json.dumps(data))
 
 
@@ -142,11 +142,12 @@ CASES = {
     "sphere obstacle inside the rest shape": (_sphere_inside, None, [*MARKERS, "--frames", "0:2"],
                                               ["controls.json: obstacle 'pusher' starts inside the object at "
                                                "frame 0", "move it out of the rest shape"]),
-    "sphere obstacle inside the rest shape, moving start": (
-        lambda cap: (_sphere_inside(cap), edit(cap / "capture.toml", 'start = "equilibrium"', 'start = "moving"')),
+    "sphere obstacle deep inside the rest shape, moving start": (
+        lambda cap: (_sphere_inside(cap, 0.06), edit(cap / "capture.toml", 'start = "equilibrium"',
+                                                     'start = "moving"')),
         None, [*MARKERS, "--frames", "0:2"],
-        ["controls.json: obstacle 'pusher' already presses into the rest shape at frame 0",
-         "filmed mid-motion (start = \"moving\") with a contact at frame 0 is not supported yet"]),
+        ["controls.json: obstacle 'pusher' lies up to", "mm inside the rest shape at frame 0",
+         "more than a capture filmed mid-motion (start = \"moving\") may press it (10% of the object's size)"]),
     "--young-init outside young_range": (None, None, [*MARKERS, "--frames", "0:2", "--young-init", "1"],
                                          ["capture.toml: --young-init 1 Pa lies outside [material] young_range"]),
     "--young-init 1 collapses the start state": (WIDE, None, [*MARKERS, "--frames", "0:2", "--young-init", "1"],
