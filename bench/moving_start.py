@@ -121,8 +121,10 @@ HEADER = ("| scene | capture (lead-in frames) | declared start | space | median 
 
 def _row(r: dict) -> str:
     cap = f"{r.get('scene', 'bar')} | {r['capture_start']} ({r['lead_frames']})"
-    if "error" in r:
-        return f"| {cap} | {r['declared']} | {r['space']} | failed | — | — | — | — | — | — | — | — |"
+    if "error" in r:  # rsl's own sentence (after "error: "), without the folder
+        why = r["error"].rsplit("error: ", 1)[-1].strip().replace("|", "/")
+        why = re.sub(r"^\S*/(\w+\.\w+):", r"\1:", why)
+        return f"| {cap} | {r['declared']} | {r['space']} | refused: {why} | — | — | — | — | — | — | — | — |"
     fe, se = r.get("force_error"), r.get("surface_error_mm")
     return (f"| {cap} | {r['declared']} | {r['space']} | {100 * r['median_error']:.1f} | {r['median_ratio']:.3f} | "
             f"{r['marker_rms_mm']:.2f} | {r['marker_rms_first5_mm']:.2f} | {'—' if se is None else f'{se:.2f}'} | "
@@ -136,6 +138,13 @@ def summary(rows: list[dict]) -> list[str]:
     for scene, lead in sorted({(r.get("scene", "bar"), r["lead_frames"]) for r in rows if r["lead_frames"]}):
         by = {r["declared"]: r for r in rows
               if r.get("scene", "bar") == scene and r["lead_frames"] == lead and "error" not in r}
+        refused = [r for r in rows if r.get("scene", "bar") == scene and r["lead_frames"] == lead and "error" in r
+                   and r["declared"] == "equilibrium"]
+        if "moving" in by and refused:
+            mv = by["moving"]
+            out.append(f"- {scene}, filmed from {lead} frames into the motion: declared moving, median settled E error "
+                       f"{100 * mv['median_error']:.1f} % (E / E_true {mv['median_ratio']:.3f}); declared equilibrium, "
+                       f"rsl adapt refuses the capture (its row).")
         if "moving" in by and "equilibrium" in by:
             mv, eq = by["moving"], by["equilibrium"]
             out.append(f"- {scene}, filmed from {lead} frames into the motion: declared moving, median settled E error "
