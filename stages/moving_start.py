@@ -24,7 +24,9 @@ import numpy as np
 START_MOTION_SCALE = 2.0
 """Prior σ of the start's shape and velocity offsets, in frames of the observed motion (the RMS marker
 displacement from frame 0 to frame 1): all m directions at 1 σ together move the body by this many frames of
-motion (RMS over its vertices)."""
+motion (RMS over its vertices).  bench/moving_start.py's bar filmed 4 / 8 / 16 frames in, median settled E / E_true
+by this scale: 0.5 → 0.885 / 0.928 / 0.859; 1 → 0.927 / 0.963 / 0.923; 2 → 0.959 / 1.028 / 0.973; 4 → 0.787 /
+1.028 / 1.004 (accuracy_notes.md, sixteenth stop: these runs are sensitive to rounding, ± a few per cent)."""
 
 
 @dataclass(frozen=True)
