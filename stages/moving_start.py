@@ -9,7 +9,7 @@ the Gauss–Newton state correction estimates the starting states of later windo
 - Δ = Σ_j a_j b_j on both states (a correction of the shape) and Σ_j v_j b_j on x_{−1} alone (minus the velocity:
   one frame's displacement), b_j the reduced space's unit vectors of z or the full space's lowest vibration modes
   (:func:`start_directions`);
-- each coefficient with a zero-mean prior whose σ is about a frame of the observed motion (:func:`start_prior`),
+- each coefficient with a zero-mean prior whose σ is about two frames of the observed motion (:func:`start_prior`),
   so that frame 0's markers and the frames after it fix the shape and the velocity.
 
 The markers bind to the nearest points of the estimated frame 0, x_e(θ) + Δ_0 (WindowObjective.anchor_offset),
