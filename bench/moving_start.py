@@ -59,6 +59,7 @@ SCENES = {"bar": lambda: pl.bar_cable(young=E_TRUE), "dino": lambda: pl.dino_pus
 
 def run_lead(work: Path, scene: str, lead: int, frames: int, max_tets: int, space: str) -> list[dict]:
     from stages.artefacts import AdaptArtefact
+    from stages.artefacts import MeshArtefact
     from stages.capture import load_capture, read_truth
     from stages.observations import MarkerObservation
 
@@ -71,6 +72,7 @@ def run_lead(work: Path, scene: str, lead: int, frames: int, max_tets: int, spac
     if space == "reduced":
         pl.subspace(cap, ws, frames=frames, dim=12)
     truth = read_truth(load_capture(cap))
+    mesh = MeshArtefact.load(ws / "mesh.h5")
     rows = []
     for declared in (["moving", "equilibrium"] if lead else ["equilibrium", "moving"]):
         c = cap if declared == start else declared_copy(cap, work / f"cap_{tag}_as_{declared}", declared)
@@ -90,9 +92,6 @@ def run_lead(work: Path, scene: str, lead: int, frames: int, max_tets: int, spac
         y = np.asarray(a.young)[:, 0]
         ok = np.arange(len(y)) >= WINDOW + 5
         capture = load_capture(c)
-        from stages.artefacts import MeshArtefact
-
-        mesh = MeshArtefact.load(ws / "mesh.h5")
         obs = MarkerObservation(capture, a.positions[0], mesh.surface_faces, mesh.n_vertices)
         P = capture.markers()[np.asarray(a.frames)]
         m = obs.binding.positions(a.positions)

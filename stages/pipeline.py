@@ -50,29 +50,21 @@ class Step:
     reason: str
 
 
-def _has_cameras(capture: Path | None) -> bool:
-    """Whether capture.toml lists cameras (an unreadable capture counts as yes: the stage will say what is wrong)."""
+def _capture_kind(capture: Path | None) -> tuple[bool, bool]:
+    """(whether capture.toml lists cameras, whether it says start = "moving") from one reading; an unreadable
+    capture counts as one with cameras that starts at rest or equilibrium: the stages will say what is wrong."""
     if capture is None:
-        return False
+        return False, False
     try:
-        return bool(load_capture(capture).camera_names)
+        cap = load_capture(capture)
     except RslError:
-        return True
+        return True, False
+    return bool(cap.camera_names), cap.start == "moving"
 
 
 MOVING_SKIPS = ("segment", "fit-gaussians")
 """The stages that do not apply to a capture filmed mid-motion ([capture] start = "moving"): the Gaussians are fitted
 to a frame-0 pose that such a capture does not give; rsl adapt identifies it from markers (docs/capture.md)."""
-
-
-def _moving(capture: Path | None) -> bool:
-    """Whether capture.toml says start = "moving" (an unreadable capture: no; the stages will say what is wrong)."""
-    if capture is None:
-        return False
-    try:
-        return load_capture(capture).start == "moving"
-    except RslError:
-        return False
 
 
 def not_applicable(s: Stage, cams: bool, moving: bool) -> str | None:
@@ -129,7 +121,7 @@ def plan(capture: Path | None, workspace: Path, *, until: str | None = None, onl
     steps: list[Step] = []
     remade: set[str] = set()
     hashes: dict[str, str] = {}
-    cams, moving = _has_cameras(capture), _moving(capture)
+    cams, moving = _capture_kind(capture)
     overrides = with_capture_defaults(overrides, moving)
     for s in selected(until, only):
         why_not = not_applicable(s, cams, moving)
@@ -149,7 +141,7 @@ def run_pipeline(capture: Path | None, workspace: Path, reporter: Reporter = Sil
                  overrides: dict[str, dict[str, Any]] | None = None) -> list[Step]:
     """Run the selected stages in order; stop at the first failure (an RslError naming the stage)."""
     workspace = Path(workspace)
-    cams, moving = _has_cameras(capture), _moving(capture)
+    cams, moving = _capture_kind(capture)
     stages = [s for s in selected(until, only) if not not_applicable(s, cams, moving)]
     if not stages:
         raise RslError(f"{capture}: nothing to run; the selected stages need cameras and capture.toml lists none.")

@@ -5,7 +5,6 @@ from __future__ import annotations
 import tomllib
 from pathlib import Path
 
-import meshio
 import numpy as np
 import pytest
 
@@ -13,20 +12,11 @@ from stages.capture import load_capture, read_forces_csv, read_truth
 from stages.domain.controls import IDENTITY_POSE, Track
 from stages.errors import RslError
 from stages.progress import SilentReporter
-from stages.sim.meshgen import box_tets
 from stages.steps.synth import SynthConfig, run
+from test_synth import box_mesh  # noqa: F401  (the module-scoped bar mesh fixture)
 
 FRAMES, LEAD = 5, 2  # 7 simulated frames: the sin² motion is at its fastest at frames 2–3
 BASE = dict(cameras=1, resolution=32, markers=6, calib_views=0, seed=3, young=8e4)
-
-
-@pytest.fixture(scope="module")
-def box_mesh(tmp_path_factory) -> Path:
-    """A 0.2 × 0.05 × 0.05 m bar of 6×2×2 hex cells (144 tets) as a Medit file."""
-    v, t = box_tets((6, 2, 2), (0.2, 0.05, 0.05))
-    path = tmp_path_factory.mktemp("mesh") / "bar.mesh"
-    meshio.write(str(path), meshio.Mesh(v, [("tetra", t)]), file_format="medit")
-    return path
 
 
 @pytest.fixture(scope="module", params=["stretch", "cable"])

@@ -13,14 +13,7 @@ from stages.capture import FORCE_HEADER, load_capture, read_forces_csv, read_tru
 from stages.artefacts import mesh_artefact
 from stages.sim.meshgen import box_tets, refine_tets
 from stages.steps.synth import SynthConfig, run
-
-
-@pytest.fixture(scope="module")
-def box_mesh(tmp_path_factory) -> Path:
-    v, t = box_tets((6, 2, 2), (0.2, 0.05, 0.05))
-    path = tmp_path_factory.mktemp("mesh") / "bar.mesh"
-    meshio.write(str(path), meshio.Mesh(v, [("tetra", t)]), file_format="medit")
-    return path
+from test_synth import box_mesh  # noqa: F401  (the module-scoped bar mesh fixture)
 
 
 @pytest.fixture(scope="module")

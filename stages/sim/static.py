@@ -278,20 +278,19 @@ def simulate_from_start(scene: sc.Scene, inputs_at, young, poisson, frames: int,
     young, poisson = sc._per_frame(young, T, R), sc._per_frame(poisson, T, R)
     if substeps < 1:
         raise ValueError(f"substeps must be at least 1, not {substeps}")
-    xp2 = None  # the substep state before frame 0's
     if start == "moving":
         if before is None:
             raise ValueError("a moving start needs the state before frame 0 and frame 0's (before)")
         xm1, x = (np.array(b, np.float64) for b in before)
-        xp2 = x + (xm1 - x) / substeps
+        xp2 = x + (xm1 - x) / substeps  # the substep state before frame 0's
     else:
         x = (start_state(scene, inputs_at(0), young[0], poisson[0], start) if x0 is None
              else np.array(x0, np.float64))
-    xp2 = x if xp2 is None else xp2
+        xp2 = x
     out = np.empty((T, scene.n_vertices, 3))
     out[0] = x
-    if states is not None:
-        states.append((xp2.copy(), (2 * xp2 - x) if start == "moving" else x.copy()))
+    if states is not None:  # (the substep states before frame 0's last, on the line through x_0 and xp2)
+        states.append((xp2.copy(), 2 * xp2 - x))
     if callback is not None:
         callback(0)
     if T > 1:

@@ -470,12 +470,15 @@ def capture_toml(sections: dict[str, dict]) -> str:
 
 
 # =========================================================================== the truth
+SYNTH_STARTS = ("auto", "equilibrium", "rest", "moving")  # --start (SynthConfig.start)
+
+
 def resolve_start(start: str, controls: Controls) -> str:
     """The declared start state: "auto" is equilibrium, or rest when nothing holds the object (no handle);
     "moving" stays moving (its lead-in starts from what "auto" resolves to)."""
     if start == "auto":
         return "equilibrium" if controls.handles else "rest"
-    if start not in ("equilibrium", "rest", "moving"):
+    if start not in SYNTH_STARTS[1:]:
         raise RslError(f"--start {start!r} is unknown; use equilibrium, rest, moving or auto.")
     if start == "equilibrium" and not controls.handles:
         raise RslError("--start equilibrium needs an object held by handles; nothing holds it in this scenario "
@@ -548,7 +551,7 @@ def _check_config(c: SynthConfig) -> None:
         raise RslError(f"--truth-order should be 1 or 2, found {c.truth_order}.")
     if c.handles not in ("spring", "hard"):
         raise RslError(f"--handles {c.handles!r} is unknown; use spring or hard.")
-    if c.start not in ("auto", "equilibrium", "rest", "moving"):
+    if c.start not in SYNTH_STARTS:
         raise RslError(f"--start {c.start!r} is unknown; use equilibrium, rest, moving or auto.")
     if c.start == "moving" and c.lead_frames < 1:
         raise RslError(f"--lead-frames should be at least 1 with --start moving (the frames simulated before "
