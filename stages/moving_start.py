@@ -9,24 +9,26 @@ the Gauss–Newton state correction estimates the starting states of later windo
 - Δ = Σ_j a_j b_j on both states (a correction of the shape) and Σ_j v_j b_j on x_{−1} alone (minus the velocity:
   one frame's displacement), b_j the reduced space's unit vectors of z or the full space's lowest vibration modes
   (:func:`start_directions`);
-- each coefficient with a zero-mean prior whose σ is about two frames of the observed motion (:func:`start_prior`),
+- each coefficient with a zero-mean prior whose σ is about four frames of the observed motion (:func:`start_prior`),
   so that frame 0's markers and the frames after it fix the shape and the velocity.
 
-The markers bind to the nearest points of the estimated frame 0, x_e(θ) + Δ_0 (WindowObjective.anchor_offset),
-re-bound and solved again while a window holds frame 0 (adapt._rebind_moving_start: frame 0's markers fix only
-the normal part of Δ_0, the frames after it the rest), then held.  Pure functions over a window backend."""
+Where each marker sits on the body is then unknown too: while a window holds frame 0, each marker's material
+point is fitted to its track over the window's frames and the window solved again with it held, until it
+settles (adapt._rebind_moving_start, stages.sim.markers.fit_binding_to_tracks); then it is held.  Pure functions
+over a window backend."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
 
-START_MOTION_SCALE = 2.0
+START_MOTION_SCALE = 4.0
 """Prior σ of the start's shape and velocity offsets, in frames of the observed motion (the RMS marker
 displacement from frame 0 to frame 1): all m directions at 1 σ together move the body by this many frames of
-motion (RMS over its vertices).  bench/moving_start.py's bar filmed 4 / 8 / 16 frames in, median settled E / E_true
-by this scale: 0.5 → 0.885 / 0.928 / 0.859; 1 → 0.927 / 0.963 / 0.923; 2 → 0.959 / 1.028 / 0.973; 4 → 0.787 /
-1.028 / 1.004 (accuracy_notes.md, sixteenth stop: these runs are sensitive to rounding, ± a few per cent)."""
+motion (RMS over its vertices).  bench/moving_start.py's bar filmed 4 / 8 / 16 frames in, median settled E error
+by this scale (markers fitted to their tracks; accuracy_notes.md, seventeenth stop): 1 → 0.4 / 1.2 / 4.0 %;
+2 → 0.7 / 0.8 / 3.1 %; 4 → 0.6 / 1.1 / 2.1 %; 8 → 0.6 / 1.2 / 2.7 %; the capture that starts at its equilibrium
+1.4 / 1.0 / 1.0 / 1.1 %.  Flat from 2 to 8: the middle, and the least mean error."""
 
 
 @dataclass(frozen=True)

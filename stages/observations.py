@@ -14,7 +14,7 @@ from stages.artefacts import (KIND_FILES, CamerasArtefact, GaussiansArtefact, Ma
 from stages.capture import IMAGE_SUFFIXES, Capture, CaptureError, read_image
 from stages.errors import RslError
 from stages.occluders import has_occluders, ignore_mask
-from stages.sim.markers import MarkerBinding, bind_markers, marker_residuals
+from stages.sim.markers import MarkerBinding, bind_markers, fit_binding_to_tracks, marker_residuals
 
 
 class MarkerObservation:
@@ -42,6 +42,17 @@ class MarkerObservation:
         b = bind_markers(x0[:self.n], self.faces, self.P[0])
         self.binding = b
         self.binding = MarkerBinding(b.faces, self._plane_bary(x0[:self.n]), b.distance)
+
+    def fit_to_tracks(self, frames: Sequence[int], X: np.ndarray) -> float:
+        """Bind each marker to the material point whose track over ``frames`` fits its observations best, X
+        (w, n, 3) the window's positions, frames[0] the frame the binding's distances refer to
+        (stages.sim.markers.fit_binding_to_tracks); updates :attr:`far`.  Returns the RMS motion of the bound
+        points on X[0], m."""
+        x0 = X[0, :self.n]
+        old = self.binding.positions(x0)
+        self.binding = fit_binding_to_tracks(X[:, :self.n], self.faces, self.P[list(frames)])
+        self.far = float(self.binding.distance.max()) / max(float(np.linalg.norm(np.ptp(x0, axis=0))), 1e-12)
+        return float(np.sqrt(np.mean(np.sum((self.binding.positions(x0) - old) ** 2, axis=-1))))
 
     def _read(self) -> np.ndarray:
         P = self.capture.markers()

@@ -247,21 +247,18 @@ class WindowObjective:
         self.anchor_own = False  # the online loop estimates p_a (AdaptConfig.vision_anchor "estimated")
         self.want_anchor_grad = False
         self.last_anchor_g: np.ndarray | None = None
-        # a moving start (StartWindow): the estimated offset Δ_0 of frame 0 from x_e(θ), which the anchor adds (held
-        # fixed in derivatives: adapt._online_gn alternates it with the window's solve); None: zero
-        self.anchor_offset: np.ndarray | None = None
         self._held: tuple[np.ndarray, np.ndarray] | None = None  # (p_a, x_f(θ(p_a))) of the last held anchor
 
     def anchor_positions(self, E: np.ndarray, nu: np.ndarray) -> np.ndarray:
         """The anchor frame (0 for markers, the Gaussians' fit frame for images) simulated with θ under the start
-        convention (frame 0 = x_0(θ); a moving start: x_e(θ) + :attr:`anchor_offset`), positions (n, 3)."""
+        convention (frame 0 = x_0(θ); a moving start: x_e(θ), the offsets being the window's), positions (n, 3)."""
         k = self.anchor_frame + 1
         aE, anu, X = getattr(self, "_anchor_states", (None, None, None))
         if not (getattr(self.win, "memo", False) and X is not None and np.array_equal(aE, E)
                 and np.array_equal(anu, nu)):  # (memo: the last anchor of this θ, the same floats to rebind at)
             X = self.win.forward(list(range(k)), E, nu, None)
             self._anchor_states = (np.array(E, float), np.array(nu, float), X)  # reused by the anchor's adjoint
-        return self.backend.decode(X[-1:] + (0.0 if self.anchor_offset is None else self.anchor_offset))[0]
+        return self.backend.decode(X[-1:])[0]
 
     def _anchor_adjoint(self, E: np.ndarray, nu: np.ndarray, ga: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(dL/dE, dL/dν) (R,) through the anchor x_f(θ): dL/dx_f = ``ga`` (n, 3) back through the simulation of

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.sim.markers import bind_markers, closest_points_on_triangles, marker_loss
+from stages.sim.markers import bind_markers, closest_points_on_triangles, fit_binding_to_tracks, marker_loss
 
 
 def _brute_closest(p, tri, k=60):
@@ -100,3 +100,86 @@ def test_marker_loss_with_gaps_sums_observed_markers_and_its_gradient_matches_fi
     # all gaps: zero loss and gradient, no crash
     L0, g0 = marker_loss(b, X, np.full_like(P, np.nan))
     assert L0 == 0.0 and not np.any(g0)
+
+
+def _track_surface(rng, w=4):
+    """A bumpy 6 × 6 grid surface (n, 3), its faces, and w frames of a smooth non-affine motion of it."""
+    u, v = np.meshgrid(np.linspace(0, 1, 6), np.linspace(0, 1, 6))
+    x0 = np.stack([u.ravel(), v.ravel(), 0.05 * np.sin(3 * u.ravel()) * np.cos(2 * v.ravel())], 1)
+    faces = []
+    for i in range(5):
+        for j in range(5):
+            a = i * 6 + j
+            faces += [[a, a + 1, a + 7], [a, a + 7, a + 6]]
+    faces = np.array(faces)
+    X = np.stack([x0 + t * np.stack([0.02 * x0[:, 1] ** 2, 0.01 * x0[:, 0], 0.03 * x0[:, 0] * x0[:, 1]], 1)
+                  + 0.002 * t * rng.normal(size=x0.shape) for t in range(w)])
+    return X, faces
+
+
+def _slsqp_track_fit(X, faces, P, cand):
+    """The least cost over the candidate triangles by scipy's SLSQP on (b_1, b_2) ≥ 0, b_1 + b_2 ≤ 1 from the
+    triangle's centre (the plain twin of the closed form)."""
+    from scipy.optimize import minimize
+
+    best = np.inf
+    for f in cand:
+        T = X[:, faces[f]]  # (w, 3, 3)
+
+        def cost(q):
+            m = T[:, 0] + q[0] * (T[:, 1] - T[:, 0]) + q[1] * (T[:, 2] - T[:, 0])
+            return float(np.sum((m - P) ** 2))
+
+        r = minimize(cost, [1 / 3, 1 / 3], method="SLSQP", bounds=[(0, 1), (0, 1)], options={"ftol": 1e-15},
+                     constraints=[{"type": "ineq", "fun": lambda q: 1.0 - q[0] - q[1]}])
+        best = min(best, float(r.fun))
+    return best
+
+
+def test_track_fit_finds_the_material_point_that_made_a_track_and_matches_a_dense_search():
+    """fit_binding_to_tracks: markers moved with chosen material points (some on edges and corners) are found again
+    to rounding; with noisy tracks its cost is the least that SLSQP finds on the same triangles (the constrained
+    quadratic's minimum, interior or on an edge)."""
+    rng = np.random.default_rng(1)
+    X, faces = _track_surface(rng)
+    M = 30
+    fid = rng.integers(0, len(faces), M)
+    bary = rng.dirichlet(np.ones(3), M)
+    bary[:5, 0] = 0.0  # on an edge
+    bary[:5] /= bary[:5].sum(1, keepdims=True)
+    bary[5:8] = [1.0, 0.0, 0.0]  # at a vertex
+    P = np.einsum("mk,tmkd->tmd", bary, X[:, faces[fid]])
+    b = fit_binding_to_tracks(X, faces, P)
+    assert np.allclose(b.positions(X), P, atol=1e-9)
+    assert np.all(b.distance <= 1e-9)
+
+    noisy = P + 0.003 * rng.normal(size=P.shape)
+    b = fit_binding_to_tracks(X, faces, noisy, candidates=4)
+    assert np.all(b.bary >= -1e-12) and np.allclose(b.bary.sum(1), 1.0)
+    cost = np.sum((b.positions(X) - noisy) ** 2, axis=(0, 2))
+    closest, _ = closest_points_on_triangles(noisy[0], X[0][faces])
+    order = np.argsort(np.linalg.norm(closest - noisy[0][:, None], axis=-1), axis=1)[:, :4]
+    for i in range(M):
+        c_ref = _slsqp_track_fit(X, faces, noisy[:, i], order[i])
+        assert abs(cost[i] - c_ref) <= 1e-6 * c_ref, (i, cost[i], c_ref)
+
+
+def test_track_fit_of_one_frame_is_the_nearest_surface_point_and_gaps_add_nothing():
+    """With one frame the fit is bind_markers' nearest point (markers off the surface on either side); a marker
+    missing from frame 0 is placed by the frames that see it, and its distance is 0."""
+    rng = np.random.default_rng(2)
+    X, faces = _track_surface(rng)
+    P0 = np.concatenate([rng.uniform(0.05, 0.95, (20, 2)), rng.uniform(-0.1, 0.1, (20, 1))], 1)
+    b = fit_binding_to_tracks(X[:1], faces, P0[None])
+    ref = bind_markers(X[0], faces, P0)
+    assert np.allclose(b.positions(X[0]), ref.positions(X[0]), atol=1e-12)
+    assert np.allclose(b.distance, ref.distance, atol=1e-12)
+
+    fid, bary = rng.integers(0, len(faces), 6), rng.dirichlet(np.ones(3), 6)
+    P = np.einsum("mk,tmkd->tmd", bary, X[:, faces[fid]])
+    P[0, 2] = np.nan
+    P[1:3, 4] = np.nan
+    b = fit_binding_to_tracks(X, faces, P)
+    seen = np.all(np.isfinite(P), -1)
+    assert np.allclose(b.positions(X)[seen], P[seen], atol=1e-9)
+    assert b.distance[2] == 0.0 and np.all(np.isfinite(b.distance))

@@ -2,7 +2,9 @@
 
 L = Σ_t Σ_i ‖m_i(x_t) − p_t^i‖² over the observed (t, i) only (a motion-capture gap, NaN in p, adds nothing),
 with each marker bound to the surface point nearest its frame-0 position, m_i(x) = Σ_k b_ik x[f_ik]
-(barycentric on the nearest surface triangle), so dL/dx_t = Σ_{i observed at t} 2 (m_i − p^i) ⊗ b_i.
+(barycentric on the nearest surface triangle), so dL/dx_t = Σ_{i observed at t} 2 (m_i − p^i) ⊗ b_i.  Where
+frame 0 itself is estimated (a capture filmed mid-motion), each marker's material point is fitted to its track
+instead (fit_binding_to_tracks).
 
 Pure functions over arrays: nothing here reads files or prints.
 """
@@ -98,6 +100,61 @@ def bind_markers(vertices: np.ndarray, faces: np.ndarray, markers0: np.ndarray,
         dists.append(d[r, k])
     fid = np.concatenate(fids)
     return MarkerBinding(faces[fid].astype(np.int64), np.concatenate(barys), np.concatenate(dists))
+
+
+TRACK_CANDIDATES = 8
+"""fit_binding_to_tracks: the triangles searched per marker, nearest its frame-0 position first.  A marker's
+material point moves by at most a few triangles from its nearest point (the frame-0 estimate's error)."""
+
+
+def fit_binding_to_tracks(X: np.ndarray, faces: np.ndarray, P: np.ndarray,
+                          candidates: int = TRACK_CANDIDATES) -> MarkerBinding:
+    """Each marker's material point fitted to its track: the triangle f and barycentrics b (inside the triangle)
+    minimising Σ_t ‖Σ_k b_k x_t[f_k] − p_t‖² over the observed frames, for vertex tracks X (w, n, 3), faces
+    (F, 3) and marker tracks P (w, M, 3) (NaN at a gap), searched over the ``candidates`` triangles nearest the
+    first frame's marker.  On one triangle the cost is a convex quadratic in (b_1, b_2): its unconstrained
+    minimum if it lies inside, else the best of the three edges' clamped 1-D minima.  With one frame this is the
+    nearest surface point (bind_markers).  ``distance``: the first frame's residual ‖m_i(x_0) − p_0‖ (0 where unseen)."""
+    seen = np.all(np.isfinite(P), axis=-1)  # (w, M)
+    with np.errstate(invalid="ignore"):
+        p0 = np.nanmean(np.where(seen[..., None], P, np.nan), axis=0)  # frame 0, else the track's mean: where
+    p0 = np.where(seen[0][:, None], P[0], np.where(np.isfinite(p0), p0, X[0].mean(axis=0)))  # to search from
+    closest, _ = closest_points_on_triangles(p0, X[0][faces])
+    order = np.argsort(np.linalg.norm(closest - p0[:, None], axis=-1), axis=1)
+    cand = order[:, :min(candidates, len(faces))]  # (M, k)
+    tri = X[:, faces[cand]]  # (w, M, k, 3, 3)
+    w = seen[:, :, None, None].astype(float)
+    r0 = (tri[..., 0, :] - np.where(seen[..., None], P, 0.0)[:, :, None]) * w  # (w, M, k, 3)
+    e1 = (tri[..., 1, :] - tri[..., 0, :]) * w
+    e2 = (tri[..., 2, :] - tri[..., 0, :]) * w
+
+    def dot(a, b):
+        return np.sum(a * b, axis=(0, 3))  # over frames and xyz: (M, k)
+
+    def cost(b1, b2):
+        r = r0 + e1 * b1[None, ..., None] + e2 * b2[None, ..., None]
+        return dot(r, r)
+
+    g11, g12, g22, h1, h2 = dot(e1, e1), dot(e1, e2), dot(e2, e2), -dot(e1, r0), -dot(e2, r0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        det = g11 * g22 - g12 ** 2
+        b1, b2 = (g22 * h1 - g12 * h2) / det, (g11 * h2 - g12 * h1) / det
+    inside = np.isfinite(b1) & np.isfinite(b2) & (b1 >= 0) & (b2 >= 0) & (b1 + b2 <= 1)
+    best1, best2 = np.where(inside, b1, 0.0), np.where(inside, b2, 0.0)
+    best = np.where(inside, cost(best1, best2), np.inf)
+    for (u0, v0), (du, dv) in (((0.0, 0.0), (1.0, 0.0)), ((0.0, 0.0), (0.0, 1.0)), ((1.0, 0.0), (-1.0, 1.0))):
+        ra, ed = r0 + e1 * u0 + e2 * v0, e1 * du + e2 * dv  # the edge (u0, v0) + s (du, dv), s ∈ [0, 1]
+        s = np.clip(-dot(ed, ra) / np.maximum(dot(ed, ed), 1e-300), 0.0, 1.0)
+        c1, c2 = u0 + s * du, v0 + s * dv
+        c = cost(c1, c2)
+        better = ~inside & (c < best)
+        best1, best2, best = np.where(better, c1, best1), np.where(better, c2, best2), np.where(better, c, best)
+    j = np.argmin(best, axis=1)
+    m = np.arange(len(j))
+    bary = np.stack([1.0 - best1[m, j] - best2[m, j], best1[m, j], best2[m, j]], axis=-1)
+    binding = MarkerBinding(faces[cand[m, j]].astype(np.int64), bary, np.zeros(len(j)))
+    return MarkerBinding(binding.faces, bary, np.where(seen[0], np.linalg.norm(binding.positions(X[0]) - p0, axis=-1),
+                                                       0.0))
 
 
 def marker_residuals(binding: MarkerBinding, X: np.ndarray, P: np.ndarray) -> np.ndarray:

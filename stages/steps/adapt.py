@@ -486,10 +486,8 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
         inputs_used.append(capture.markers_path)
         if capture.start == "moving":
             moving = start_basis(backend, s0, young0, poisson0)
-        if obs.far > 0.05:
-            reporter.warn(f"{capture.markers_path}: a frame-0 marker lies {obs.far:.1%} of the object size "
-                          f"away from the frame-0 surface simulated with the initial E; is the marker frame the "
-                          f"mesh's frame, or is the initial E far off?")
+        if capture.start != "moving":  # (a moving start: once frame 0 is estimated, _online_gn)
+            _warn_far_markers(reporter, obs, "simulated with the initial E")
     elif (not (ws / KIND_FILES["gaussians"]).exists() and config.mode in ("online", "static") and not config.follow
           and capture.start == "equilibrium" and controls_static(inputs, list(range(max(capture.frame_count(), 1))))):
         # a still capture with images is compared through its silhouettes alone (below): no Gaussians needed
@@ -980,68 +978,45 @@ simulates and renders it, before that frame's step must again pass the Levenberg
 
 
 MOVING_REBINDS = 20
-"""A moving start (stages/moving_start.py): at most this many re-bindings of the markers per window that holds
-frame 0.  The markers bind to the nearest points of the estimated frame 0, x_e(θ) + Δ_0, which the window's solve
-moves; they are bound again and the window solved again (an alternation, as in ICP: the binding is held fixed in
-each solve, where letting it slide with Δ_0 made E run off) until the bound points move by less than
-MOVING_REBIND_TOL of the object's size, each new binding mixed with the earlier ones (:data:`ANDERSON`).  Cable-
-pulled beam filmed 8 frames into its motion, the same model otherwise, 16 / 24 frames, median settled E / E_true,
-plain alternation: once per window 1.126 / 0.965, 5 re-bindings 1.016 / 0.987, 20 1.001 / 0.993; bound to the
-truth's frame 0 and held, 1.000 (accuracy_notes.md, sixteenth stop)."""
+"""A moving start (stages/moving_start.py): at most this many fits of the markers' material points per window that
+holds frame 0 (:func:`_rebind_moving_start`).  Frame 0 is estimated there, so where each marker sits on the body
+is not known: its material point is fitted to its track over the window's frames (MarkerObservation.
+fit_to_tracks), the window solved again with that binding held, until the bound points move by less than
+MOVING_REBIND_TOL of the object's size.  The windows' cost falls at every step, so the binding converges; the
+bar's windows [0, 1] reach 20 with the points still moving by ~0.04 mm (accuracy_notes.md, seventeenth stop)."""
 MOVING_REBIND_TOL = 1e-5
-"""The RMS motion of the bound marker points between two re-bindings (:data:`MOVING_REBINDS`) under which the
-binding is taken as converged, as a fraction of the object's size (2 µm on a 0.2 m object: a tenth of the smallest
-marker noise the estimator assumes, MarkerObservation.noise_floor)."""
+"""The RMS motion of the bound marker points between two fits (:data:`MOVING_REBINDS`) under which the binding is
+taken as converged, as a fraction of the object's size (2 µm on a 0.2 m object: a tenth of the smallest marker
+noise the estimator assumes, MarkerObservation.noise_floor)."""
 
 
 def _rebind_moving_start(gn: GNWindow, objective: WindowObjective, res, lin, frames, prior, before, D, sigma,
                          obs, iterations: int, scale: float, rec):
-    """A moving start's window holding frame 0 (:data:`MOVING_REBINDS`): the anchor moved to the solve's frame 0,
-    x_e(θ) + Δ_0 (u = g(u), u the anchor's Δ_0 and g(u) the solve's, mixed by :func:`_anderson`), the markers bound
-    again there and the window solved again from its estimate, until the bound points on frame 0 move by less than
-    MOVING_REBIND_TOL × the object's size.  Returns the last solve's (res, lin); the count goes to
-    ``rec.moving_rebinds``."""
+    """A moving start's window holding frame 0 (:data:`MOVING_REBINDS`): block coordinate descent on the window's
+    cost over (θ, the start's offsets) and the markers' material points.  The material points are fitted to
+    the tracks of the window's estimate, then the window is solved with them held (the solve's Levenberg–
+    Marquardt steps and the fit each lower the cost), until the bound points on frame 0 move by less than
+    MOVING_REBIND_TOL × the object's size.  From here on the binding is held (``objective.rebind`` off).
+    Returns the last solve's (res, lin); the count goes to ``rec.moving_rebinds``."""
+    objective.rebind = False
     count = 0
-    u = np.zeros_like(gn.last_before[1]) if objective.anchor_offset is None else objective.anchor_offset
-    hist: list[tuple[np.ndarray, np.ndarray]] = []  # (u_k, g(u_k)): the anchor's offset and the solve's Δ_0
     for count in range(1, MOVING_REBINDS + 1):
-        g = gn.last_before[1].copy()
-        hist = (hist + [(u.copy(), g)])[-(ANDERSON + 1):]
-        u = _anderson(hist)
-        objective.anchor_offset = u
-        x = objective.anchor_positions(*gn.theta(res.p)[:2])
-        before_pts = obs.binding.positions(x)
-        obs.rebind(x)
-        moved = float(np.sqrt(np.mean(np.sum((obs.binding.positions(x) - before_pts) ** 2, axis=-1))))
-        if moved <= MOVING_REBIND_TOL * float(np.linalg.norm(np.ptp(x, axis=0))):
+        X = np.asarray(objective.backend.decode(gn.last_states))
+        moved = obs.fit_to_tracks(frames, X)
+        if moved <= MOVING_REBIND_TOL * float(np.linalg.norm(np.ptp(X[0], axis=0))):
             break
         res, lin = _gn_solve(gn, frames, res.p, prior, before, D, sigma, obs, iterations, scale, None)
     rec.moving_rebinds = getattr(rec, "moving_rebinds", []) + [count]
     return res, lin
 
 
-ANDERSON = 4
-"""The re-bindings of a moving start (:func:`_rebind_moving_start`) are mixed by Anderson acceleration over this
-many earlier iterates (0: the plain alternation, its slow twin).  The plain alternation converges slowly (the
-bound points moved 0.74, 0.20, 0.13, 0.10 … 0.009 mm at the 20th re-binding of the beam's first window).  Median
-settled E / E_true, plain (20 re-bindings at most) → 4: beam above, 16 frames 1.001 → 1.000, 24 frames 0.993 →
-1.000 (the windows converged in 6–15 re-bindings); the bar with a P2 truth filmed 4 frames into its motion
-(bench/moving_start.py's capture, reduced space) 0.923 → 0.959 (its second and third windows reach 20 unconverged:
-the bound points still move by 0.1–1 mm from one re-binding to the next)."""
-
-
-def _anderson(hist: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """Anderson acceleration (type II) of the fixed point u = g(u) from the history [(u_k, g(u_k)), …]:
-    u⁺ = g_k − ΔG γ, γ = argmin ‖f_k − ΔF γ‖ over the differences of f = g − u and of g (the plain step g_k
-    with one entry)."""
-    g = hist[-1][1]
-    if len(hist) < 2:
-        return g
-    F = np.stack([(gk - uk).ravel() for uk, gk in hist])  # (m+1, N)
-    G = np.stack([gk.ravel() for _, gk in hist])
-    dF, dG = np.diff(F, axis=0).T, np.diff(G, axis=0).T  # (N, m)
-    gamma = np.linalg.lstsq(dF, F[-1], rcond=1e-10)[0]
-    return (G[-1] - dG @ gamma).reshape(g.shape)
+def _warn_far_markers(reporter: Reporter, obs, surface: str) -> None:
+    """The markers' frame-0 check: a marker more than 5 % of the object's size from the frame-0 surface (``surface``
+    says which: simulated with the initial E, or estimated) points at a wrong frame or a far-off initial E."""
+    if obs.far > 0.05:
+        reporter.warn(f"{obs.capture.markers_path}: a frame-0 marker lies {obs.far:.1%} of the object size away "
+                      f"from the frame-0 surface {surface}; is the marker frame the mesh's frame, or is the initial E "
+                      f"far off?")
 
 
 def _correction_kind(option: str, obs_kind: str, restart: bool, modes_failed: bool) -> str | None:
@@ -1097,6 +1072,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     # a moving start: the prior σ of the shape and velocity offsets of (x_{−1}, x_0) (moving_start.start_prior),
     # and their estimate so far (each window holding frame 0 starts from it)
     start_sigma, start_c = None, None
+    moving_checked = False  # a moving start: the markers' frame-0 check made (against frame 0 as estimated)
     if loop.moving is not None:
         size = float(np.linalg.norm(np.ptp(backend.decode(backend.rest_state[None])[0], axis=0)))
         start_sigma = start_prior(loop.moving, obs.P, size)
@@ -1176,11 +1152,11 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                     rec.changes = changes
                     primed = None
             rec.innovation.append(z_innov)
-            if loop.moving is not None and t0 >= 1 and objective.rebind:
-                # a moving start, the windows past frame 0: the markers stay bound to frame 0 as estimated (x_e(θ) +
-                # Δ_0 with a later θ would move the bound points with the sag of that θ, and the states with them)
-                obs.rebind(backend.decode(stored[0][None])[0])
-                objective.rebind = False
+            if loop.moving is not None and t0 >= 1 and not moving_checked:
+                # a moving start, the windows past frame 0: the markers stay bound where the frame-0 windows fitted
+                # them (_rebind_moving_start); the frame-0 check, against frame 0 as estimated
+                moving_checked = True
+                _warn_far_markers(loop.reporter, obs, "estimated")
             if primed is None:
                 D, prior, p0, past_dirs = window_setup(t0)
             if sigma is None:  # the first window: the noise level seen at the initial θ (conservative)
@@ -1224,7 +1200,6 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             elif D is not None and loop.moving is not None:  # x_{−1} = x_0 − Δ_0 + Δ_{−1} (x_0 stored above)
                 start_c = res.p[k_th:].copy()
                 stored[-1] = gn.last_states[0] - gn.last_before[1] + gn.last_before[0]
-                objective.anchor_offset = gn.last_before[1].copy()  # the markers' binding: x_e(θ) + Δ_0 from here
             # σ from the covariance with the noise level this window's own residuals show (RSS/dof, Huber-
             # consistent: estimator.residual_scale2), the ν bounds and the model-error floor (sigma_from_cov)
             sE, sN = sigma_from_cov(gn, res.p, res.cov_scaled[:k_th, :k_th], config.model_error,
@@ -1397,7 +1372,7 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
     start_positions = None
     if loop.moving is not None and -1 in loop.stored:  # start = "moving": the estimated x_{−1}, x_0 (the force
         start_positions = backend.decode(np.stack([loop.stored[-1], loop.stored[0]]))[:, :mesh.n_vertices]  # replay's)
-        # per window holding frame 0, the markers' re-bindings to the estimated frame 0 (MOVING_REBINDS)
+        # per window holding frame 0, the fits of the markers' material points to their tracks (MOVING_REBINDS)
         extra["moving_start_rebinds"] = list(getattr(loop.rec, "moving_rebinds", []))
     art = AdaptArtefact(
         frames=frames, young=np.asarray(rec.young), poisson=np.asarray(rec.poisson), z=backend.z(states),
