@@ -165,8 +165,40 @@ def summary(rows: list[dict]) -> list[str]:
     return out
 
 
+def plot(rows: list[dict], path: Path) -> bool:
+    """E / E_true per frame of each mid-motion capture (one panel each), declared moving against declared
+    equilibrium, with the ±5 % band; False when no row has its series."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    caps = sorted({(r.get("scene", "bar"), r["lead_frames"]) for r in rows if r["lead_frames"] > 0})
+    caps = [c for c in caps if any("young" in r for r in rows if (r.get("scene", "bar"), r["lead_frames"]) == c)]
+    if not caps:
+        return False
+    fig, axes = plt.subplots(1, len(caps), figsize=(3.6 * len(caps), 3.0), sharey=True, squeeze=False)
+    for ax, (scene, lead) in zip(axes[0], caps):
+        for r in rows:
+            if (r.get("scene", "bar"), r["lead_frames"]) == (scene, lead) and "young" in r:
+                ratio = np.asarray(r["young"]) / np.asarray(r["young_true"])
+                ax.plot(ratio, "o-" if r["declared"] == "moving" else "s--", ms=3,
+                        label=f"declared {r['declared']}")
+        ax.axhspan(0.95, 1.05, color="0.9")
+        ax.axvline(WINDOW + 5 - 0.5, color="0.6", lw=0.8)
+        ax.set_title(f"{scene}, filmed {lead} frames in", fontsize=9)
+        ax.set_xlabel("frame")
+    axes[0][0].set_ylabel("E / E_true")
+    axes[0][0].set_ylim(0.4, 1.6)
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
 def write(rows: list[dict], out: Path, plan: dict) -> None:
-    """docs/results/moving_start.{md,json}."""
+    """docs/results/moving_start.{md,json,png}."""
     out.mkdir(parents=True, exist_ok=True)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     data = {"plan": plan, "cases": rows, "ended": datetime.datetime.now(datetime.timezone.utc).isoformat(
@@ -184,6 +216,9 @@ def write(rows: list[dict], out: Path, plan: dict) -> None:
           f"window holding frame 0, the fits of the markers' material points to the window's tracks "
           f"(`MOVING_REBINDS`).", "", HEADER]
     md += [_row(r) for r in rows]
+    if plot(rows, out / "moving_start.png"):
+        md += ["", "![E / E_true per frame, declared moving against declared equilibrium; grey band ±5 %, vertical "
+               "line: the first settled frame](moving_start.png)"]
     md += ["", *summary(rows), "",
            f"Ended {data['ended']} (load average {load:.1f}), {data['machine']}. Produced by "
            f"`bench/moving_start.py`."]

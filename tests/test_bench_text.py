@@ -140,3 +140,4 @@ def test_moving_start_page_follows_its_rows(tmp_path) -> None:
     page = (tmp_path / "out" / "moving_start.md").read_text()
     assert "12.3 % (E / E_true 1.123)" in page
     assert page.count("| bar |") == sum(r.get("scene", "bar") == "bar" for r in rows)
+    assert "](moving_start.png)" in page and (tmp_path / "out" / "moving_start.png").stat().st_size > 0

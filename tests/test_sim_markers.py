@@ -152,6 +152,8 @@ def test_track_fit_finds_the_material_point_that_made_a_track_and_matches_a_dens
     b = fit_binding_to_tracks(X, faces, P)
     assert np.allclose(b.positions(X), P, atol=1e-9)
     assert np.all(b.distance <= 1e-9)
+    chunked = fit_binding_to_tracks(X, faces, P, chunk=7)  # the candidates searched 7 markers at a time
+    assert np.array_equal(chunked.faces, b.faces) and np.array_equal(chunked.bary, b.bary)
 
     noisy = P + 0.003 * rng.normal(size=P.shape)
     b = fit_binding_to_tracks(X, faces, noisy, candidates=4)

@@ -108,7 +108,7 @@ material point moves by at most a few triangles from its nearest point (the fram
 
 
 def fit_binding_to_tracks(X: np.ndarray, faces: np.ndarray, P: np.ndarray,
-                          candidates: int = TRACK_CANDIDATES) -> MarkerBinding:
+                          candidates: int = TRACK_CANDIDATES, chunk: int = 64) -> MarkerBinding:
     """Each marker's material point fitted to its track: the triangle f and barycentrics b (inside the triangle)
     minimising Σ_t ‖Σ_k b_k x_t[f_k] − p_t‖² over the observed frames, for vertex tracks X (w, n, 3), faces
     (F, 3) and marker tracks P (w, M, 3) (NaN at a gap), searched over the ``candidates`` triangles nearest the
@@ -119,9 +119,13 @@ def fit_binding_to_tracks(X: np.ndarray, faces: np.ndarray, P: np.ndarray,
     with np.errstate(invalid="ignore"):
         p0 = np.nanmean(np.where(seen[..., None], P, np.nan), axis=0)  # frame 0, else the track's mean: where
     p0 = np.where(seen[0][:, None], P[0], np.where(np.isfinite(p0), p0, X[0].mean(axis=0)))  # to search from
-    closest, _ = closest_points_on_triangles(p0, X[0][faces])
-    order = np.argsort(np.linalg.norm(closest - p0[:, None], axis=-1), axis=1)
-    cand = order[:, :min(candidates, len(faces))]  # (M, k)
+    k = min(candidates, len(faces))
+    cand = np.empty((len(p0), k), np.int64)  # (M, k), nearest first; in chunks of markers, as bind_markers
+    for s in range(0, len(p0), chunk):
+        closest, _ = closest_points_on_triangles(p0[s:s + chunk], X[0][faces])
+        d = np.linalg.norm(closest - p0[s:s + chunk, None], axis=-1)
+        near = np.argpartition(d, k - 1, axis=1)[:, :k]
+        cand[s:s + chunk] = np.take_along_axis(near, np.argsort(np.take_along_axis(d, near, 1), axis=1), 1)
     tri = X[:, faces[cand]]  # (w, M, k, 3, 3)
     w = seen[:, :, None, None].astype(float)
     r0 = (tri[..., 0, :] - np.where(seen[..., None], P, 0.0)[:, :, None]) * w  # (w, M, k, 3)
