@@ -247,6 +247,35 @@ def test_a_moving_start_may_show_an_obstacle_already_pressing():
             check_obstacles_clear(controls(0.3), v, start=start)
 
 
+def test_adapt_checks_a_moving_start_s_markers_against_its_estimated_frame_0(tmp_path):
+    """A beam pulled fast, filmed 8 frames in (4 frames): its frame-0 markers lie 12 % of its size from the frame-0
+    equilibrium, so declared `equilibrium` adapt warns; declared `moving` it checks them against frame 0 as
+    estimated (once the windows leave frame 0), and does not."""
+    from stages.progress import SilentReporter
+    from stages.steps import adapt, calibrate, synth, tetrahedralize
+    from test_adapt_e2e import BEAM, E_TRUE
+
+    if not BEAM.is_file():
+        pytest.skip(f"{BEAM} not present")
+    cap = tmp_path / "cap"
+    synth.run(synth.SynthConfig(mesh=BEAM, out=cap, scenario="cable", cameras=1, frames=4, resolution=32,
+                                young=E_TRUE, markers=30, calib_views=0, seed=0, start="moving", lead_frames=8))
+    toml = cap / "capture.toml"
+    toml.write_text(toml.read_text().replace('mesh = "object.obj"', 'mesh = "truth/object.mesh"'))
+    ws = tmp_path / "ws"
+    tetrahedralize.run(tetrahedralize.TetrahedralizeConfig(capture=cap, workspace=ws, order=1))
+    calibrate.run(calibrate.CalibrateConfig(capture=cap, workspace=ws, from_json=str(cap / "cameras.json")))
+    warned = {}
+    for start in ("moving", "equilibrium"):
+        toml.write_text(re.sub(r'start = "\w+"', f'start = "{start}"', toml.read_text()))
+        reporter = SilentReporter()
+        adapt.run(adapt.AdaptConfig(capture=cap, workspace=ws, loss="markers", window=3, estimator="gn",
+                                    space="full", young_init=0.5 * E_TRUE, substeps=1), reporter)
+        warned[start] = [m for m in reporter.messages if "frame-0 marker lies" in m]
+    assert warned["equilibrium"] and "simulated with the initial E" in warned["equilibrium"][0]
+    assert not warned["moving"], warned["moving"]
+
+
 def test_markers_of_a_moving_start_are_judged_against_frame_0_as_estimated(tmp_path):
     """MarkerObservation.fit_to_tracks: markers 10 % of the object's size off the equilibrium surface (a capture
     filmed in a large motion) raise the frame-0 check there; fitted to tracks on which they lie, their distance
