@@ -984,6 +984,12 @@ is not known: its material point is fitted to its track over the window's frames
 fit_to_tracks), the window solved again with that binding held, until the bound points move by less than
 MOVING_REBIND_TOL of the object's size.  The windows' cost falls at every step, so the binding converges; the
 bar's windows [0, 1] reach 20 with the points still moving by ~0.04 mm (accuracy_notes.md, seventeenth stop)."""
+MOVING_REBIND_ITERATIONS = 1
+"""Gauss–Newton iterations of each re-solve between two fits of the markers' material points
+(:data:`MOVING_REBINDS`).  bench/moving_start.py's bar filmed 4 / 8 / 16 frames in, reduced space, median settled
+E error: 2 iterations 0.6 / 1.1 / 2.1 %, 1 iteration 0.7 / 1.0 / 2.1 % at half the windows' Jacobians (the fits
+move the binding more than a second iteration moves θ); 1 iteration with 40 fits 0.7 / 4.5 / 1.9 %
+(accuracy_notes.md, seventeenth stop)."""
 MOVING_REBIND_TOL = 1e-5
 """The RMS motion of the bound marker points between two fits (:data:`MOVING_REBINDS`) under which the binding is
 taken as converged, as a fraction of the object's size (2 µm on a 0.2 m object: a tenth of the smallest marker
@@ -991,12 +997,13 @@ noise the estimator assumes, MarkerObservation.noise_floor)."""
 
 
 def _rebind_moving_start(gn: GNWindow, objective: WindowObjective, res, lin, frames, prior, before, D, sigma,
-                         obs, iterations: int, scale: float, rec):
+                         obs, scale: float, rec):
     """A moving start's window holding frame 0 (:data:`MOVING_REBINDS`): block coordinate descent on the window's
     cost over (θ, the start's offsets) and the markers' material points.  The material points are fitted to
     the tracks of the window's estimate, then the window is solved with them held (the solve's Levenberg–
-    Marquardt steps and the fit each lower the cost), until the bound points on frame 0 move by less than
-    MOVING_REBIND_TOL × the object's size.  From here on the binding is held (``objective.rebind`` off).
+    Marquardt steps, :data:`MOVING_REBIND_ITERATIONS` per re-solve, and the fit each lower the cost), until the
+    bound points on frame 0 move by less than MOVING_REBIND_TOL × the object's size.  From here on the binding is
+    held (``objective.rebind`` off).
     Returns the last solve's (res, lin); the count goes to ``rec.moving_rebinds``."""
     objective.rebind = False
     count = 0
@@ -1005,7 +1012,8 @@ def _rebind_moving_start(gn: GNWindow, objective: WindowObjective, res, lin, fra
         moved = obs.fit_to_tracks(frames, X)
         if moved <= MOVING_REBIND_TOL * float(np.linalg.norm(np.ptp(X[0], axis=0))):
             break
-        res, lin = _gn_solve(gn, frames, res.p, prior, before, D, sigma, obs, iterations, scale, None)
+        res, lin = _gn_solve(gn, frames, res.p, prior, before, D, sigma, obs, MOVING_REBIND_ITERATIONS, scale,
+                             None)
     rec.moving_rebinds = getattr(rec, "moving_rebinds", []) + [count]
     return res, lin
 
@@ -1170,7 +1178,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                                             config.iters_per_frame, scale, primed)
             if loop.moving is not None and t0 == 0:  # the markers re-bound to the estimated frame 0 until it holds
                 res, (r_lin, J_lin) = _rebind_moving_start(gn, objective, res, (r_lin, J_lin), frames, solve_prior,
-                                                           before, D, sigma, obs, config.iters_per_frame, scale, rec)
+                                                           before, D, sigma, obs, scale, rec)
             if hold_nu.any():  # σ (and the information test) with ν's own prior: held, ν is not known better
                 res.cov_scaled = posterior_cov(res.jacobian, res.weights, sigma ** 2 * res.scale2, prior, res.jtwj)
             held_now = hold_nu.copy()
