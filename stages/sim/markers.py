@@ -114,7 +114,8 @@ def fit_binding_to_tracks(X: np.ndarray, faces: np.ndarray, P: np.ndarray,
     (F, 3) and marker tracks P (w, M, 3) (NaN at a gap), searched over the ``candidates`` triangles nearest the
     first frame's marker.  On one triangle the cost is a convex quadratic in (b_1, b_2): its unconstrained
     minimum if it lies inside, else the best of the three edges' clamped 1-D minima.  With one frame this is the
-    nearest surface point (bind_markers).  ``distance``: the first frame's residual ‖m_i(x_0) − p_0‖ (0 where unseen)."""
+    nearest surface point (bind_markers).  ``distance``: the first frame's residual ‖m_i(x_0) − p_0‖ (0 where
+    unseen)."""
     seen = np.all(np.isfinite(P), axis=-1)  # (w, M)
     with np.errstate(invalid="ignore"):
         p0 = np.nanmean(np.where(seen[..., None], P, np.nan), axis=0)  # frame 0, else the track's mean: where
@@ -156,9 +157,9 @@ def fit_binding_to_tracks(X: np.ndarray, faces: np.ndarray, P: np.ndarray,
     j = np.argmin(best, axis=1)
     m = np.arange(len(j))
     bary = np.stack([1.0 - best1[m, j] - best2[m, j], best1[m, j], best2[m, j]], axis=-1)
-    binding = MarkerBinding(faces[cand[m, j]].astype(np.int64), bary, np.zeros(len(j)))
-    return MarkerBinding(binding.faces, bary, np.where(seen[0], np.linalg.norm(binding.positions(X[0]) - p0, axis=-1),
-                                                       0.0))
+    fid = faces[cand[m, j]].astype(np.int64)
+    at0 = np.einsum("mkd,mk->md", X[0][fid], bary)
+    return MarkerBinding(fid, bary, np.where(seen[0], np.linalg.norm(at0 - p0, axis=-1), 0.0))
 
 
 def marker_residuals(binding: MarkerBinding, X: np.ndarray, P: np.ndarray) -> np.ndarray:

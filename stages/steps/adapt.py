@@ -983,7 +983,8 @@ holds frame 0 (:func:`_rebind_moving_start`).  Frame 0 is estimated there, so wh
 is not known: its material point is fitted to its track over the window's frames (MarkerObservation.
 fit_to_tracks), the window solved again with that binding held, until the bound points move by less than
 MOVING_REBIND_TOL of the object's size.  The windows' cost falls at every step, so the binding converges; the
-bar's windows [0, 1] reach 20 with the points still moving by ~0.04 mm (accuracy_notes.md, seventeenth stop)."""
+bar's windows [0, 1] reach 20 with the points still moving by a few hundredths of a millimetre
+(accuracy_notes.md, seventeenth stop)."""
 MOVING_REBIND_ITERATIONS = 1
 """Gauss–Newton iterations of each re-solve between two fits of the markers' material points
 (:data:`MOVING_REBINDS`).  bench/moving_start.py's bar filmed 4 / 8 / 16 frames in, reduced space, median settled
@@ -1003,8 +1004,8 @@ def _rebind_moving_start(gn: GNWindow, objective: WindowObjective, res, lin, fra
     the tracks of the window's estimate, then the window is solved with them held (the solve's Levenberg–
     Marquardt steps, :data:`MOVING_REBIND_ITERATIONS` per re-solve, and the fit each lower the cost), until the
     bound points on frame 0 move by less than MOVING_REBIND_TOL × the object's size.  From here on the binding is
-    held (``objective.rebind`` off).
-    Returns the last solve's (res, lin); the count goes to ``rec.moving_rebinds``."""
+    held (``objective.rebind`` off).  Returns the last solve's (res, lin); the count goes to
+    ``rec.moving_rebinds``."""
     objective.rebind = False
     count = 0
     for count in range(1, MOVING_REBINDS + 1):
@@ -1176,7 +1177,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                 solve_prior = condition(solve_prior, R + j, p0[R + j])
             res, (r_lin, J_lin) = _gn_solve(gn, frames, p0, solve_prior, before, D, sigma, obs,
                                             config.iters_per_frame, scale, primed)
-            if loop.moving is not None and t0 == 0:  # the markers re-bound to the estimated frame 0 until it holds
+            if loop.moving is not None and t0 == 0:  # the markers' material points fitted with the window
                 res, (r_lin, J_lin) = _rebind_moving_start(gn, objective, res, (r_lin, J_lin), frames, solve_prior,
                                                            before, D, sigma, obs, scale, rec)
             if hold_nu.any():  # σ (and the information test) with ν's own prior: held, ν is not known better
