@@ -58,8 +58,7 @@ SCENES = {"bar": lambda: pl.bar_cable(young=E_TRUE), "dino": lambda: pl.dino_pus
 
 
 def run_lead(work: Path, scene: str, lead: int, frames: int, max_tets: int, space: str) -> list[dict]:
-    from stages.artefacts import AdaptArtefact
-    from stages.artefacts import MeshArtefact
+    from stages.artefacts import AdaptArtefact, MeshArtefact
     from stages.capture import load_capture, read_truth
     from stages.observations import MarkerObservation
 
@@ -133,13 +132,17 @@ def _row(r: dict) -> str:
             f"{', '.join(map(str, r['changes'])) or 'none'} | {', '.join(map(str, r['rebinds'])) or '—'} |")
 
 
+def capture_key(r: dict) -> tuple[str, int]:
+    """(scene, lead-in frames): the capture a row ran on (rows of older runs have no scene: the bar)."""
+    return r.get("scene", "bar"), r["lead_frames"]
+
+
 def summary(rows: list[dict]) -> list[str]:
     """Per mid-motion capture: the declared-moving row's settled error against the declared-equilibrium row's."""
     out = []
-    for scene, lead in sorted({(r.get("scene", "bar"), r["lead_frames"]) for r in rows if r["lead_frames"]}):
-        by = {r["declared"]: r for r in rows
-              if r.get("scene", "bar") == scene and r["lead_frames"] == lead and "error" not in r}
-        refused = [r for r in rows if r.get("scene", "bar") == scene and r["lead_frames"] == lead and "error" in r
+    for scene, lead in sorted({capture_key(r) for r in rows if r["lead_frames"]}):
+        by = {r["declared"]: r for r in rows if capture_key(r) == (scene, lead) and "error" not in r}
+        refused = [r for r in rows if capture_key(r) == (scene, lead) and "error" in r
                    and r["declared"] == "equilibrium"]
         if "moving" in by and refused:
             mv = by["moving"]
@@ -157,11 +160,12 @@ def summary(rows: list[dict]) -> list[str]:
                        + ".")
     for r in rows:
         if r["lead_frames"] == 0 and r["declared"] == "moving" and "error" not in r:
-            ctl = [q for q in rows if q["lead_frames"] == 0 and q["declared"] == "equilibrium" and "error" not in q
-                   and q.get("scene", "bar") == r.get("scene", "bar")]
+            ctl = [q for q in rows if capture_key(q) == capture_key(r) and q["declared"] == "equilibrium"
+                   and "error" not in q]
             if ctl:
-                out.append(f"- {r.get('scene', 'bar')}, control, a capture that does start at its equilibrium: declared moving "
-                           f"{100 * r['median_error']:.1f} %, declared equilibrium {100 * ctl[0]['median_error']:.1f} %.")
+                out.append(f"- {capture_key(r)[0]}, control, a capture that does start at its equilibrium: declared "
+                           f"moving {100 * r['median_error']:.1f} %, declared equilibrium "
+                           f"{100 * ctl[0]['median_error']:.1f} %.")
     return out
 
 
@@ -173,14 +177,13 @@ def plot(rows: list[dict], path: Path) -> bool:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    caps = sorted({(r.get("scene", "bar"), r["lead_frames"]) for r in rows if r["lead_frames"] > 0})
-    caps = [c for c in caps if any("young" in r for r in rows if (r.get("scene", "bar"), r["lead_frames"]) == c)]
+    caps = sorted({capture_key(r) for r in rows if r["lead_frames"] > 0 and "young" in r})
     if not caps:
         return False
     fig, axes = plt.subplots(1, len(caps), figsize=(3.6 * len(caps), 3.0), sharey=True, squeeze=False)
     for ax, (scene, lead) in zip(axes[0], caps):
         for r in rows:
-            if (r.get("scene", "bar"), r["lead_frames"]) == (scene, lead) and "young" in r:
+            if capture_key(r) == (scene, lead) and "young" in r:
                 ratio = np.asarray(r["young"]) / np.asarray(r["young_true"])
                 ax.plot(ratio, "o-" if r["declared"] == "moving" else "s--", ms=3,
                         label=f"declared {r['declared']}")
@@ -242,7 +245,7 @@ def main() -> None:
         latest: dict = {}
         for run in runs:
             for r in run["cases"]:
-                latest[(r.get("scene", "bar"), r["lead_frames"], r["declared"], r["space"])] = r
+                latest[(*capture_key(r), r["declared"], r["space"])] = r
         write(list(latest.values()), a.out, runs[0]["plan"])
         print("\n".join(summary(list(latest.values()))))
         return

@@ -128,7 +128,7 @@ def plan(capture: Path | None, workspace: Path, *, until: str | None = None, onl
         if why_not:
             steps.append(Step(s, "skip", why_not))
             continue
-        config = s.make_config(capture, workspace, (overrides or {}).get(s.name))
+        config = s.make_config(capture, workspace, overrides.get(s.name))
         action, why = ("run", "--force") if force else decide(s, config, Path(workspace), remade, hashes)
         if action == "run":
             remade.add(s.produces)

@@ -111,23 +111,31 @@ def test_start_prior_spreads_the_motion_of_one_frame_over_the_directions():
 
 
 # =========================================================================== rsl adapt on a moving capture
-@pytest.fixture(scope="module")
-def moving_beam(tmp_path_factory):
-    """The cable-pulled beam of test_adapt_e2e, filmed from 8 frames after its equilibrium start (16 frames)."""
+def _moving_beam_capture(root, frames: int):
+    """The cable-pulled beam of test_adapt_e2e filmed from 8 frames after its equilibrium start (``frames``
+    frames; the pull's speed follows the capture's length), on the truth's own P1 mesh: (capture, workspace)."""
     from stages.steps import calibrate, synth, tetrahedralize
     from test_adapt_e2e import BEAM, E_TRUE
 
     if not BEAM.is_file():
         pytest.skip(f"{BEAM} not present")
-    root = tmp_path_factory.mktemp("moving")
     cap = root / "cap"
-    synth.run(synth.SynthConfig(mesh=BEAM, out=cap, scenario="cable", cameras=1, frames=16, resolution=32,
+    synth.run(synth.SynthConfig(mesh=BEAM, out=cap, scenario="cable", cameras=1, frames=frames, resolution=32,
                                 young=E_TRUE, markers=30, calib_views=0, seed=0, start="moving", lead_frames=8))
     toml = cap / "capture.toml"
     toml.write_text(toml.read_text().replace('mesh = "object.obj"', 'mesh = "truth/object.mesh"'))
     ws = root / "ws"
     tetrahedralize.run(tetrahedralize.TetrahedralizeConfig(capture=cap, workspace=ws, order=1))
     calibrate.run(calibrate.CalibrateConfig(capture=cap, workspace=ws, from_json=str(cap / "cameras.json")))
+    return cap, ws
+
+
+@pytest.fixture(scope="module")
+def moving_beam(tmp_path_factory):
+    """The cable-pulled beam of test_adapt_e2e, filmed from 8 frames after its equilibrium start (16 frames)."""
+    from test_adapt_e2e import E_TRUE
+
+    cap, ws = _moving_beam_capture(tmp_path_factory.mktemp("moving"), frames=16)
     return cap, ws, E_TRUE
 
 
@@ -252,19 +260,11 @@ def test_adapt_checks_a_moving_start_s_markers_against_its_estimated_frame_0(tmp
     equilibrium, so declared `equilibrium` adapt warns; declared `moving` it checks them against frame 0 as
     estimated (once the windows leave frame 0), and does not."""
     from stages.progress import SilentReporter
-    from stages.steps import adapt, calibrate, synth, tetrahedralize
-    from test_adapt_e2e import BEAM, E_TRUE
+    from stages.steps import adapt
+    from test_adapt_e2e import E_TRUE
 
-    if not BEAM.is_file():
-        pytest.skip(f"{BEAM} not present")
-    cap = tmp_path / "cap"
-    synth.run(synth.SynthConfig(mesh=BEAM, out=cap, scenario="cable", cameras=1, frames=4, resolution=32,
-                                young=E_TRUE, markers=30, calib_views=0, seed=0, start="moving", lead_frames=8))
+    cap, ws = _moving_beam_capture(tmp_path, frames=4)
     toml = cap / "capture.toml"
-    toml.write_text(toml.read_text().replace('mesh = "object.obj"', 'mesh = "truth/object.mesh"'))
-    ws = tmp_path / "ws"
-    tetrahedralize.run(tetrahedralize.TetrahedralizeConfig(capture=cap, workspace=ws, order=1))
-    calibrate.run(calibrate.CalibrateConfig(capture=cap, workspace=ws, from_json=str(cap / "cameras.json")))
     warned = {}
     for start in ("moving", "equilibrium"):
         toml.write_text(re.sub(r'start = "\w+"', f'start = "{start}"', toml.read_text()))
