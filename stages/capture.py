@@ -46,7 +46,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 KNOWN_KEYS: dict[str, tuple[str, ...]] = {
     "capture": ("name", "fps", "gravity", "cameras", "start"),
     "object": ("mesh", "density"),
-    "material": ("model", "young", "poisson", "young_range", "poisson_range"),
+    "material": ("model", "young", "poisson", "young_range", "poisson_range", "damping"),
     "regions": (),  # a table of [regions.NAME] tables
     "regions.*": ("young", "poisson"),
     "calibration": ("board",),
@@ -358,6 +358,7 @@ class MaterialSettings:
     young_range: tuple[float, float] = (1.0e4, 1.0e6)  # prior range for generate-data
     poisson_range: tuple[float, float] = (0.3, 0.49)
     regions: dict[str, dict[str, float]] = field(default_factory=dict)  # NAME -> {young, poisson}
+    damping: float = 0.0  # β, s: viscous (Kelvin–Voigt) damping, force ≈ −β K₀ v (stages.sim.materials); 0: none
 
     def region_young(self, name: str) -> float:
         return float(self.regions.get(name, {}).get("young", self.young))
@@ -552,8 +553,9 @@ def load_capture(root: str | Path) -> Capture:
             reg_mat[name]["poisson"] = nu = v.number(tab, "poisson", f"regions.{name}")
             if not 0.0 <= nu < 0.5:
                 v.fail(f"regions.{name}.poisson", f"should lie in [0, 0.5), found {nu}.")
+    damping = v.number(mat, "damping", "material", default=0.0, nonneg=True)
     material = MaterialSettings(model, young, poisson, (float(yr[0]), float(yr[1])),
-                                (float(pr[0]), float(pr[1])), reg_mat)
+                                (float(pr[0]), float(pr[1])), reg_mat, damping)
     name = cap.get("name", root.name)
     start = cap.get("start", "equilibrium")
     if start not in START_STATES:
@@ -673,8 +675,8 @@ class FrameSource:
 def read_markers(path: str | Path) -> np.ndarray:
     """markers.csv or markers.c3d (by suffix; stages/mocap.py) -> (T, M, 3) metres, NaN where a marker was not
     observed (a gap).  Besides the file format's rules (stages/mocap.py), rejected with one sentence naming the
-    file: a marker that is never observed; a marker not observed at frame 0 (rsl adapt binds every marker to the
-    surface point nearest its frame-0 position)."""
+    file: a marker that is never observed; a frame 0 that observes no marker (rsl adapt binds the markers seen
+    there to the frame-0 surface, a marker first seen later to its track)."""
     data = mocap.read_markers_file(path)
     mocap.check_bindable(data, path)
     return data.positions

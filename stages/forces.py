@@ -139,7 +139,7 @@ def step_forces(scene, controls, X: np.ndarray, states: Sequence[tuple[np.ndarra
     for i, frame in enumerate(frames):
         inputs = frame_inputs(fine, controls, int(frame))
         (xp, xpp), x = states[i], X[i]
-        internal[i] = internal_forces(x, fine, young[i], poisson[i])
+        internal[i] = internal_forces(x, fine, young[i], poisson[i], x_prev=xp)  # (viscous with damping)
         rows += [(int(frame), f) for f in st.set_forces(fine, inputs, x, xp, internal[i], contact_distance,
                                                          x_prev2=xpp)]
         applied[i] = st.applied_forces(fine, inputs, x, xp, x_prev2=xpp, f_int=internal[i])

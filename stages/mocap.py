@@ -10,7 +10,7 @@ not observed (a gap), the frame rate (Hz, None for CSV, which does not record on
   whose coordinates are not finite is a gap; labels from POINT:LABELS.  The first recorded frame is frame 0.
 
 :func:`check_bindable` holds the rules ``rsl adapt`` needs on top of the file format (each marker seen at
-least once, and at frame 0, where it is bound to the surface).  Every problem raises
+least once, some marker at frame 0).  Every problem raises
 :class:`~stages.domain.errors.CaptureError` with one sentence naming the file.
 """
 from __future__ import annotations
@@ -207,17 +207,17 @@ def read_markers_file(path: str | Path) -> MarkerData:
 
 
 def check_bindable(data: MarkerData, path: str | Path) -> None:
-    """What ``rsl adapt`` needs: every marker observed at least once, and at frame 0 (where it is bound to the
-    surface point nearest its position)."""
+    """What ``rsl adapt`` needs: every marker observed at least once, and some marker at frame 0 (those seen there
+    are bound to the surface point nearest their frame-0 position; a marker first seen later is bound to its track
+    once seen, stages.observations.MarkerObservation)."""
     obs = data.observed
     labels = np.asarray(data.labels, dtype=object)
     never = labels[~obs.any(axis=0)]
     if len(never):
         raise _error(f"{path}: marker(s) {', '.join(map(str, never[:10]))} are never observed.")
-    late = labels[~obs[0]]
-    if len(late):
-        raise _error(f"{path}: marker(s) {', '.join(map(str, late[:10]))} are not observed at frame 0; every "
-                     f"marker must be seen at frame 0, where rsl adapt binds it to the surface.")
+    if len(labels) and not obs[0].any():
+        raise _error(f"{path}: no marker is observed at frame 0; rsl adapt binds the markers seen there to the "
+                     f"frame-0 surface, so at least one must be.")
 
 
 def check_rate(data: MarkerData, path: str | Path, fps: float, toml_path: str | Path) -> None:

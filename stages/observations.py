@@ -18,41 +18,88 @@ from stages.sim.markers import MarkerBinding, bind_markers, fit_binding_to_track
 
 
 class MarkerObservation:
-    """Marker observations (markers.csv) bound to the rest surface."""
+    """Marker observations (markers.csv) bound to the frame-0 surface.
+
+    A marker seen at frame 0 is *anchored*: bound to the surface point nearest its frame-0 position (re-bound as
+    the frame-0 state changes with θ, :meth:`rebind`).  A marker first seen later (hidden by a gripper at frame 0,
+    say) counts as a gap until :meth:`bind_late` fits its material point to its track over the frames of the first
+    window that sees it (stages.sim.markers.fit_binding_to_tracks, on the window's estimated states); it is held
+    there from then on."""
 
     kind = "markers"
 
     def __init__(self, capture: Capture, vertices: np.ndarray, faces: np.ndarray, n_vertices: int):
         self.capture, self.faces, self.n = capture, faces, n_vertices
-        self.P = self._read()
+        self._raw = self._read()  # (T, M, 3) as read, NaN at a gap
+        self.anchored = np.all(np.isfinite(self._raw[0]), axis=-1)  # (M,) seen at frame 0
+        self.bound = self.anchored.copy()  # (M,) whose residuals count (a later marker: once bind_late placed it)
+        self._mask()
+        M = self._raw.shape[1]
+        self.binding = MarkerBinding(np.zeros((M, 3), np.int64), np.tile([1.0, 0.0, 0.0], (M, 1)), np.zeros(M))
         self.rebind(vertices)
-        far = float(self.binding.distance.max())
-        diag = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
-        self.far = far / max(diag, 1e-12)
+        self.far = self._far(vertices)
         # the smallest marker noise σ the estimator assumes: 10⁻⁴ of the object's size (0.02 mm on a 0.2 m
         # object; mocap is rarely better) — without a floor, noise-free synthetic markers give σ → 0 and the
         # arrival cost becomes rigid against the slightest model or linearisation error
-        self.noise_floor = 1e-4 * diag
+        self.noise_floor = 1e-4 * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+
+    def _mask(self) -> None:
+        """P (T, M, 3): the markers as read, with the ones not bound yet as gaps."""
+        self.P = np.where(self.bound[None, :, None], self._raw, np.nan)
+
+    def _far(self, x0: np.ndarray) -> float:
+        """The largest binding distance of a bound marker over the bounding-box diagonal of x0 (n, 3)."""
+        diag = float(np.linalg.norm(np.ptp(x0[:self.n], axis=0)))
+        return float(self.binding.distance[self.bound].max(initial=0.0)) / max(diag, 1e-12)
+
+    @property
+    def late(self) -> np.ndarray:
+        """(M,) markers first seen after frame 0 that are not bound yet."""
+        return ~self.bound
 
     def rebind(self, x0: np.ndarray) -> None:
-        """Bind each marker to the triangle of the frame-0 surface x0 (n, 3) nearest its frame-0 position, at
-        the projection of that position on the triangle's plane (the nearest point itself when it projects
+        """Bind each anchored marker to the triangle of the frame-0 surface x0 (n, 3) nearest its frame-0 position,
+        at the projection of that position on the triangle's plane (the nearest point itself when it projects
         inside the triangle; unclamped at an edge, so that the binding is a smooth function of x0 for a given
-        triangle — the Gauss–Newton Jacobian differentiates it, :meth:`binding_jacobian`)."""
-        b = bind_markers(x0[:self.n], self.faces, self.P[0])
-        self.binding = b
-        self.binding = MarkerBinding(b.faces, self._plane_bary(x0[:self.n]), b.distance)
+        triangle — the Gauss–Newton Jacobian differentiates it, :meth:`binding_jacobian`).  Markers bound by
+        :meth:`bind_late` keep their binding."""
+        a = self.anchored
+        b = bind_markers(x0[:self.n], self.faces, self._raw[0][a])
+        faces, dist = self.binding.faces.copy(), self.binding.distance.copy()
+        faces[a], dist[a] = b.faces, b.distance
+        self.binding = MarkerBinding(faces, self.binding.bary, dist)
+        self.binding = MarkerBinding(faces, self._plane_bary(x0[:self.n]), dist)
 
     def fit_to_tracks(self, frames: Sequence[int], X: np.ndarray) -> float:
-        """Bind each marker to the material point whose track over ``frames`` fits its observations best, X
-        (w, n, 3) the window's positions, frames[0] the frame the binding's distances refer to
-        (stages.sim.markers.fit_binding_to_tracks); updates :attr:`far`.  Returns the RMS motion of the bound
-        points on X[0], m."""
+        """Bind each marker seen in ``frames`` to the material point whose track over them fits its observations
+        best, X (w, n, 3) the window's positions, frames[0] the frame the binding's distances refer to
+        (stages.sim.markers.fit_binding_to_tracks); a marker not seen there keeps its state.  Updates :attr:`far`.
+        Returns the RMS motion of the markers bound before, on X[0], m."""
         x0 = X[0, :self.n]
+        was = self.bound.copy()
         old = self.binding.positions(x0)
-        self.binding = fit_binding_to_tracks(X[:, :self.n], self.faces, self.P[list(frames)])
-        self.far = float(self.binding.distance.max()) / max(float(np.linalg.norm(np.ptp(x0, axis=0))), 1e-12)
-        return float(np.sqrt(np.mean(np.sum((self.binding.positions(x0) - old) ** 2, axis=-1))))
+        self._fit(frames, X, np.any(np.all(np.isfinite(self._raw[list(frames)]), axis=-1), axis=0))
+        self.far = self._far(x0)
+        d = np.sum((self.binding.positions(x0) - old)[was] ** 2, axis=-1)
+        return float(np.sqrt(np.mean(d))) if len(d) else 0.0
+
+    def bind_late(self, frames: Sequence[int], X: np.ndarray, need: int = 1) -> int:
+        """Bind the markers not bound yet that at least ``need`` of ``frames`` see: each at the material point whose
+        track over the frames (X (w, n, 3), the window's estimated positions) fits its observations best.  Returns
+        how many."""
+        new = self.late & (np.sum(np.all(np.isfinite(self._raw[list(frames)]), axis=-1), axis=0) >= need)
+        if new.any():
+            self._fit(frames, X, new)
+        return int(new.sum())
+
+    def _fit(self, frames: Sequence[int], X: np.ndarray, which: np.ndarray) -> None:
+        """fit_binding_to_tracks for the markers ``which`` (M,) over ``frames``; they become bound."""
+        b = fit_binding_to_tracks(X[:, :self.n], self.faces, self._raw[list(frames)][:, which])
+        faces, bary, dist = self.binding.faces.copy(), self.binding.bary.copy(), self.binding.distance.copy()
+        faces[which], bary[which], dist[which] = b.faces, b.bary, b.distance
+        self.binding = MarkerBinding(faces, bary, dist)
+        self.bound = self.bound | which
+        self._mask()
 
     def _read(self) -> np.ndarray:
         P = self.capture.markers()
@@ -67,9 +114,12 @@ class MarkerObservation:
         written count as gaps."""
         if self.capture.markers_path.exists():
             try:
-                self.P = self._read()
+                self._raw = self._read()
             except CaptureError:
                 pass  # a half-written line: keep what we had
+            if self._raw.shape[1] != len(self.bound):  # (a marker never seen before is a gap until bound)
+                self.bound = np.concatenate([self.bound, np.zeros(self._raw.shape[1] - len(self.bound), bool)])
+            self._mask()
         return len(self.P)
 
     def loss(self, frames: Sequence[int], X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,16 +132,20 @@ class MarkerObservation:
         return np.sum(r * r, axis=(1, 2)), grad
 
     def _plane_bary(self, x0: np.ndarray) -> np.ndarray:
-        """Barycentric coordinates (M, 3) of each frame-0 marker projected on the plane of its bound triangle of
-        x0 — the binding as a smooth function of x0 (the same as the closest point while it lies inside)."""
-        tri = x0[self.binding.faces]  # (M, 3, 3)
-        a, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        d = self.P[0] - a
+        """Barycentric coordinates (M, 3) of each anchored marker's frame-0 position projected on the plane of its
+        bound triangle of x0 — the binding as a smooth function of x0 (the same as the closest point while it lies
+        inside); the other markers' rows are their binding's (they do not depend on x0)."""
+        a = self.anchored
+        tri = x0[self.binding.faces[a]]  # (M_a, 3, 3)
+        o, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        d = self._raw[0][a] - o
         g = np.stack([np.stack([np.sum(e1 * e1, -1), np.sum(e1 * e2, -1)], -1),
                       np.stack([np.sum(e1 * e2, -1), np.sum(e2 * e2, -1)], -1)], -2)
         rhs = np.stack([np.sum(e1 * d, -1), np.sum(e2 * d, -1)], -1)
         uv = np.linalg.solve(g, rhs[..., None])[..., 0]
-        return np.concatenate([1 - uv.sum(-1, keepdims=True), uv], -1)
+        bary = self.binding.bary.copy()
+        bary[a] = np.concatenate([1 - uv.sum(-1, keepdims=True), uv], -1)
+        return bary
 
     def binding_jacobian(self, frames: Sequence[int], X: np.ndarray, x0: np.ndarray, dx0: np.ndarray
                          ) -> list[np.ndarray]:

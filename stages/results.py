@@ -49,6 +49,13 @@ def material_setting(capture: Capture | None, adapt: AdaptArtefact) -> tuple[str
             np.asarray(extra.get("gravity", DEFAULT_GRAVITY), np.float64))
 
 
+def material_damping(capture: Capture | None, adapt: AdaptArtefact) -> float:
+    """β (s) of the material's viscous damping: the capture's [material] damping, else what adapt.h5 records."""
+    if capture is not None:
+        return float(capture.material.damping)
+    return float((adapt.extra or {}).get("damping", 0.0))
+
+
 def window_young(adapt: AdaptArtefact) -> np.ndarray | None:
     """(T, R) Pa: the sliding window's own E per frame where adapt.h5 records E(t) held at the calibration fits
     (``rsl adapt --hold-fit``, extras ``window_young``); None when it records none or it equals E(t)."""

@@ -167,7 +167,8 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
         vol, dmi, masses = rest_quantities(v, t, mesh.density)
         mesh = dataclasses.replace(mesh, vertices=v, tets=t, tet_region=reg, rest_volumes=vol, dm_inv=dmi,
                                    vertex_masses=masses, surface_faces=surface_faces(t), handles={})
-    scene = make_scene(mesh, ctl, capture.material.model, capture.dt, capture.gravity)
+    scene = make_scene(mesh, ctl, capture.material.model, capture.dt, capture.gravity,
+                       damping=capture.material.damping)
     names = list(scene.region_names)
     base = (np.array([capture.material.region_young(r) for r in names], float) if base_young is None
             else np.asarray(base_young, float).reshape(len(names)))

@@ -285,8 +285,11 @@ def test_markers_round_trip_and_errors(tmp_path: Path) -> None:
     (tmp_path / "bad.csv").write_text("frame,marker,x,y\n0,0,1,2\n")
     with pytest.raises(CaptureError, match="bad.csv: header should be"):
         read_markers(tmp_path / "bad.csv")
-    (tmp_path / "bad.csv").write_text("frame,marker,x,y,z\n0,0,1,2,3\n1,0,1,2,3\n1,1,1,2,3\n")
-    with pytest.raises(CaptureError, match="bad.csv: marker.s. 1 are not observed at frame 0"):
+    (tmp_path / "late.csv").write_text("frame,marker,x,y,z\n0,0,1,2,3\n1,0,1,2,3\n1,1,1,2,3\n")
+    late = read_markers(tmp_path / "late.csv")  # marker 1 first seen at frame 1: accepted (bound to its track)
+    assert np.isnan(late[0, 1]).all() and np.allclose(late[1, 1], [1, 2, 3])
+    (tmp_path / "bad.csv").write_text("frame,marker,x,y,z\n0,0,,,\n1,0,1,2,3\n1,1,1,2,3\n")
+    with pytest.raises(CaptureError, match="bad.csv: no marker is observed at frame 0"):
         read_markers(tmp_path / "bad.csv")
     (tmp_path / "bad.csv").write_text("frame,marker,x,y,z\n0,0,1,2,nan\n")
     with pytest.raises(CaptureError, match="line 2 should hold 5 finite values"):
@@ -325,7 +328,7 @@ def test_markers_with_gaps_round_trip_as_nan(tmp_path: Path) -> None:
     ("frame,marker,x,y,z\n0,0,1,2,3\n0,1,1,,3\n", "line 3 is not 'frame,marker,x,y,z' numbers"),
     ("frame,marker,x,y,z\n0,0,1,2,3\n2,0,1,2,3\n", "frames should run 0..T-1"),
     ("frame,marker,x,y,z\n0,0,1,2,3\n0,1,,,\n1,0,1,2,3\n1,1,,,\n", "marker(s) 1 are never observed"),
-    ("frame,marker,x,y,z\n0,0,1,2,3\n1,0,1,2,3\n1,5,1,2,3\n", "marker(s) 5 are not observed at frame 0"),
+    ("frame,marker,x,y,z\n0,0,,,\n1,0,1,2,3\n1,5,1,2,3\n", "no marker is observed at frame 0"),
     ("frame,marker,x,y,z\n0,0,1,2,3\n0,0,1,2,3\n", "marker 0 is listed twice at frame 0"),
     ("frame,mark,x,y,z\n0,0,1,2,3\n", "header should be"),
 ])

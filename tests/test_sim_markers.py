@@ -168,7 +168,7 @@ def test_track_fit_finds_the_material_point_that_made_a_track_and_matches_a_dens
 
 def test_track_fit_of_one_frame_is_the_nearest_surface_point_and_gaps_add_nothing():
     """With one frame the fit is bind_markers' nearest point (markers off the surface on either side); a marker
-    missing from frame 0 is placed by the frames that see it, and its distance is 0."""
+    missing from frame 0 is placed by the frames that see it, its distance taken at the first of them."""
     rng = np.random.default_rng(2)
     X, faces = _track_surface(rng)
     P0 = np.concatenate([rng.uniform(0.05, 0.95, (20, 2)), rng.uniform(-0.1, 0.1, (20, 1))], 1)
@@ -184,4 +184,20 @@ def test_track_fit_of_one_frame_is_the_nearest_surface_point_and_gaps_add_nothin
     b = fit_binding_to_tracks(X, faces, P)
     seen = np.all(np.isfinite(P), -1)
     assert np.allclose(b.positions(X)[seen], P[seen], atol=1e-9)
-    assert b.distance[2] == 0.0 and np.all(np.isfinite(b.distance))
+    assert b.distance[2] <= 1e-12 and np.all(np.isfinite(b.distance))  # (at its first frame: on the surface)
+
+
+def test_track_fit_searches_a_late_marker_on_the_surface_of_its_first_frame():
+    """A marker first seen in the last frame of a track whose surface slid by several triangles since the first:
+    searched near its position on that frame's surface (not the first frame's), it is placed exactly."""
+    rng = np.random.default_rng(4)
+    X, faces = _track_surface(rng, w=3)
+    X[1:] += np.array([0.35, 0.0, 0.0])  # a slide of 1.75 triangle widths after the first frame
+    fid, bary = rng.integers(0, len(faces), 5), rng.dirichlet(np.ones(3), 5)
+    P = np.einsum("mk,tmkd->tmd", bary, X[:, faces[fid]])
+    P[:2, 1] = np.nan  # marker 1 seen only in the last frame (a single frame: its nearest surface point)
+    P[0, 3] = np.nan
+    b = fit_binding_to_tracks(X, faces, P, candidates=4)
+    seen = np.all(np.isfinite(P), -1)
+    assert np.allclose(b.positions(X)[seen], P[seen], atol=1e-9)
+    np.testing.assert_array_equal(b.faces[[1, 3]], faces[fid[[1, 3]]])

@@ -345,8 +345,9 @@ def test_occlude_markers_keeps_markers_seen_by_enough_cameras():
     counts = np.array([[1, 1], [1, 0], [0, 1]])
     got = occlude_markers(T, counts, 1)
     assert np.isnan(got[1, 1]).all() and np.isnan(got[2, 0]).all() and np.isfinite(got[[0, 1], 0]).all()
-    counts[0, 1] = 0  # marker 1 not seen at frame 0: left out at every frame
-    assert np.isnan(occlude_markers(T, counts, 1)[:, 1]).all()
+    counts[0, 1] = 0  # marker 1 not seen at frame 0: kept where it is seen (rsl adapt binds it to its track)
+    late = occlude_markers(T, counts, 1)
+    assert np.isnan(late[[0, 1], 1]).all() and np.isfinite(late[2, 1]).all()
 
 
 def visible_points_counts(points, cams, depths):
@@ -386,6 +387,6 @@ def test_marker_visibility_leaves_gaps_and_zero_leaves_the_capture_unchanged(box
     assert got.shape == (3, len(ids), 3) and 5 < len(ids) < 40  # a box seen by one camera: some faces hidden
     seen = np.isfinite(got[..., 0])
     np.testing.assert_allclose(got[seen], all_m[:, ids][seen], rtol=1e-8)
-    assert seen[0].all()
+    assert seen[0].any() and seen.any(axis=0).all()  # a marker first seen later stays (rsl adapt binds it)
     with pytest.raises(RslError, match="--marker-visibility 2 asks for more cameras than --cameras 1"):
         run(SynthConfig(out=tmp_path / "bad", marker_visibility=2, **base))

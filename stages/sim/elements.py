@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numba as nb
 import numpy as np
 
-from .materials import energy_density
+from .materials import energy_density, viscous_density
 
 jax.config.update("jax_enable_x64", True)
 
@@ -406,6 +406,47 @@ def element_terms_jax(x, tets, dm_inv, vol, mu, lam, material: str, project: boo
     dm_inv = jnp.asarray(dm_inv)
     g = jnp.concatenate([-jnp.sum(dm_inv, axis=1, keepdims=True), dm_inv], axis=1)  # (m, 4, 3)
     return point_terms_jax(x, tets, g, vol, mu, lam, material, project)
+
+
+def _point_damping(xe, xpe, g, w, mu, lam):
+    """w D(F, F_prev) of one quadrature point (materials.viscous_density) from its element's nodes now and before."""
+    return w * viscous_density(xe.T @ g, xpe.T @ g, mu, lam)
+
+
+def _damping_terms_impl(x, x_prev, nodes, g, weight, mu, lam, want, project):
+    """Per point: energies (q,), gradients (q, 3k), and with want = HESSIAN Hessians (q, 3k, 3k) in x of
+    w D(F(x), F(x_prev)) (Bᵀ proj(∂²D/∂F²) B w, as _point_terms_impl)."""
+    xe, xpe = x[nodes], x_prev[nodes]
+    nd = 3 * nodes.shape[1]
+    energy = jax.vmap(_point_damping)(xe, xpe, g, weight, mu, lam)
+    grad = jax.vmap(jax.grad(_point_damping))(xe, xpe, g, weight, mu, lam).reshape(-1, nd)
+    if want < HESSIAN:
+        return energy, grad, jnp.zeros((0, nd, nd))
+
+    def hess_one(xe1, xp1, g1, v, m1, l1):
+        Fp = xp1.T @ g1
+        hf = jax.hessian(lambda F: viscous_density(F, Fp, m1, l1))(xe1.T @ g1).reshape(9, 9)
+        if project:
+            hf = _project_psd(hf, project)
+        B = jnp.einsum("ik,aj->ijak", jnp.eye(3), g1).reshape(9, nd)
+        return v * B.T @ hf @ B
+
+    return energy, grad, jax.vmap(hess_one)(xe, xpe, g, weight, mu, lam)
+
+
+_damping_terms_jit = jax.jit(_damping_terms_impl, static_argnums=(7, 8))
+
+
+def point_damping_terms(x, x_prev, nodes, grad, weight, mu, lam, want: int = HESSIAN, project: bool = True,
+                        out_index: np.ndarray | None = None, n_out: int | None = None):
+    """(energies, gradients (·, 3k), Hessians (·, 3k, 3k)) in x of the viscous terms w_q D(F_q(x), F_q(x_prev))
+    of quadrature points (materials.viscous_density; weight (q,) carries β/Δt), in numpy, summed into rows
+    out_index (q,) of n_out (default one row per point); the Hessian projected as :func:`point_terms`'s."""
+    n_out = len(nodes) if out_index is None else int(n_out)
+    e, g, h = _damping_terms_jit(jnp.asarray(x), jnp.asarray(x_prev), jnp.asarray(nodes), jnp.asarray(grad),
+                                 jnp.asarray(weight), jnp.asarray(mu), jnp.asarray(lam), int(want), project)
+    out = [_segment_sum(np.asarray(a), out_index, n_out) for a in (e, g)]
+    return out[0], out[1], (_segment_sum(np.asarray(h), out_index, n_out) if want >= HESSIAN else np.asarray(h))
 
 
 def _segment_sum(values: np.ndarray, index: np.ndarray | None, n_out: int) -> np.ndarray:

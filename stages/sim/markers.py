@@ -112,21 +112,23 @@ def fit_binding_to_tracks(X: np.ndarray, faces: np.ndarray, P: np.ndarray,
     """Each marker's material point fitted to its track: the triangle f and barycentrics b (inside the triangle)
     minimising Σ_t ‖Σ_k b_k x_t[f_k] − p_t‖² over the observed frames, for vertex tracks X (w, n, 3), faces
     (F, 3) and marker tracks P (w, M, 3) (NaN at a gap), searched over the ``candidates`` triangles nearest the
-    first frame's marker.  On one triangle the cost is a convex quadratic in (b_1, b_2): its unconstrained
+    marker on the surface of the first frame that sees it.  On one triangle the cost is a convex quadratic in (b_1, b_2): its unconstrained
     minimum if it lies inside, else the best of the three edges' clamped 1-D minima.  With one frame this is the
-    nearest surface point (bind_markers).  ``distance``: the first frame's residual ‖m_i(x_0) − p_0‖ (0 where
-    unseen)."""
+    nearest surface point (bind_markers).  ``distance``: the residual ‖m_i(x_f) − p_f‖ at the
+    marker's first observed frame f (0 where never seen)."""
     seen = np.all(np.isfinite(P), axis=-1)  # (w, M)
-    with np.errstate(invalid="ignore"):
-        p0 = np.nanmean(np.where(seen[..., None], P, np.nan), axis=0)  # frame 0, else the track's mean: where
-    p0 = np.where(seen[0][:, None], P[0], np.where(np.isfinite(p0), p0, X[0].mean(axis=0)))  # to search from
+    first = np.argmax(seen, axis=0)  # (M,) each marker's first observed frame (0 when never: searched at X[0]'s centre)
+    p0 = np.where(seen.any(axis=0)[:, None], P[first, np.arange(P.shape[1])], X[0].mean(axis=0))
     k = min(candidates, len(faces))
-    cand = np.empty((len(p0), k), np.int64)  # (M, k), nearest first; in chunks of markers, as bind_markers
-    for s in range(0, len(p0), chunk):
-        closest, _ = closest_points_on_triangles(p0[s:s + chunk], X[0][faces])
-        d = np.linalg.norm(closest - p0[s:s + chunk, None], axis=-1)
-        near = np.argpartition(d, k - 1, axis=1)[:, :k]
-        cand[s:s + chunk] = np.take_along_axis(near, np.argsort(np.take_along_axis(d, near, 1), axis=1), 1)
+    cand = np.empty((len(p0), k), np.int64)  # (M, k), nearest first on the surface of the marker's first frame
+    for f in np.unique(first):
+        ids = np.flatnonzero(first == f)
+        for s in range(0, len(ids), chunk):  # in chunks of markers, as bind_markers
+            sel = ids[s:s + chunk]
+            closest, _ = closest_points_on_triangles(p0[sel], X[f][faces])
+            d = np.linalg.norm(closest - p0[sel, None], axis=-1)
+            near = np.argpartition(d, k - 1, axis=1)[:, :k]
+            cand[sel] = np.take_along_axis(near, np.argsort(np.take_along_axis(d, near, 1), axis=1), 1)
     tri = X[:, faces[cand]]  # (w, M, k, 3, 3)
     w = seen[:, :, None, None].astype(float)
     r0 = (tri[..., 0, :] - np.where(seen[..., None], P, 0.0)[:, :, None]) * w  # (w, M, k, 3)
@@ -158,8 +160,8 @@ def fit_binding_to_tracks(X: np.ndarray, faces: np.ndarray, P: np.ndarray,
     m = np.arange(len(j))
     bary = np.stack([1.0 - best1[m, j] - best2[m, j], best1[m, j], best2[m, j]], axis=-1)
     fid = faces[cand[m, j]].astype(np.int64)
-    at0 = np.einsum("mkd,mk->md", X[0][fid], bary)
-    return MarkerBinding(fid, bary, np.where(seen[0], np.linalg.norm(at0 - p0, axis=-1), 0.0))
+    at = np.einsum("mkd,mk->md", X[first, fid.T].transpose(1, 0, 2), bary)  # on the first observed frame
+    return MarkerBinding(fid, bary, np.where(seen.any(axis=0), np.linalg.norm(at - p0, axis=-1), 0.0))
 
 
 def marker_residuals(binding: MarkerBinding, X: np.ndarray, P: np.ndarray) -> np.ndarray:

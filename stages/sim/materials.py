@@ -60,6 +60,18 @@ def linear(F, mu, lam):
     return mu * jnp.sum(eps * eps) + 0.5 * lam * jnp.trace(eps) ** 2
 
 
+def viscous_density(F, F_prev, mu, lam):
+    """Kelvin–Voigt dissipation density of one step, without its factor β/Δt:
+
+    D = μ ‖ΔE‖² + λ/2 tr(ΔE)²,  ΔE = E(F) − E(F_prev),  E(F) = ½ (FᵀF − I) (the Green strain),
+
+    so β/Δt · D is rigid-motion invariant and, at small strain, ½ β/Δt (x − x_prev)ᵀ K₀ (x − x_prev): Rayleigh's
+    stiffness-proportional damping, force −β K₀ v (β in seconds)."""
+    eye = jnp.eye(3, dtype=F.dtype)
+    dE = 0.5 * (F.T @ F - eye) - 0.5 * (F_prev.T @ F_prev - eye)
+    return mu * jnp.sum(dE * dE) + 0.5 * lam * jnp.trace(dE) ** 2
+
+
 ENERGY_DENSITY = {"stable_neohookean": stable_neohookean, "yeoh": yeoh, "linear": linear}
 
 

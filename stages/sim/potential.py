@@ -1,7 +1,11 @@
 """The incremental potential of implicit Euler (paper Eq. 1) as pure JAX functions (float64).
 
     Φ(x) = ½/Δt² ‖x − y‖²_M + Σ_e V_e Ψ(F_e; μ_e, λ_e) − (M g + f)·x
-           + Σ_h ½ k_h ‖x_h − x̄_h‖² + contact(x) + friction(x; x_prev),      y = 2 x_{t−1} − x_{t−2}.
+           + Σ_h ½ k_h ‖x_h − x̄_h‖² + contact(x) + friction(x; x_prev)
+           + β/Δt Σ_e V_e D(F_e, F_e(x_prev); μ_e, λ_e),      y = 2 x_{t−1} − x_{t−2},
+
+the last term the material's viscous damping (Kelvin–Voigt on the Green strain, materials.viscous_density; β s,
+Scene.damping, 0 by default).
 
 Every function takes the scene either as a :class:`~stages.sim.scene.Scene` (numpy) or as the
 :class:`SceneData` pytree built from it by :func:`scene_data`; the latter can cross ``jax.jit``.
@@ -21,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .materials import energy_density, lame
+from .materials import energy_density, lame, viscous_density
 from .mesh import deformation_gradients
 
 jax.config.update("jax_enable_x64", True)
@@ -39,15 +43,17 @@ class SceneData:
     # quad_*: the quadrature points (stages.sim.quadrature.Quadrature) of quadratic tets; None for linear
     # tets, whose one point per tet is (tets, Dm⁻¹, volumes). A hard handle has handle_stiffness 0.
 
-    def __init__(self, leaves: dict, material: str, shapes: tuple, n_regions: int):
+    def __init__(self, leaves: dict, material: str, shapes: tuple, n_regions: int, damping: float = 0.0):
         for k in self.LEAVES:
             setattr(self, k, leaves[k])
         self.material = material
         self.shapes = shapes  # obstacle shapes, ("plane" | "sphere" | "box", ...)
         self.n_regions = n_regions
+        self.damping = float(damping)  # β, s (static: a scene without damping traces no damping term)
 
     def tree_flatten(self):
-        return tuple(getattr(self, k) for k in self.LEAVES), (self.material, self.shapes, self.n_regions)
+        return (tuple(getattr(self, k) for k in self.LEAVES),
+                (self.material, self.shapes, self.n_regions, self.damping))
 
     @classmethod
     def tree_unflatten(cls, aux, children):
@@ -90,7 +96,8 @@ def scene_data(scene) -> SceneData:
     if quad is not None and np.shape(scene.tets)[-1] == 10:
         leaves.update(quad_nodes=jnp.asarray(quad.nodes, np.int32), quad_grad=jnp.asarray(quad.grad, f),
                       quad_weight=jnp.asarray(quad.weight, f), quad_element=jnp.asarray(quad.element, np.int32))
-    data = SceneData(leaves, scene.material, tuple(o.shape for o in obs), int(scene.n_regions))
+    data = SceneData(leaves, scene.material, tuple(o.shape for o in obs), int(scene.n_regions),
+                     float(getattr(scene, "damping", 0.0)))
     try:
         _DATA_CACHE[scene] = data
     except TypeError:
@@ -118,6 +125,27 @@ def elastic_energy(x, scene, mu_tet, lam_tet):
         return jnp.sum(s.volumes * psi(F, mu_tet, lam_tet))
     F = jnp.einsum("qki,qkj->qij", x[s.quad_nodes], s.quad_grad)  # (q, 3, 3)
     return jnp.sum(s.quad_weight * psi(F, mu_tet[s.quad_element], lam_tet[s.quad_element]))
+
+
+def _deformation_gradients(x, s: "SceneData"):
+    """F at every quadrature point (q, 3, 3) of x (n, 3): one per linear tet, four per quadratic."""
+    if s.quad_nodes is None:
+        return deformation_gradients(x, s.tets, s.dm_inv)
+    return jnp.einsum("qki,qkj->qij", x[s.quad_nodes], s.quad_grad)
+
+
+def damping_energy(x, x_prev, scene, mu_tet, lam_tet):
+    """β/Δt Σ_q w_q D(F_q, F_q,prev; μ, λ of the point's element) (materials.viscous_density: Kelvin–Voigt on the
+    Green strain), x, x_prev (n, 3) m -> J; 0 when the scene has no damping (β = 0)."""
+    s = scene_data(scene)
+    if s.damping == 0.0:
+        return 0.0
+    D = jax.vmap(viscous_density)
+    F, Fp = _deformation_gradients(x, s), _deformation_gradients(x_prev, s)
+    if s.quad_nodes is None:
+        return s.damping / s.dt * jnp.sum(s.volumes * D(F, Fp, mu_tet, lam_tet))
+    q = s.quad_element
+    return s.damping / s.dt * jnp.sum(s.quad_weight * D(F, Fp, mu_tet[q], lam_tet[q]))
 
 
 def _quat_matrix(q):
@@ -203,8 +231,9 @@ def external_energy(x, y, scene, inputs, x_prev=None):
 
 
 def incremental_potential(x, y, scene, inputs, mu_tet, lam_tet, x_prev=None):
-    """Φ(x) of implicit Euler (module docstring), x, y (n, 3) m; friction only when x_prev is given."""
-    return elastic_energy(x, scene, mu_tet, lam_tet) + external_energy(x, y, scene, inputs, x_prev)
+    """Φ(x) of implicit Euler (module docstring), x, y (n, 3) m; friction and damping only when x_prev is given."""
+    e = elastic_energy(x, scene, mu_tet, lam_tet) + external_energy(x, y, scene, inputs, x_prev)
+    return e if x_prev is None else e + damping_energy(x, x_prev, scene, mu_tet, lam_tet)
 
 
 def inertia_target(x_prev, x_prev2):

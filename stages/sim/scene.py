@@ -33,7 +33,7 @@ import numpy as np
 from ..domain.controls import apply_pose, select_handles
 from ..errors import RslError
 from . import potential as pot
-from .elements import GRADIENT, HESSIAN, point_terms
+from .elements import GRADIENT, HESSIAN, point_damping_terms, point_terms
 from .linsolve import LinearSolver, NotPositiveDefinite, SparsePattern, resolve_solver
 from .materials import MODELS, lame
 from .quadrature import Quadrature, build_quadrature, element_order, linear_quadrature, mid_edge_closure
@@ -89,6 +89,7 @@ class Scene:
     contact_margin: float = 0.0  # d̂, m: the penalty acts below this distance
     friction_eps: float = 1e-5  # m, smoothing of the friction norm
     quad: Quadrature | None = None  # quadrature points of the elastic energy (built from the rest when None)
+    damping: float = 0.0  # β, s: the material's viscous (Kelvin–Voigt) damping, force ≈ −β K₀ v (0: none)
 
     def __post_init__(self):
         if self.quad is not None and (self.quad.nodes.shape[1] != np.shape(self.tets)[1]
@@ -130,10 +131,11 @@ class SimulationError(RslError):
 
 
 def make_scene(mesh, controls, material: str, dt: float, gravity, contact_stiffness: float | None = None,
-               contact_margin: float | None = None, friction_eps: float = 1e-5) -> Scene:
+               contact_margin: float | None = None, friction_eps: float = 1e-5, damping: float = 0.0) -> Scene:
     """Scene from a MeshArtefact and Controls. Handles use the mesh's stored vertex sets when it has
     them, else the controls' selections. Default κ = 100 M max(|g|, 9.81) / d̂ (the whole weight on one
-    vertex sinks d̂/100) and d̂ = 10⁻³ × the bounding-box diagonal."""
+    vertex sinks d̂/100) and d̂ = 10⁻³ × the bounding-box diagonal.  ``damping``: β (s) of the material's
+    viscous damping (Scene.damping; capture.toml [material] damping)."""
     if material not in MODELS:
         raise RslError(f"unknown material model {material!r}; use one of {', '.join(MODELS)}.")
     rest = np.ascontiguousarray(mesh.vertices, np.float64)
@@ -172,7 +174,7 @@ def make_scene(mesh, controls, material: str, dt: float, gravity, contact_stiffn
                  tet_region=np.ascontiguousarray(mesh.tet_region, np.int64), n_regions=len(names),
                  region_names=names, material=material, dt=float(dt), gravity=g, handles=handles,
                  loads=loads, obstacles=tuple(obstacles), friction=float(controls.friction),
-                 contact_stiffness=kappa, contact_margin=margin, friction_eps=friction_eps)
+                 contact_stiffness=kappa, contact_margin=margin, friction_eps=friction_eps, damping=float(damping))
 
 
 def frame_inputs(scene: Scene, controls, frame: int) -> FrameInputs:
@@ -343,6 +345,20 @@ def _elastic(scene: Scene, x, mu, lam, want: int, project: bool, kernels: str):
                        q.element, len(scene.tets))
 
 
+def _material(scene: Scene, x, x_prev, mu, lam, want: int, project, kernels: str):
+    """Per element, :func:`_elastic`'s terms plus, with damping (β > 0) and x_prev given, the viscous ones in x,
+    β/Δt Σ_q w_q D(F_q(x), F_q(x_prev)) (materials.viscous_density)."""
+    e, g, h = _elastic(scene, x, mu, lam, want, project, kernels)
+    if scene.damping <= 0.0 or x_prev is None:
+        return e, g, h
+    q = scene.quad
+    mu_q, lam_q = (mu, lam) if scene.order == 1 else (mu[q.element], lam[q.element])
+    ed, gd, hd = point_damping_terms(x, np.asarray(x_prev, np.float64), q.nodes, q.grad,
+                                     q.weight * (scene.damping / scene.dt), mu_q, lam_q, max(want, GRADIENT),
+                                     project, q.element, len(scene.tets))
+    return (e + ed, g + gd if want >= GRADIENT else g, h + hd if want >= HESSIAN else h)
+
+
 def _scatter_grad(scene: Scene, elem_grad: np.ndarray) -> np.ndarray:
     """Σ_e element gradients (m, 3k) into the flat vertex gradient (3n,)."""
     cache = _cache(scene)
@@ -351,16 +367,17 @@ def _scatter_grad(scene: Scene, elem_grad: np.ndarray) -> np.ndarray:
     return np.bincount(cache.dof, weights=elem_grad.reshape(-1), minlength=3 * scene.n_vertices)
 
 
-def internal_forces(x, scene: Scene, young, poisson, kernels: str = "auto") -> np.ndarray:
-    """−∂(Σ V_e Ψ)/∂x, (n, 3) N, for per-region young (R,) Pa and poisson (R,)."""
+def internal_forces(x, scene: Scene, young, poisson, kernels: str = "auto", x_prev=None) -> np.ndarray:
+    """−∂(Σ V_e Ψ)/∂x, (n, 3) N, for per-region young (R,) Pa and poisson (R,); with damping and the step's x_prev,
+    the viscous force −β/Δt ∂(Σ w D)/∂x too."""
     mu, lam = _region_lame(scene, young, poisson)
-    _, g, _ = _elastic(scene, np.asarray(x, np.float64), mu, lam, GRADIENT, True, kernels)
+    _, g, _ = _material(scene, np.asarray(x, np.float64), x_prev, mu, lam, GRADIENT, True, kernels)
     return -_scatter_grad(scene, g).reshape(-1, 3)
 
 
 def total_energy(scene: Scene, inputs: FrameInputs, x, y, x_prev, mu, lam, kernels: str = "auto") -> float:
     """Φ(x) in numpy (the value :func:`potential.incremental_potential` computes in JAX)."""
-    e, _, _ = _elastic(scene, x, mu, lam, 0, True, kernels)
+    e, _, _ = _material(scene, x, x_prev, mu, lam, 0, True, kernels)
     ev, _, _ = _vertex_terms(scene, inputs, x, y, x_prev, 0, True)
     return float(np.sum(e)) + ev
 
@@ -369,7 +386,7 @@ def hessian(scene: Scene, inputs: FrameInputs, x, x_prev, young, poisson, projec
             kernels: str = "auto"):
     """The assembled 3n×3n Hessian of Φ at x as scipy CSR (projected to PSD per element when ``project``)."""
     mu, lam = _region_lame(scene, young, poisson)
-    _, _, he = _elastic(scene, x, mu, lam, HESSIAN, project, kernels)
+    _, _, he = _material(scene, x, x_prev, mu, lam, HESSIAN, project, kernels)
     _, _, hv = _vertex_terms(scene, inputs, x, x, x_prev, HESSIAN, project)
     pattern = _cache(scene).pattern
     return pattern.matrix(pattern.assemble(he, hv))
@@ -427,8 +444,8 @@ def handle_reactions(scene: Scene, inputs: FrameInputs, x, x_prev, x_prev2, youn
                      kernels: str = "auto") -> np.ndarray:
     """The total force (h, 3) N each handle exerts on the object at the solved state x (n, 3).
     Spring handle: Σ_i k (x̄_i − x_i).  Hard handle: Σ_i r_i over its vertices, r = ∇_x Φ without the
-    handle terms (elastic, inertia with y = 2x_prev − x_prev2, gravity, loads, contact, friction lagged
-    at x_prev); at a solved step the free vertices have r = 0, so this is the force that keeps the
+    handle terms (elastic and viscous, inertia with y = 2x_prev − x_prev2, gravity, loads, contact, friction
+    lagged at x_prev); at a solved step the free vertices have r = 0, so this is the force that keeps the
     held vertices where they are (for a spring handle the same expression gives k Σ (x̄ − x))."""
     x = np.asarray(x, np.float64)
     out = np.zeros((len(scene.handles), 3))
@@ -436,7 +453,7 @@ def handle_reactions(scene: Scene, inputs: FrameInputs, x, x_prev, x_prev2, youn
         x_prev = np.asarray(x_prev, np.float64)
         y = 2.0 * x_prev - np.asarray(x_prev2, np.float64)
         mu, lam = _region_lame(scene, young, poisson)
-        _, ge, _ = _elastic(scene, x, mu, lam, GRADIENT, True, kernels)
+        _, ge, _ = _material(scene, x, x_prev, mu, lam, GRADIENT, True, kernels)
         _, gv, _ = _vertex_terms(scene, inputs, x, y, x_prev, GRADIENT, True)
         r = _scatter_grad(scene, ge).reshape(-1, 3) + gv
         for i, h in enumerate(scene.handles):  # remove the spring pulls: Φ without the handle terms
@@ -477,7 +494,7 @@ class _Newton:
     def gradient(self, x) -> tuple[float, np.ndarray]:
         """(Φ(x), ∇Φ(x) (3n,)) with the gradient zeroed on the DOFs of hard handles."""
         t0 = time.perf_counter()
-        ee, ge, _ = _elastic(self.scene, x, self.mu, self.lam, GRADIENT, True, self.kernels)
+        ee, ge, _ = _material(self.scene, x, self.x_prev, self.mu, self.lam, GRADIENT, True, self.kernels)
         t1 = time.perf_counter()
         ev, gv, _ = _vertex_terms(self.scene, self.inputs, x, self.y, self.x_prev, GRADIENT, True)
         t2 = time.perf_counter()
@@ -493,7 +510,7 @@ class _Newton:
         replaced by |λ|), hard-handle rows and columns replaced by a scaled identity."""
         t0 = time.perf_counter()
         proj = {"exact": False, "projected": True, "abs": "abs"}[how]
-        _, _, he = _elastic(self.scene, x, self.mu, self.lam, HESSIAN, proj, self.kernels)
+        _, _, he = _material(self.scene, x, self.x_prev, self.mu, self.lam, HESSIAN, proj, self.kernels)
         t1 = time.perf_counter()
         _, _, hv = _vertex_terms(self.scene, self.inputs, x, self.y, self.x_prev, HESSIAN, proj)
         t2 = time.perf_counter()

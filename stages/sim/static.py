@@ -40,12 +40,12 @@ CONTINUATION = (1, 4, 16, 64)  # load stages tried in turn
 
 
 def static_scene(scene: sc.Scene) -> sc.Scene:
-    """The scene without inertia and friction (dt = ∞, μ_f = 0); cached per scene object."""
-    if getattr(scene, "dt", None) == np.inf and scene.friction == 0.0:
+    """The scene without inertia, friction and damping (dt = ∞, μ_f = 0, β = 0); cached per scene object."""
+    if getattr(scene, "dt", None) == np.inf and scene.friction == 0.0 and getattr(scene, "damping", 0.0) == 0.0:
         return scene
     s = _STATIC.get(scene)
     if s is None:
-        s = _STATIC[scene] = dataclasses.replace(scene, dt=np.inf, friction=0.0)
+        s = _STATIC[scene] = dataclasses.replace(scene, dt=np.inf, friction=0.0, damping=0.0)
     return s
 
 

@@ -346,6 +346,7 @@ class _Loop:
     last: int | None
     reporter: Reporter
     moving: object = None  # start = "moving": its offsets' directions (stages.moving_start.StartBasis), else None
+    damping: float = 0.0  # β s of the material's viscous damping (capture.toml [material] damping)
 
     def before_keys(self, t0: int) -> tuple[int, int]:
         """The stored frames whose states a window starting at frame t0 starts from: (t0 − 2, t0 − 1), frame 0 for
@@ -446,7 +447,8 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     controls = capture.controls()
     check_obstacles_clear(controls, mesh.vertices, capture.controls_path, start=capture.start)
     sim_mesh = _refined_mesh(mesh, config.refine) if config.refine else mesh
-    scene = make_scene(sim_mesh, controls, capture.material.model, capture.dt, capture.gravity)
+    scene = make_scene(sim_mesh, controls, capture.material.model, capture.dt, capture.gravity,
+                       damping=capture.material.damping)
     n = mesh.n_vertices
     inputs_cache: dict[int, object] = {}
 
@@ -580,7 +582,12 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     ctrl_c = CtrlC()
     config = dataclasses.replace(config, gn_trust=resolve_gn_trust(config, obs.kind))  # (adapt.h5 records it)
     loop = _Loop(config, obs, backend, objective, stored, rec, prange, mat.young_range, first, last,
-                 CheckedReporter(reporter, ctrl_c), moving)
+                 CheckedReporter(reporter, ctrl_c), moving, capture.material.damping)
+    late = getattr(obs, "late", None)
+    if config.mode != "online" and late is not None and late.any():
+        reporter.warn(f"{capture.markers_path}: {int(late.sum())} marker(s) are first seen after frame 0; --mode "
+                      f"{config.mode} binds markers at frame 0 only, so they are left out (--mode online binds each "
+                      f"to its track once a window sees it).")
     try:
         ctrl_c.install()
         if config.mode != "online" and last is None:
@@ -727,6 +734,7 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
             if sim[0] == 0 and len(sim) > 1 and sim[1] > 1:  # the frames skipped at rest hold x_0(θ)
                 for t in range(1, sim[1]):
                     loop.stored[t] = states[0]
+            _bind_late_markers(loop, T, sim, states)
             if resting:
                 rest_until = T
             informed += calibrating and not idle
@@ -1042,6 +1050,24 @@ def _correction_kind(option: str, obs_kind: str, restart: bool, modes_failed: bo
     return "past" if (option == "past" or obs_kind == "vision" or modes_failed) else None
 
 
+LATE_MARKER_FRAMES = 3
+"""A marker first seen after frame 0 is bound by the first window whose frames see it this many times: a track,
+not one frame's nearest point (docs/results/late_markers.md)."""
+
+
+def _bind_late_markers(loop: _Loop, T: int, frames, states) -> None:
+    """Markers first seen after frame 0 (hidden at frame 0 by a gripper, say) that this window's frames see: each
+    bound at the material point whose track over the frames, on the window's estimated states, fits its
+    observations best (MarkerObservation.bind_late); they count from the next window on.  Recorded per frame as
+    (T, how many) in ``rec.late_bindings``."""
+    obs = loop.obs
+    if getattr(obs, "late", None) is None or not obs.late.any():
+        return
+    n = obs.bind_late(frames, np.asarray(loop.backend.decode(np.stack(list(states)))), LATE_MARKER_FRAMES)
+    if n:
+        loop.rec.late_bindings = getattr(loop.rec, "late_bindings", []) + [(int(T), n)]
+
+
 def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     """Online moving-horizon estimation (stages.estimator): per new frame, Gauss–Newton on the window's
     unknowns against the arrival-cost prior; the frame leaving the window is folded into the prior, which then
@@ -1203,6 +1229,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                 # d x_t/dp through the whole past: the window's θ columns plus, by linearity, the columns of the
                 # "past" correction (whose directions are the before states' own sensitivities)
                 sens[t] = S[:k_th, i] + (S[k_th:2 * k_th, i] if past_dirs and D is not None else 0.0)
+            _bind_late_markers(loop, T, frames, gn.last_states)
             if D is not None and t0 >= 1:  # the corrected starting states replace the stored ones
                 k2, k1 = loop.before_keys(t0)
                 stored[k2], stored[k1] = gn.last_before[0], gn.last_before[1]
@@ -1355,6 +1382,7 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         "gaussian_anchor": getattr(obs, "anchor_kind", None),
         "refine": config.refine,
         "substeps": config.substeps,
+        "damping": loop.damping,  # β s of the simulation (capture.toml [material] damping)
         "status": status,  # complete | interrupted | failed
         "estimator": resolve_estimator(config),
         "material_changes_detected": list(getattr(rec, "changes", [])),  # gn: frames whose innovation widened θ
@@ -1378,6 +1406,11 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         "wall_s": wall_s,
         "young_meaning": _young_meaning(config, mesh),
     }
+    late = getattr(obs, "late", None)
+    if late is not None and (getattr(rec, "late_bindings", []) or late.any()):
+        # markers first seen after frame 0: the frames whose window bound them, how many; and those never bound
+        extra["late_markers_bound"] = [list(b) for b in getattr(rec, "late_bindings", [])]
+        extra["late_markers_unbound"] = int(late.sum())
     start_positions = None
     if loop.moving is not None and -1 in loop.stored:  # start = "moving": the estimated x_{−1}, x_0 (the force
         start_positions = backend.decode(np.stack([loop.stored[-1], loop.stored[0]]))[:, :mesh.n_vertices]  # replay's)
@@ -1439,6 +1472,10 @@ def _report(loop: _Loop, reporter: Reporter, names: list[str], dofs: int, mesh: 
     else:
         mats = ", ".join(f"{nm}: E={e:.4g} Pa ν={v:.3f}" for nm, e, v in zip(names, E, nu))
     stop = " (stopped early)" if interrupted else ""
+    late = getattr(rec, "late_bindings", [])
+    if late:  # markers first seen after frame 0, bound when a window first saw them
+        reporter.info(f"{sum(n for _, n in late)} marker(s) first seen after frame 0 bound to their tracks at frame(s) "
+                      + ", ".join(str(t) for t, _ in late))
     cals = getattr(rec, "calibrations", [])
     if cals:  # adam, images: the anchor calibration's fits (E(t) holds each with --hold-fit)
         held = " (E(t) holds each from its last frame)" if _holds_fit(config) else ""

@@ -40,7 +40,7 @@ from stages.forces import (FORCE_EXTRAPOLATE, FORCE_SUBSTEPS, FORCE_THETA, adapt
 from stages.observations import render_backgrounds, target_image
 from stages.progress import Reporter, SilentReporter
 from stages.render.image_loss import ImageLoss
-from stages.results import compute_stress, gaussian_anchor, material_setting
+from stages.results import compute_stress, gaussian_anchor, material_damping, material_setting
 from stages.sweep import sweep
 from stages.workspace import write_text_atomic
 
@@ -222,7 +222,7 @@ def _forces(config, capture, adapt, mesh, reporter, walk=None) -> dict | None:
     truth_rows = read_forces_csv(path)
     controls = capture.controls()
     model, dt, gravity = material_setting(capture, adapt)
-    scene = make_scene(mesh, controls, model, dt, gravity)
+    scene = make_scene(mesh, controls, model, dt, gravity, damping=material_damping(capture, adapt))
     substeps = replay_substeps(config.force_substeps, adapt)
     if not (adapt.mode == "online" and replayable(adapt.frames)):
         reporter.warn("adapt.h5 is not an online run from frame 0: forces from its recorded positions (frame-level "

@@ -47,8 +47,8 @@ from stages.forces import (FORCE_EXTRAPOLATE, FORCE_SUBSTEPS, FORCE_THETA, adapt
                            replay_substeps, trajectory_forces)
 from stages.progress import Reporter, SilentReporter
 from stages.render.ply import covariance_to_scale_rotation, write_ply
-from stages.results import (StressField, gaussian_anchor, material_setting, previous_states, recorded_capture,
-                            window_young)
+from stages.results import (StressField, gaussian_anchor, material_damping, material_setting, previous_states,
+                            recorded_capture, window_young)
 from stages.results import compute_stress as results_stress
 from stages.sim import stress as st
 from stages.sim.quadrature import element_order, shape_values
@@ -315,7 +315,8 @@ def compute_forces(seq: Sequence, field: StressField, config: ExportConfig, repo
         raise ExportError(f"--force-substeps should be 0 (adapt's) or at least 1, found {config.force_substeps}.")
     if not controls.handles and not controls.obstacles:
         reporter.warn(f"{seq.controls_path}: no handle and no obstacle; forces.csv holds no row.")
-    scene = make_scene(seq.mesh, controls, seq.model, seq.dt, seq.gravity)
+    scene = make_scene(seq.mesh, controls, seq.model, seq.dt, seq.gravity,
+                       damping=material_damping(seq.capture, seq.adapt))
     if config.source in ("adapt", "partial"):
         # an online trajectory is spliced from windows (and reduced-space states): the forces of its θ(t)
         # replayed in the full space, as truth/forces.csv defines them (stages.forces module doc)

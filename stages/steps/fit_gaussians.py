@@ -136,7 +136,8 @@ def fit_pose(cap, mesh: MeshArtefact, frame: int) -> tuple[np.ndarray, dict]:
     from stages.sim.static import simulate_from_start, start_state
 
     controls = cap.controls()
-    scene = make_scene(mesh, controls, cap.material.model, cap.dt, cap.gravity)
+    scene = make_scene(mesh, controls, cap.material.model, cap.dt, cap.gravity,
+                       damping=cap.material.damping)
     names = list(scene.region_names)
     young = np.array([cap.material.region_young(r) for r in names], float)
     poisson = np.array([cap.material.region_poisson(r) for r in names], float)

@@ -164,13 +164,14 @@ def plan_sequences(config: GenerateDataConfig, controls: Controls, young_range, 
 
 # =========================================================================== one sequence (runs in a worker)
 def simulate_sequence(mesh: MeshArtefact, plan: SequencePlan, model: str, dt: float, gravity: np.ndarray,
-                      newton_iterations: int) -> tuple[int, np.ndarray | None, str]:
-    """(index, positions (T, n, 3) or None, error message) of one planned sequence."""
+                      newton_iterations: int, damping: float = 0.0) -> tuple[int, np.ndarray | None, str]:
+    """(index, positions (T, n, 3) or None, error message) of one planned sequence; ``damping`` β s (the capture's
+    [material] damping)."""
     from stages.sim.scene import SimulationError, frame_inputs, make_scene, simulate  # JAX + numba: loaded on use
 
     try:
         ctl = parse_controls(plan.controls, Path(f"sequence {plan.index}"))
-        scene = make_scene(mesh, ctl, model, dt, gravity)
+        scene = make_scene(mesh, ctl, model, dt, gravity, damping=damping)
         inputs = [frame_inputs(scene, ctl, f) for f in range(plan.young.shape[0])]
         x = simulate(scene, inputs, plan.young, plan.poisson, max_iterations=newton_iterations)
     except SimulationError as e:
@@ -284,7 +285,7 @@ def run(config: GenerateDataConfig, reporter: Reporter = SilentReporter()) -> Pa
     check_obstacles_clear(controls, mesh.vertices, cap.controls_path, start=cap.start)
     mat = cap.material
     plans = plan_sequences(c, controls, mat.young_range, mat.poisson_range, len(mesh.region_names))
-    tasks = [(mesh, p, mat.model, cap.dt, cap.gravity, c.newton_iterations) for p in plans]
+    tasks = [(mesh, p, mat.model, cap.dt, cap.gravity, c.newton_iterations, mat.damping) for p in plans]
 
     t0 = time.perf_counter()
     where = f"Ray ({c.ray})" if c.ray else (f"{c.workers} workers" if c.workers > 1 else "this process")

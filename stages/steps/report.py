@@ -37,7 +37,8 @@ from stages.errors import RslError
 from stages.forces import FORCE_SUBSTEPS, adapted_forces, filter_model, replay_substeps
 from stages.progress import Reporter, SilentReporter
 from stages.render.image_loss import ImageLoss
-from stages.results import compute_stress, gaussian_anchor, material_setting, recorded_capture, window_young
+from stages.results import (compute_stress, gaussian_anchor, material_damping, material_setting, recorded_capture,
+                            window_young)
 from stages.workspace import artefact_state, write_text_atomic
 
 REPORT_FILE = "report.html"
@@ -413,7 +414,8 @@ def _compute_forces(ctx: Context) -> dict:
     controls = ctx.capture.controls()
     if not controls.handles and not controls.obstacles:
         raise SectionMissing(f"{ctx.capture.controls_path}: no handle and no obstacle.")
-    scene = make_scene(mesh, controls, ctx.model, ctx.dt, ctx.gravity)
+    scene = make_scene(mesh, controls, ctx.model, ctx.dt, ctx.gravity,
+                       damping=material_damping(ctx.capture, ctx.adapt))
     substeps = replay_substeps(FORCE_SUBSTEPS, ad)  # rsl export --forces' default replay
     walk = filter_model(read_provenance(ctx.ws / KIND_FILES["adapt"]).get("config"),
                         ctx.capture.material.poisson_range)  # the gn filter's random walk (θ rule "smoothed")

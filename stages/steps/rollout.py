@@ -104,7 +104,8 @@ def run(config: RolloutConfig, reporter: Reporter = SilentReporter()) -> Path:
     unknown = [h for h in controls.handles if h.name not in mesh.handles]
     select_handles(Controls(handles=unknown, loads=controls.loads), mesh.vertices, controls_path)
     T = config.frames or controls.n_frames or len(adapt.frames)
-    scene = make_scene(mesh, controls, capture.material.model, capture.dt, capture.gravity)
+    scene = make_scene(mesh, controls, capture.material.model, capture.dt, capture.gravity,
+                       damping=capture.material.damping)
     inputs = [frame_inputs(scene, controls, t) for t in range(T)]
     young, poisson = material_schedule(adapt, config.material, T)
 

@@ -347,7 +347,8 @@ def _frame0_state(cap: Capture, mesh, reporter: Reporter, young_scale: float = 1
     from stages.sim.static import start_state
 
     try:
-        scene = make_scene(mesh, controls, cap.material.model, cap.dt, cap.gravity)
+        scene = make_scene(mesh, controls, cap.material.model, cap.dt, cap.gravity,
+                       damping=cap.material.damping)
         young = young_scale * np.array([cap.material.region_young(r) for r in scene.region_names])
         poisson = np.array([cap.material.region_poisson(r) for r in scene.region_names])
         x0 = np.asarray(start_state(scene, frame_inputs(scene, controls, 0), young, poisson, "equilibrium"))

@@ -91,8 +91,8 @@ class SynthConfig:
     marker_visibility: int = 0
     """Occlusion of the markers: at each frame a marker is written to markers.csv only when at least this many
     of the cameras see it (inside the image, not hidden by the object itself: its depth within 1.5 pixel
-    footprints of the rendered depth at its pixel); the others are gaps.  A marker not seen at frame 0, where
-    rsl adapt binds it, is left out altogether.  0 = off: every marker at every frame."""
+    footprints of the rendered depth at its pixel); the others are gaps.  A marker seen at no frame is left out
+    (one first seen after frame 0 stays: rsl adapt binds it to its track).  0 = off: every marker at every frame."""
     seed: int = 0
     """Seed of every random choice (markers, texture, board poses, backgrounds, noise)."""
     size: float = 0.2
@@ -135,6 +135,13 @@ class SynthConfig:
     substeps: int = 1
     """Implicit-Euler steps per frame in the truth simulation (time step 1/(fps·substeps)); frames record
     every substeps-th state."""
+    damping: float = 0.0
+    """β (s) of the truth material's viscous damping (Kelvin–Voigt on the Green strain, force ≈ −β K₀ v:
+    stages.sim.materials.viscous_density); written to capture.toml [material] damping unless --undeclared-damping.
+    0: none (the truth then damps only by implicit Euler's own numerical damping, which depends on --substeps)."""
+    undeclared_damping: bool = False
+    """Leave [material] damping out of capture.toml (the truth is damped, the capture does not say so: what a lab
+    that has not measured its material's damping gives rsl)."""
     handles: Literal["spring", "hard"] = "spring"
     """Handles of the truth: stiff springs, or hard (Dirichlet: the held vertices follow the handle exactly).
     With hard, controls.json declares the handles "hard": true, as a lab describes a clamp."""
@@ -514,7 +521,7 @@ def truth_forces(scene, ctl: Controls, X: np.ndarray, states: list, young: np.nd
     for t in range(len(X)):
         x, (xp, xpp) = X[t], states[t]
         inputs = frame_inputs(fine, ctl, t)
-        f_int = internal_forces(x, fine, young[t], poisson[t])
+        f_int = internal_forces(x, fine, young[t], poisson[t], x_prev=xp)  # (viscous with damping)
         sets = set_forces(fine, inputs, x, xp, f_int, contact_distance, x_prev2=xpp)
         react = handle_reactions(fine, inputs, x, xp, xpp, young[t], poisson[t])
         for i, f in enumerate(sets):
@@ -569,6 +576,8 @@ def _check_config(c: SynthConfig) -> None:
         raise RslError("--young, --fps and --density should be positive.")
     if not c.amplitude > 0:
         raise RslError(f"--amplitude should be positive, found {c.amplitude}.")
+    if not (c.damping >= 0 and np.isfinite(c.damping)):
+        raise RslError(f"--damping should be a finite number of seconds ≥ 0, found {c.damping}.")
     if c.markers < 0 or c.calib_views < 0 or c.noise < 0 or c.marker_noise < 0 or c.marker_visibility < 0:
         raise RslError("--markers, --calib-views, --noise, --marker-noise and --marker-visibility should not be "
                        "negative.")
@@ -641,7 +650,7 @@ def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
     tmesh, tart = truth_mesh(mesh, c.density, c.truth_refine, c.truth_order)
 
     # ---------------------------------------------------------------- simulate
-    scene = make_scene(tart, sim_ctl, c.model, 1.0 / c.fps, gravity)
+    scene = make_scene(tart, sim_ctl, c.model, 1.0 / c.fps, gravity, damping=c.damping)
     states: list = []
     with reporter.task(f"simulating {c.scenario} (truth: P{c.truth_order}, {len(tart.tets)} tets, "
                        f"{c.substeps} substep{'s' * (c.substeps > 1)}, {c.handles} handles, start {start_desc})",
@@ -719,12 +728,13 @@ def run(config: SynthConfig, reporter: Reporter = SilentReporter()) -> Path:
 
 def occlude_markers(pts: np.ndarray, seen_by: np.ndarray, need: int) -> np.ndarray:
     """Marker positions (T, M, 3) with NaN (a gap) where fewer than ``need`` cameras see the marker
-    (``seen_by`` (T, M) counts), and for every frame of a marker not seen at frame 0 (it could not be bound)."""
+    (``seen_by`` (T, M) counts).  A marker first seen after frame 0 keeps its frames (rsl adapt binds it to its
+    track); one seen at no frame is all gaps, which markers.csv leaves out."""
     if not np.any(seen_by[0] >= need):
         raise RslError(f"--marker-visibility {need}: no marker is seen by {need} cameras at frame 0; lower "
                        f"--marker-visibility or add cameras.")
     out = np.array(pts, float)
-    out[(seen_by < need) | (seen_by[:1] < need)] = np.nan
+    out[seen_by < need] = np.nan
     return out
 
 
@@ -781,6 +791,8 @@ def _write_capture(root: Path, c: SynthConfig, mesh: SynthMesh, tmesh: SynthMesh
                      "young_range": [float(f"{young_all.min() / 5:.3g}"), float(f"{young_all.max() * 5:.3g}")],
                      "poisson_range": [min(0.3, float(poisson.min())), max(0.49, float(poisson.max()))]},
     }
+    if c.damping > 0 and not c.undeclared_damping:
+        toml["material"]["damping"] = float(c.damping)
     for r, name in enumerate(mesh.region_names[1:], start=1):
         toml[f"regions.{name}"] = {"young": float(young[0, r]), "poisson": float(poisson[0, r])}
     toml["calibration"] = {"board": f"chessboard:{cols}x{rows}:{square:g}"}

@@ -6,6 +6,7 @@ A frame solves h(z) = ∂E/∂z = J(z)ᵀ r(φ(z)) = 0 by Newton with a backtrac
            + Σ_{q∈C} w_q V_q Ψ(F_q(φ_C(z)))                                    elastic (cubature)
            + ½ qᵀ (Σ_h k_h U_hᵀU_h) q − qᵀ Σ_h k_h U_hᵀ(x̂_h − x̄_h)              handle springs (exact)
            + contact(φ_S(z); φ_S(z_{t−1}))                                   stages.sim.potential terms
+           + β/Δt Σ_{q∈C} w_q V_q D(F_q(φ_C(z)), F_q(φ_C(z_{t−1})))             viscous damping (β > 0)
 
 with q = q(z) the decoder's PCA coefficients (x = x̄ + U q), q_y = 2 q(z_{t−1}) − q(z_{t−2}) (so
 y = 2φ(z_{t−1}) − φ(z_{t−2}) = x̄ + U q_y exactly) and G = Uᵀ M U.  Inertia, gravity and loads are
@@ -48,7 +49,7 @@ import numpy as np  # noqa: E402
 
 from stages.errors import RslError  # noqa: E402
 from stages.sim import potential as P  # noqa: E402
-from stages.sim.materials import energy_density, lame  # noqa: E402
+from stages.sim.materials import energy_density, lame, viscous_density  # noqa: E402
 from stages.sim.mesh import boundary_faces  # noqa: E402
 from stages.sim.quadrature import element_order, quadratic_surface  # noqa: E402
 from stages.subspace.cubature import scene_quadrature  # noqa: E402
@@ -141,7 +142,7 @@ class ReducedModel:
         # leaves stay the full scene's, unused
         leaves.update(rest=jnp.asarray(np.asarray(scene.rest)[vs]), masses=jnp.zeros(len(vs)),
                       gravity=jnp.zeros(3), handle_ids=(), handle_stiffness=())
-        sub_scene = P.SceneData(leaves, full.material, full.shapes, full.n_regions)
+        sub_scene = P.SceneData(leaves, full.material, full.shapes, full.n_regions, full.damping)
         nodes_l = local[quad.nodes[ids]]  # (c, k) local vertex ids
         grad_c = np.asarray(quad.grad[ids], np.float64)  # (c, k, 3)
         self.data = dict(
@@ -466,7 +467,8 @@ def _energy_q(q, q1, q2, young, poisson, rin, d, reference: bool):
         + 0.5 * q @ (d["H_handle"] @ q)
     x = d["rest_s"] + jnp.einsum("nip,p->ni", d["basis_s"], q)
     x1 = d["rest_s"] + jnp.einsum("nip,p->ni", d["basis_s"], q1)
-    return e + _cubature_elastic(x, young, poisson, d, s.material) + P.external_energy(x, x, s, rin, x1)
+    e = e + _cubature_elastic(x, young, poisson, d, s.material) + P.external_energy(x, x, s, rin, x1)
+    return e if s.damping == 0.0 else e + _cubature_damping(x, x1, young, poisson, d, s)
 
 
 def _cubature_lame(young, poisson, d):
@@ -480,6 +482,15 @@ def _cubature_elastic(x, young, poisson, d, material: str):
     mu, lam = _cubature_lame(young, poisson, d)
     F = jnp.einsum("cki,ckj->cij", x[d["cub_nodes"]], d["cub_grad"])
     return jnp.sum(d["cub_vol"] * jax.vmap(energy_density(material))(F, mu, lam))
+
+
+def _cubature_damping(x, x1, young, poisson, d, s):
+    """β/Δt Σ_{q∈C} w_q V_q D(F_q, F_q,prev) (materials.viscous_density) on the cubature points of the elastic
+    energy, x, x1 (n_s, 3) the decoded vertex subset now and at the frame before."""
+    mu, lam = _cubature_lame(young, poisson, d)
+    F = jnp.einsum("cki,ckj->cij", x[d["cub_nodes"]], d["cub_grad"])
+    F1 = jnp.einsum("cki,ckj->cij", x1[d["cub_nodes"]], d["cub_grad"])
+    return s.damping / s.dt * jnp.sum(d["cub_vol"] * jax.vmap(viscous_density)(F, F1, mu, lam))
 
 
 def _q(z, d, kind):
@@ -543,6 +554,10 @@ def _H_jit(z, z1, z2, young, poisson, rin, d, kind):
     F = d["F0"] + (d["dF"] @ q).reshape(-1, 3, 3)
     psi = energy_density(s.material)
     hf = jax.vmap(lambda f, m, l: jax.hessian(psi)(f, m, l).reshape(9, 9))(F, mu, lam)  # (c, 9, 9)
+    if s.damping != 0.0:  # the viscous term's ∂²/∂F² at F_prev = F of q_{t−1}, times β/Δt
+        F1 = d["F0"] + (d["dF"] @ q1).reshape(-1, 3, 3)
+        hf = hf + s.damping / s.dt * jax.vmap(lambda f, f1, m, l: jax.hessian(viscous_density)(f, f1, m, l)
+                                              .reshape(9, 9))(F, F1, mu, lam)
     b = jnp.einsum("cfg,cgp->cfp", hf * d["cub_vol"][:, None, None], d["dF"])
     h_q = jnp.einsum("cfp,cfs->ps", d["dF"], b) + d["G"] / s.dt ** 2 + d["H_handle"]  # (p, p)
     h = jq.T @ h_q @ jq
