@@ -124,13 +124,67 @@ def _adapt_row(r: dict) -> str:
             f"{'—' if fe is None else f'{100 * fe:.1f}'} | {r['time_per_frame_s']:.2f} |")
 
 
-def write(truths: list[dict], adapts: list[dict], out: Path, plan: dict) -> None:
-    """docs/results/damping.{md,json}."""
+def summary(truths: list[dict], adapts: list[dict]) -> list[str]:
+    """Per damped β_true: E declared against undeclared, beside the undamped truth; the truths' convergence."""
+    out = []
+    base = [r for r in adapts if r["beta_true"] == 0 and "error" not in r]
+    for beta in sorted({r["beta_true"] for r in adapts if r["beta_true"] > 0}):
+        by = {r["declared"] > 0: r for r in adapts if r["beta_true"] == beta and "error" not in r}
+        if True in by and False in by:
+            d, u = by[True], by[False]
+            out.append(f"- β_true = {beta:g} s: declared, median settled E error {100 * d['median_error']:.1f} % "
+                       f"(E / E_true {d['median_ratio']:.3f}); undeclared {100 * u['median_error']:.1f} % "
+                       f"({u['median_ratio']:.3f})"
+                       + (f"; the undamped truth {100 * base[0]['median_error']:.1f} % ({base[0]['median_ratio']:.3f})"
+                          if base else "") + ".")
+    for beta in sorted({r["beta"] for r in truths}):
+        rs = [r for r in truths if r["beta"] == beta]
+        out.append(f"- β_true = {beta:g} s, the truths against N = {rs[0]['reference_substeps']}: "
+                   + ", ".join(f"N = {r['substeps']} differs by {r['surface_rms_mm']:.2f} mm and "
+                               f"{100 * r['force_difference']:.1f} % in force" for r in rs) + ".")
+    return out
+
+
+def plot(adapts: list[dict], path: Path) -> bool:
+    """E / E_true per frame of each adapt row (one panel per β_true > 0, the undamped truth's row in each), with the
+    ±5 % band; False when no row has its series."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    betas = sorted({r["beta_true"] for r in adapts if r["beta_true"] > 0 and "young" in r})
+    if not betas:
+        return False
+    fig, axes = plt.subplots(1, len(betas), figsize=(4.2 * len(betas), 3.0), sharey=True, squeeze=False)
+    for ax, beta in zip(axes[0], betas):
+        for r in adapts:
+            if "young" in r and r["beta_true"] in (beta, 0.0):
+                label = (f"β_true {r['beta_true']:g} s, declared {r['declared']:g}" if r["beta_true"]
+                         else "undamped truth")
+                ax.plot(np.asarray(r["young"]) / np.asarray(r["young_true"]), "o-", ms=3, label=label)
+        ax.axhspan(0.95, 1.05, color="0.9")
+        ax.axvline(WINDOW + 5 - 0.5, color="0.6", lw=0.8)
+        ax.set_xlabel("frame")
+        ax.set_title(f"β_true = {beta:g} s", fontsize=9)
+        ax.legend(fontsize=7)
+    axes[0][0].set_ylabel("E / E_true")
+    axes[0][0].set_ylim(0.5, 1.5)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
+def write(truths: list[dict], adapts: list[dict], out: Path, plan: dict, run: dict | None = None) -> None:
+    """docs/results/damping.{md,json}; ``run``: the ended / load_average / machine of a run merged (default: now)."""
     out.mkdir(parents=True, exist_ok=True)
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     data = {"plan": plan, "truths": truths, "adapt": adapts, "ended": datetime.datetime.now(
-        datetime.timezone.utc).isoformat(timespec="seconds"), "load_average": load,
+        datetime.timezone.utc).isoformat(timespec="seconds"),
+        "load_average": os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan"),
         "machine": f"{platform.machine()} {os.cpu_count()} CPUs, Python {platform.python_version()}"}
+    data.update({k: run[k] for k in ("ended", "load_average", "machine") if run and k in run})
+    load = data["load_average"]
     (out / "damping.json").write_text(json.dumps(data, indent=1))
     md = ["# A damped material: truths converged in time, and E with and without the damping declared", "",
           f"Bar pulled by a cable, E_true = {E_TRUE:g} Pa, ν = {POISSON}, {FRAMES} frames from the equilibrium; truth "
@@ -142,7 +196,10 @@ def write(truths: list[dict], adapts: list[dict], out: Path, plan: dict) -> None
           f"capture.toml [material] damping) and on a copy that does not declare it (rsl simulates β = 0). Settled: "
           f"frames ≥ w + 5. Force error: `rsl evaluate` against truth/forces.csv.", "",
           "## The truths in time", "", TRUTH_HEADER, *[_truth_row(r) for r in truths], "",
-          "## rsl adapt", "", ADAPT_HEADER, *[_adapt_row(r) for r in adapts], "",
+          "## rsl adapt", "", ADAPT_HEADER, *[_adapt_row(r) for r in adapts], ""]
+    if plot(adapts, out / "damping.png"):
+        md += ["![E / E_true per frame; grey band ±5 %, vertical line: the first settled frame](damping.png)", ""]
+    md += [*summary(truths, adapts), "",
           f"Ended {data['ended']} (load average {load:.1f}), {data['machine']}. Produced by `bench/damping.py`."]
     (out / "damping.md").write_text("\n".join(md) + "\n")
 
@@ -153,7 +210,20 @@ def main() -> None:
     ap.add_argument("--substeps", default="3,12", help="truth substeps per frame N; the last is the finest")
     ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_damping"))
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
+    ap.add_argument("--merge", nargs="+", type=Path, default=None,
+                    help="write the page from the rows of these damping.json files (a row in several: the last)")
     a = ap.parse_args()
+    if a.merge:
+        runs = [json.loads(f.read_text()) for f in a.merge]
+        truths = list({(r["beta"], r["substeps"]): r for run in runs for r in run["truths"]}.values())
+        adapts = list({(r["beta_true"], r["declared"], r["truth_substeps"]): r
+                       for run in runs for r in run["adapt"]}.values())
+        truths.sort(key=lambda r: (r["beta"], r["substeps"]))
+        adapts.sort(key=lambda r: (r["beta_true"] == 0, r["beta_true"], -r["declared"]))
+        write(truths, adapts, a.out, {**runs[-1]["plan"], "beta": sorted({p["plan"]["beta"] for p in runs})},
+              runs[-1])
+        print("\n".join(summary(truths, adapts)))
+        return
     ns = [int(k) for k in a.substeps.split(",") if k.strip()]
     plan = {"beta": a.beta, "substeps": ns, "frames": FRAMES}
     caps = {(b, n): truth(a.work, b, n) for b in (0.0, a.beta) for n in ns}

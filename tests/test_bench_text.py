@@ -141,3 +141,37 @@ def test_moving_start_page_follows_its_rows(tmp_path) -> None:
     assert "12.3 % (E / E_true 1.123)" in page
     assert page.count("| bar |") == sum(r.get("scene", "bar") == "bar" for r in rows)
     assert "](moving_start.png)" in page and (tmp_path / "out" / "moving_start.png").stat().st_size > 0
+
+
+def test_late_markers_page_follows_its_rows(tmp_path) -> None:
+    """bench/late_markers.py: each sentence carries its rows' errors (bound late, deleted, every marker seen over the
+    same frames), one per capture and hidden span."""
+    m = load_bench("late_markers")
+    d = json.loads((RESULTS / "late_markers.json").read_text())
+    rows = copy.deepcopy(d["cases"])
+    for r in rows:
+        if r["lead_frames"] == 0 and r["hidden_frames"] == 4 and r["markers"] == "bound late":
+            r["median_error"] = 0.321
+    text = "\n".join(m.summary(rows))
+    assert "hidden over frames 0–3: bound late 32.1 %" in text
+    assert text.count("markers hidden over") == len({(r["lead_frames"], r["hidden_frames"]) for r in rows
+                                                     if r["hidden_frames"]})
+    ref = next(r for r in rows if r["lead_frames"] == 0 and r["markers"] == "all seen")
+    assert f"every marker seen {100 * m.same_frames_error(ref, 4):.1f} % over the same frames" in text
+
+
+def test_damping_page_follows_its_rows(tmp_path) -> None:
+    """bench/damping.py: E declared against undeclared per damped β_true, the truths' differences in time, and the
+    plot."""
+    m = load_bench("damping")
+    d = json.loads((RESULTS / "damping.json").read_text())
+    adapts = copy.deepcopy(d["adapt"])
+    for r in adapts:
+        if r["beta_true"] > 0 and r["declared"] == 0:
+            r["median_error"], r["median_ratio"] = 0.234, 0.766
+    text = "\n".join(m.summary(d["truths"], adapts))
+    assert "undeclared 23.4 % (0.766)" in text
+    assert text.count("the truths against") == len({r["beta"] for r in d["truths"]})
+    m.write(d["truths"], adapts, tmp_path, d["plan"], d)
+    page = (tmp_path / "damping.md").read_text()
+    assert "undeclared 23.4 % (0.766)" in page and (tmp_path / "damping.png").stat().st_size > 0

@@ -211,6 +211,10 @@ def test_synth_writes_its_damping_into_capture_toml_and_adapt_simulates_with_it(
     cap, ws = tmp_path / "d", tmp_path / "ws"
     tetrahedralize.run(tetrahedralize.TetrahedralizeConfig(capture=cap, workspace=ws, order=1))
     calibrate.run(calibrate.CalibrateConfig(capture=cap, workspace=ws, from_json=str(cap / "cameras.json")))
+    from stages.progress import SilentReporter
+
+    rep = SilentReporter()
     art = AdaptArtefact.load(adapt.run(adapt.AdaptConfig(capture=cap, workspace=ws, loss="markers", window=3,
-                                                         estimator="gn", space="full", substeps=1)))
+                                                         estimator="gn", space="full", substeps=1), rep))
     assert art.extra["damping"] == 0.02
+    assert any("viscous damping β = 0.02 s" in m for m in rep.messages)

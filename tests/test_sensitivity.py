@@ -115,3 +115,24 @@ def test_reduced_sensitivity_is_the_adjoints_transpose(reduced):
         lhs = float(np.sum(v * S[j]))
         rhs = float(g["young"].sum(0) @ de[j] + g["poisson"].sum(0) @ dn[j] + np.sum(g["z_before"] * db[j]))
         assert abs(lhs - rhs) <= 1e-8 * (abs(lhs) + abs(rhs) + 1e-30), j
+
+
+def test_damped_full_space_sensitivity_matches_finite_differences():
+    """With the material's viscous damping (Scene.damping β > 0; its term couples x_t to x_{t−1} and to θ): the
+    forward sensitivities against central differences, as undamped."""
+    import dataclasses
+
+    scene = dataclasses.replace(bar_scene(), damping=0.01)
+    inp = sequence_inputs(scene, 0, frames=W0 + W)
+    X = simulate(scene, inp, YOUNG, POISSON, rtol=1e-12)
+    before, win = X[W0 - 2:W0], inp[W0:]
+    de, dn, db = _directions(X.shape[1:], np.random.default_rng(2))
+    S = window_sensitivity(scene, win, YOUNG, POISSON, X[W0:], before, de, dn, db)
+    h = 1e-4
+    for j in range(len(de)):
+        plus = simulate(scene, win, YOUNG + h * de[j], POISSON + h * dn[j], x_prev=before[1] + h * db[j, 1],
+                        x_prev2=before[0] + h * db[j, 0], rtol=1e-12)
+        minus = simulate(scene, win, YOUNG - h * de[j], POISSON - h * dn[j], x_prev=before[1] - h * db[j, 1],
+                         x_prev2=before[0] - h * db[j, 0], rtol=1e-12)
+        fd = (plus - minus) / (2 * h)
+        assert np.linalg.norm(S[j] - fd) <= 1e-5 * np.linalg.norm(fd), j

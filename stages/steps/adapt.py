@@ -1464,6 +1464,8 @@ def _report(loop: _Loop, reporter: Reporter, names: list[str], dofs: int, mesh: 
     reporter.info(f"{backend.space:>8} {dofs:>7} {backend.dim:>4} {config.window:>3} | "
                   f"{f:8.3f} {b:8.3f} {r:8.3f} {t:8.3f}")
     reporter.info(_young_meaning(config, mesh))
+    if loop.damping > 0:
+        reporter.info(f"simulated with the capture's viscous damping β = {loop.damping:g} s ([material] damping)")
     E, nu = rec.young[-1], rec.poisson[-1]
     if rec.young_sigma:  # the estimator's 1σ (E ± σ: the truth lies inside ±2σ about 95 % of the time)
         sE, sN = rec.young_sigma[-1], rec.poisson_sigma[-1]
