@@ -67,7 +67,7 @@ class MarkerObservation:
         b = bind_markers(x0[:self.n], self.faces, self._raw[0][a])
         faces, dist = self.binding.faces.copy(), self.binding.distance.copy()
         faces[a], dist[a] = b.faces, b.distance
-        self.binding = MarkerBinding(faces, self.binding.bary, dist)
+        self.binding = MarkerBinding(faces, self.binding.bary, dist)  # (the new triangles, for _plane_bary)
         self.binding = MarkerBinding(faces, self._plane_bary(x0[:self.n]), dist)
 
     def fit_to_tracks(self, frames: Sequence[int], X: np.ndarray) -> float:

@@ -1,7 +1,8 @@
 """Full-space implicit-Euler FEM: the scene, one time step by Newton, a sequence, and the window adjoint.
 
 Step (paper Eq. 1):  x_t = argmin_x Φ_t(x),  Φ_t = ½/Δt² ‖x − y_t‖²_M + Σ_q w_q Ψ(F_q; θ_t)
-                     − (M g + f_t)·x + Σ_h ½ k_h ‖x_h − x̄_h,t‖² + contact,   y_t = 2x_{t−1} − x_{t−2}.
+                     − (M g + f_t)·x + Σ_h ½ k_h ‖x_h − x̄_h,t‖² + contact,   y_t = 2x_{t−1} − x_{t−2},
+plus, for a damped material (Scene.damping β > 0), β/Δt Σ_q w_q D(F_q, F_q(x_{t−1}); θ_t) (materials.viscous_density).
 The elastic energy is a sum over quadrature points (stages.sim.quadrature): one per linear tet
 (w = V, F = Ds Dm⁻¹), four per quadratic (10-node) tet.  Hard (Dirichlet) handles have no spring term:
 their vertices are put at the targets x̄_h,t and Newton runs on the free DOFs (their rows and columns

@@ -83,9 +83,8 @@ def _split(snap: SnapshotsArtefact, fraction: float, seed: int) -> tuple[np.ndar
     return np.sort(order[: s - n_val]), np.sort(order[s - n_val:]), "one sequence: its last frames validate"
 
 
-def _material_model(config: TrainSubspaceConfig, snap_path: Path) -> str:
-    if config.material:
-        return config.material
+def _capture_material(config: TrainSubspaceConfig, snap_path: Path):
+    """The capture's MaterialSettings (--capture, else the capture generate-data used), or None."""
     capture = config.capture
     if capture is None:
         try:
@@ -94,10 +93,25 @@ def _material_model(config: TrainSubspaceConfig, snap_path: Path) -> str:
             capture = None
     if capture:
         try:
-            return load_capture(Path(capture)).material.model
+            return load_capture(Path(capture)).material
         except (RslError, OSError):
             pass
-    return "stable_neohookean"
+    return None
+
+
+def _material_model(config: TrainSubspaceConfig, snap_path: Path) -> str:
+    if config.material:
+        return config.material
+    mat = _capture_material(config, snap_path)
+    return mat.model if mat is not None else "stable_neohookean"
+
+
+def _pose_pairs(snap, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ids whose frame before is in the snapshots, the index of that frame), per the snapshots' sequence and
+    frame numbers: the pose pairs of the viscous term's cubature rows."""
+    key = {(int(s), int(f)): i for i, (s, f) in enumerate(zip(snap.sequence, snap.frame))}
+    prev = np.array([key.get((int(snap.sequence[i]), int(snap.frame[i]) - 1), -1) for i in ids], np.int64)
+    return ids[prev >= 0], prev[prev >= 0]
 
 
 def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> Path:
@@ -105,7 +119,8 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
     import jax.numpy as jnp  # JAX, equinox and optax load in run: rsl train-subspace --help stays light
 
     from stages.sim.materials import MODELS, lame
-    from stages.subspace.cubature import ReducedForceSampler, cubature_error, fit_cubature, mesh_quadrature
+    from stages.subspace.cubature import (ReducedForceSampler, StackedSampler, ViscousForceSampler, cubature_error,
+                                          fit_cubature, mesh_quadrature)
     from stages.subspace.train import fit_subspace, reconstruction_error
 
     ws = Path(config.workspace)
@@ -190,8 +205,16 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
     if config.cubature_tets > 0 and config.cubature_tets < m:
         pick = rng.choice(len(tr), size=min(config.cubature_poses, len(tr)), replace=False)
         z_fit = np.asarray(sub.encode(jnp.asarray(x_tr[pick])))
+        mat = _capture_material(config, snap_path)
+        damping = mat.damping if mat is not None else 0.0
         with reporter.task(f"Cubature (≤ {config.cubature_tets} of {m} {what})", None):
             sampler = ReducedForceSampler(sub, z_fit, quad, mu_q, lam_q, model)
+            if damping > 0:  # the viscous forces too, at training poses and the frame before each
+                now, before = _pose_pairs(snap, np.asarray(tr)[pick])
+                if len(now):
+                    sampler = StackedSampler(sampler, ViscousForceSampler(
+                        sub, np.asarray(sub.encode(jnp.asarray(snap.positions[now]))), snap.positions[before], quad,
+                        mu_q, lam_q))
             ids, w, cinfo = fit_cubature(sampler, region_q, n_reg, config.cubature_tets,
                                          config.cubature_tol, seed=config.seed)
             val_cub = float("nan")
@@ -202,7 +225,8 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
                 val_cub = cubature_error(sv, region_q, n_reg, ids, w)
         # quadrature point ids (for linear tets: tet ids) and weights; the order they index
         extra_cub = {"cubature_points": ids.tolist(), "cubature_weights": w.tolist(), "cubature_order": order,
-                     "cubature_error_rel": cinfo["error_rel"], "cubature_error_val_rel": val_cub}
+                     "cubature_error_rel": cinfo["error_rel"], "cubature_error_val_rel": val_cub,
+                     "cubature_viscous": isinstance(sampler, StackedSampler)}
     r, p = sub.dim, sub.p
     extra = {
         "layers": ([3 * n, p, 200, 200, r] if config.kind == "autoencoder" else [3 * n, r]),

@@ -10,7 +10,9 @@ that the reduced forces match on training poses z_k:
 
 (one block of rows per material region R, so each region's sum is matched on its own).  Points are
 added greedily from random candidate pools by the score ⟨A_q, residual⟩ / ‖A_q‖ and the weights
-re-solved with scipy.optimize.nnls.  For P1 meshes point ids are tet ids.
+re-solved with scipy.optimize.nnls.  For P1 meshes point ids are tet ids.  A material with viscous damping adds
+the rows of the viscous forces ∂/∂z V_q D(F_q(φ(z)), F_q(x_prev)) at consecutive training poses
+(:class:`ViscousForceSampler`, :class:`StackedSampler`): one set of weights integrates both terms.
 """
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ from scipy.optimize import nnls  # noqa: E402
 
 from functools import partial  # noqa: E402
 
-from stages.sim.materials import energy_density  # noqa: E402
+from stages.sim.materials import energy_density, viscous_density  # noqa: E402
 from stages.sim.quadrature import Quadrature, build_quadrature, element_order, linear_quadrature  # noqa: E402
 from stages.subspace.networks import SubspaceMap  # noqa: E402
 
@@ -139,6 +141,77 @@ class ReducedForceSampler:
         """Σ_{q∈R} g_q(z_k), (K, R, r)."""
         onehot = jnp.asarray(np.eye(n_regions)[point_region])
         return np.stack([np.asarray(self._totals(self.x[k], self.jq[k], onehot)) for k in range(len(self.x))])
+
+
+def _viscous_grads(xe, xpe, grad, weight, mu, lam):
+    """∂(V_q D(F_q, F_q,prev))/∂x_e (materials.viscous_density) for points given by their element's node positions
+    now xe and before xpe (c, k, 3) → (c, k, 3)."""
+    def one(xe, xpe, g, v, mu, lam):
+        return v * viscous_density(xe.T @ g, xpe.T @ g, mu, lam)
+
+    return jax.vmap(jax.grad(one))(xe, xpe, grad, weight, mu, lam)
+
+
+@jax.jit
+def _viscous_cols_jit(x, xp, jq, ids, basis, nodes, grad, weight, mu, lam):
+    te = nodes[ids]
+    ge = _viscous_grads(x[te], xp[te], grad[ids], weight[ids], mu[ids], lam[ids])
+    return jnp.einsum("cai,caip->cp", ge, basis[te]) @ jq
+
+
+@jax.jit
+def _viscous_totals_jit(x, xp, jq, region_onehot, basis, nodes, grad, weight, mu, lam):
+    ge = _viscous_grads(x[nodes], xp[nodes], grad, weight, mu, lam)
+    f = jnp.zeros((region_onehot.shape[1],) + x.shape).at[:, nodes].add(
+        region_onehot.T[:, :, None, None] * ge[None])
+    return jnp.einsum("Rni,nip->Rp", f, basis) @ jq
+
+
+class ViscousForceSampler:
+    """The reduced viscous forces of the points, ∂/∂z V_q D(F_q(φ(z)), F_q(x_prev)) at pose pairs (z_k, x_prev,k)
+    (a material with damping, Scene.damping: the cubature must integrate this term too, whose integrand — strain
+    rates — differs from the elastic one).  The interface of :class:`ReducedForceSampler`; ``x_prev`` (K, n, 3)."""
+
+    def __init__(self, sub: SubspaceMap, z: np.ndarray, x_prev: np.ndarray, quad: Quadrature, mu_q, lam_q):
+        self.quad = quad
+        zj = jnp.asarray(z)
+        self.x = np.asarray(sub.decode(zj))
+        self.xp = np.asarray(x_prev, np.float64)
+        self.jq = np.asarray(jax.vmap(sub.jacobian_q)(zj))
+        self._arrays = (jnp.asarray(sub.basis), jnp.asarray(np.asarray(quad.nodes, np.int64)),
+                        jnp.asarray(quad.grad), jnp.asarray(quad.weight), jnp.asarray(np.asarray(mu_q, np.float64)),
+                        jnp.asarray(np.asarray(lam_q, np.float64)))
+
+    @property
+    def n_points(self) -> int:
+        return self.quad.n_points
+
+    def columns(self, point_ids: np.ndarray) -> np.ndarray:
+        ids = jnp.asarray(point_ids)
+        return np.stack([np.asarray(_viscous_cols_jit(self.x[k], self.xp[k], self.jq[k], ids, *self._arrays))
+                         for k in range(len(self.x))])
+
+    def region_totals(self, point_region: np.ndarray, n_regions: int) -> np.ndarray:
+        onehot = jnp.asarray(np.eye(n_regions)[point_region])
+        return np.stack([np.asarray(_viscous_totals_jit(self.x[k], self.xp[k], self.jq[k], onehot, *self._arrays))
+                         for k in range(len(self.x))])
+
+
+class StackedSampler:
+    """Several samplers' poses as one (their rows stacked): a cubature fitted to all of their forces."""
+
+    def __init__(self, *samplers):
+        self.samplers = samplers
+
+    @property
+    def n_points(self) -> int:
+        return self.samplers[0].n_points
+
+    def columns(self, point_ids: np.ndarray) -> np.ndarray:
+        return np.concatenate([s.columns(point_ids) for s in self.samplers])
+
+    def region_totals(self, point_region: np.ndarray, n_regions: int) -> np.ndarray:
+        return np.concatenate([s.region_totals(point_region, n_regions) for s in self.samplers])
 
 
 def _rows(cols: np.ndarray, ids: np.ndarray, point_region: np.ndarray, n_regions: int, norms: np.ndarray):
