@@ -325,6 +325,100 @@ def snh_point_kernel(x, nodes, grad, weight, mu, lam, want, project, out_index, 
 
 
 
+@nb.njit(cache=True)
+def viscous_point_kernel(x, x_prev, nodes, grad, weight, mu, lam, want, project, out_index, n_out):
+    """The viscous term w D(F, F_prev) of quadrature points (materials.viscous_density), as snh_point_kernel sums
+    the elastic one: energies (n_out,), gradients (n_out, 3k), Hessians (n_out, 3k, 3k) in x, F from x and F_prev
+    from x_prev (n, 3); weight (q,) carries β/Δt.  With ΔE = E(F) − E(F_prev), S = 2μ ΔE + λ tr(ΔE) I:
+    ∂D/∂F = F S and ∂²D/∂F_ij∂F_kl = δ_ik S_lj + μ F_il F_kj + μ (F Fᵀ)_ik δ_jl + λ F_ij F_kl.  All but the first
+    term make 2μ ‖sym(Fᵀ dF)‖² + λ tr(Fᵀ dF)² ≥ 0; the first is tr(dF S dFᵀ), so the Hessian is projected to PSD by
+    S's eigenvalues (``project`` 1: clamped at 0; 2: their absolute values; a 3×3 eigensystem, _sym3_eig_into)."""
+    q = nodes.shape[0]
+    k = nodes.shape[1]
+    nd = 3 * k
+    energy = np.zeros(n_out)
+    gout = np.zeros((n_out if want >= 1 else 0, nd))
+    hout = np.zeros((n_out if want >= 2 else 0, nd, nd))
+    F, Fp, dE, S, FFt = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    Sp, A3, Q3, w3 = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty(3)
+    HF = np.empty((9, 9))
+    T = np.empty((9, nd))
+    for p in range(q):
+        G = grad[p]
+        o = out_index[p]
+        for i in range(3):
+            for j in range(3):
+                a1, a0 = 0.0, 0.0
+                for a in range(k):
+                    a1 += x[nodes[p, a], i] * G[a, j]
+                    a0 += x_prev[nodes[p, a], i] * G[a, j]
+                F[i, j], Fp[i, j] = a1, a0
+        tr = 0.0
+        for i in range(3):
+            for j in range(3):
+                c1, c0 = 0.0, 0.0
+                for m in range(3):
+                    c1 += F[m, i] * F[m, j]
+                    c0 += Fp[m, i] * Fp[m, j]
+                dE[i, j] = 0.5 * (c1 - c0)
+            tr += dE[i, i]
+        ee = 0.0
+        for i in range(3):
+            for j in range(3):
+                ee += dE[i, j] * dE[i, j]
+                S[i, j] = 2.0 * mu[p] * dE[i, j] + (lam[p] * tr if i == j else 0.0)
+        V = weight[p]
+        energy[o] += V * (mu[p] * ee + 0.5 * lam[p] * tr * tr)
+        if want < 1:
+            continue
+        for a in range(k):  # ∂/∂x_{a,i} = V Σ_j (F S)_ij G_aj
+            for i in range(3):
+                acc = 0.0
+                for j in range(3):
+                    fs = F[i, 0] * S[0, j] + F[i, 1] * S[1, j] + F[i, 2] * S[2, j]
+                    acc += fs * G[a, j]
+                gout[o, 3 * a + i] += V * acc
+        if want < 2:
+            continue
+        for i in range(3):
+            for kk in range(3):
+                FFt[i, kk] = F[i, 0] * F[kk, 0] + F[i, 1] * F[kk, 1] + F[i, 2] * F[kk, 2]
+        for i in range(3):
+            for j in range(3):
+                for kk in range(3):
+                    for ll in range(3):
+                        h = mu[p] * F[i, ll] * F[kk, j] + lam[p] * F[i, j] * F[kk, ll]
+                        if i == kk:
+                            h += S[ll, j]
+                        if j == ll:
+                            h += mu[p] * FFt[i, kk]
+                        HF[3 * i + j, 3 * kk + ll] = h
+        if project:  # the S term δ_ik S_lj with S⁺ (S's eigenvalues clamped / absolute) in place of S
+            A3[:, :] = S
+            _sym3_eig_into(A3, w3, Q3)  # (destroys A3)
+            for m in range(3):
+                w3[m] = abs(w3[m]) if project == 2 else max(w3[m], 0.0)
+            for i in range(3):
+                for j in range(3):
+                    Sp[i, j] = Q3[i, 0] * w3[0] * Q3[j, 0] + Q3[i, 1] * w3[1] * Q3[j, 1] + Q3[i, 2] * w3[2] * Q3[j, 2]
+            for i in range(3):
+                for ll in range(3):
+                    for j in range(3):
+                        HF[3 * i + j, 3 * i + ll] += Sp[ll, j] - S[ll, j]
+        for r in range(9):  # T[(i,j), (b,kk)] = Σ_l HF[(i,j),(kk,l)] G[b,l]
+            for b in range(k):
+                for kk in range(3):
+                    T[r, 3 * b + kk] = (HF[r, 3 * kk] * G[b, 0] + HF[r, 3 * kk + 1] * G[b, 1]
+                                        + HF[r, 3 * kk + 2] * G[b, 2])
+        Ho = hout[o]
+        for a in range(k):  # H[(a,i),(b,kk)] = V Σ_j G[a,j] T[(i,j),(b,kk)]
+            for i in range(3):
+                for c in range(nd):
+                    Ho[3 * a + i, c] += V * (G[a, 0] * T[3 * i, c] + G[a, 1] * T[3 * i + 1, c]
+                                             + G[a, 2] * T[3 * i + 2, c])
+    return energy, gout, hout
+
+
 def snh_kernel(x, tets, dm_inv, vol, mu, lam, want, project):
     """Stable Neo-Hookean per linear tet: energies V Ψ (m,), gradients (m, 12) and Hessians (m, 12, 12)
     w.r.t. x_e (:func:`snh_point_kernel` with one point per tet, G from Dm⁻¹).  x (n, 3),
@@ -415,7 +509,7 @@ def _point_damping(xe, xpe, g, w, mu, lam):
 
 def _damping_terms_impl(x, x_prev, nodes, g, weight, mu, lam, want, project):
     """Per point: energies (q,), gradients (q, 3k), and with want = HESSIAN Hessians (q, 3k, 3k) in x of
-    w D(F(x), F(x_prev)) (Bᵀ proj(∂²D/∂F²) B w, as _point_terms_impl)."""
+    w D(F(x), F(x_prev)): Bᵀ (∂²D/∂F²) B w, projected as viscous_point_kernel projects it."""
     xe, xpe = x[nodes], x_prev[nodes]
     nd = 3 * nodes.shape[1]
     energy = jax.vmap(_point_damping)(xe, xpe, g, weight, mu, lam)
@@ -424,10 +518,15 @@ def _damping_terms_impl(x, x_prev, nodes, g, weight, mu, lam, want, project):
         return energy, grad, jnp.zeros((0, nd, nd))
 
     def hess_one(xe1, xp1, g1, v, m1, l1):
-        Fp = xp1.T @ g1
-        hf = jax.hessian(lambda F: viscous_density(F, Fp, m1, l1))(xe1.T @ g1).reshape(9, 9)
-        if project:
-            hf = _project_psd(hf, project)
+        F, Fp = xe1.T @ g1, xp1.T @ g1
+        hf = jax.hessian(lambda FF: viscous_density(FF, Fp, m1, l1))(F).reshape(9, 9)
+        if project:  # S's eigenvalues clamped (or absolute) in the term δ_ik S_lj (viscous_point_kernel)
+            eye = jnp.eye(3)
+            dE = 0.5 * (F.T @ F - Fp.T @ Fp)
+            S = 2.0 * m1 * dE + l1 * jnp.trace(dE) * eye
+            w, Q = jnp.linalg.eigh(S)
+            Sp = (Q * (jnp.abs(w) if project == "abs" else jnp.maximum(w, 0.0))) @ Q.T
+            hf = hf + jnp.kron(eye, Sp - S)
         B = jnp.einsum("ik,aj->ijak", jnp.eye(3), g1).reshape(9, nd)
         return v * B.T @ hf @ B
 
@@ -438,11 +537,20 @@ _damping_terms_jit = jax.jit(_damping_terms_impl, static_argnums=(7, 8))
 
 
 def point_damping_terms(x, x_prev, nodes, grad, weight, mu, lam, want: int = HESSIAN, project: bool = True,
-                        out_index: np.ndarray | None = None, n_out: int | None = None):
+                        out_index: np.ndarray | None = None, n_out: int | None = None, backend: str = "auto"):
     """(energies, gradients (·, 3k), Hessians (·, 3k, 3k)) in x of the viscous terms w_q D(F_q(x), F_q(x_prev))
     of quadrature points (materials.viscous_density; weight (q,) carries β/Δt), in numpy, summed into rows
-    out_index (q,) of n_out (default one row per point); the Hessian projected as :func:`point_terms`'s."""
+    out_index (q,) of n_out (default one row per point); the Hessian projected as :func:`point_terms`'s.
+    backend "auto"/"numba": :func:`viscous_point_kernel`; "jax": its JAX twin (autodiff of the density)."""
     n_out = len(nodes) if out_index is None else int(n_out)
+    if backend in ("auto", "numba"):
+        idx = np.arange(len(nodes)) if out_index is None else out_index
+        return viscous_point_kernel(np.ascontiguousarray(x, np.float64), np.ascontiguousarray(x_prev, np.float64),
+                                    np.ascontiguousarray(nodes, np.int64), np.ascontiguousarray(grad, np.float64),
+                                    np.ascontiguousarray(weight, np.float64), np.ascontiguousarray(mu, np.float64),
+                                    np.ascontiguousarray(lam, np.float64), int(want),
+                                    2 if project == "abs" else int(bool(project)),
+                                    np.ascontiguousarray(idx, np.int64), n_out)
     e, g, h = _damping_terms_jit(jnp.asarray(x), jnp.asarray(x_prev), jnp.asarray(nodes), jnp.asarray(grad),
                                  jnp.asarray(weight), jnp.asarray(mu), jnp.asarray(lam), int(want), project)
     out = [_segment_sum(np.asarray(a), out_index, n_out) for a in (e, g)]

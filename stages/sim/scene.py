@@ -355,8 +355,8 @@ def _material(scene: Scene, x, x_prev, mu, lam, want: int, project, kernels: str
     q = scene.quad
     mu_q, lam_q = (mu, lam) if scene.order == 1 else (mu[q.element], lam[q.element])
     ed, gd, hd = point_damping_terms(x, np.asarray(x_prev, np.float64), q.nodes, q.grad,
-                                     q.weight * (scene.damping / scene.dt), mu_q, lam_q, max(want, GRADIENT),
-                                     project, q.element, len(scene.tets))
+                                     q.weight * (scene.damping / scene.dt), mu_q, lam_q, want, project, q.element,
+                                     len(scene.tets), "jax" if kernels == "jax" else "auto")
     return (e + ed, g + gd if want >= GRADIENT else g, h + hd if want >= HESSIAN else h)
 
 
