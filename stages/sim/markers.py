@@ -112,12 +112,13 @@ def fit_binding_to_tracks(X: np.ndarray, faces: np.ndarray, P: np.ndarray,
     """Each marker's material point fitted to its track: the triangle f and barycentrics b (inside the triangle)
     minimising Σ_t ‖Σ_k b_k x_t[f_k] − p_t‖² over the observed frames, for vertex tracks X (w, n, 3), faces
     (F, 3) and marker tracks P (w, M, 3) (NaN at a gap), searched over the ``candidates`` triangles nearest the
-    marker on the surface of the first frame that sees it.  On one triangle the cost is a convex quadratic in (b_1, b_2): its unconstrained
-    minimum if it lies inside, else the best of the three edges' clamped 1-D minima.  With one frame this is the
-    nearest surface point (bind_markers).  ``distance``: the residual ‖m_i(x_f) − p_f‖ at the
-    marker's first observed frame f (0 where never seen)."""
+    marker on the surface of the first frame that sees it.  On one triangle the cost is a convex quadratic in
+    (b_1, b_2): its unconstrained minimum if it lies inside, else the best of the three edges' clamped 1-D minima.
+    With one frame this is the nearest surface point (bind_markers).  ``distance``: the residual ‖m_i(x_f) − p_f‖
+    at the marker's first observed frame f (0 where never seen)."""
     seen = np.all(np.isfinite(P), axis=-1)  # (w, M)
-    first = np.argmax(seen, axis=0)  # (M,) each marker's first observed frame (0 when never: searched at X[0]'s centre)
+    first = np.argmax(seen, axis=0)  # (M,) each marker's first observed frame (never seen: 0, searched from X[0]'s
+    # centre)
     p0 = np.where(seen.any(axis=0)[:, None], P[first, np.arange(P.shape[1])], X[0].mean(axis=0))
     k = min(candidates, len(faces))
     cand = np.empty((len(p0), k), np.int64)  # (M, k), nearest first on the surface of the marker's first frame
