@@ -52,6 +52,7 @@ E0 = 1.0e5
 POISSON = 0.45
 WINDOW = 3
 TRUTH_SUBSTEPS = 3
+TRUTH_DAMPING = 0.0  # β s of the truths' viscous damping (`rsl synth --damping`, declared in capture.toml); 0: none
 MAX_TETS = 1500  # adapt mesh size (fTetWild): 964 P2 tets, 4914 DOFs on the bar
 # --scale: (cameras, image side, adapt --max-tets, truth --truth-refine).  table: the main table's captures; paper:
 # the paper's Bar (≈10K DOFs, c = 4 at 128²): fTetWild's --max-tets 2450 meshes the bar with ≈2K P2 tets, 9–12K
@@ -111,7 +112,8 @@ def capture(work: Path, case: str, start: str, frames: int, refine: int) -> Path
     cameras, side, _, scale_refine = SCALES[SCALE]
     return pl.foreign_capture(work / f"{case}_{start}", scene_args(case, frames), start=start, frames=frames,
                               cameras=cameras, resolution=side, refine=max(refine, scale_refine),
-                              substeps=TRUTH_SUBSTEPS, poisson=POISSON)
+                              substeps=TRUTH_SUBSTEPS, poisson=POISSON,
+                              extra=["--damping", TRUTH_DAMPING] if TRUTH_DAMPING else [])
 
 
 def workspace(work: Path, cap: Path, case: str, start: str, order: int, loss: str, space: str, frames: int) -> Path:
@@ -273,7 +275,7 @@ def row_key(r) -> tuple:
 
 
 def main() -> None:
-    global EXTRA, EXPORT, TRUTH_SUBSTEPS, SUBSPACE_DIM, SCALE
+    global EXTRA, EXPORT, TRUTH_SUBSTEPS, TRUTH_DAMPING, SUBSPACE_DIM, SCALE
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
@@ -296,6 +298,8 @@ def main() -> None:
     ap.add_argument("--adapt-option", action="append", default=[],
                     help="one more rsl adapt option (repeat for each word, e.g. --adapt-option=--lead-in --adapt-option=3)")
     ap.add_argument("--dim", type=int, default=SUBSPACE_DIM, help="train-subspace --dim, r of the reduced rows")
+    ap.add_argument("--truth-damping", type=float, default=TRUTH_DAMPING,
+                    help="β s of the truths' viscous damping (rsl synth --damping; a --work of its own)")
     ap.add_argument("--truth-substeps", type=int, default=TRUTH_SUBSTEPS,
                     help="rsl synth --substeps of the truth (its implicit-Euler steps per frame)")
     ap.add_argument("--scale", choices=sorted(SCALES), default="table",
@@ -321,6 +325,7 @@ def main() -> None:
                 latest[k] = r
         rows = list(latest.values())
         TRUTH_SUBSTEPS = int(runs[0]["plan"].get("truth_substeps", TRUTH_SUBSTEPS))
+        TRUTH_DAMPING = float(runs[0]["plan"].get("truth_damping", 0.0))
         SUBSPACE_DIM = int(runs[0]["plan"].get("dim", SUBSPACE_DIM))  # the header's r (a row with another: its own)
         if a.previous:
             old = json.loads(a.previous.read_text())
@@ -342,13 +347,14 @@ def main() -> None:
         if unknown:
             ap.error(f"--rows: {unknown} not in the plan")
         plan = want
-    TRUTH_SUBSTEPS, SUBSPACE_DIM = a.truth_substeps, a.dim
+    TRUTH_SUBSTEPS, TRUTH_DAMPING, SUBSPACE_DIM = a.truth_substeps, a.truth_damping, a.dim
     EXPORT = not a.no_export
     EXTRA = ((["--estimator", a.estimator] if a.estimator else []) + (["--substeps", a.substeps] if a.substeps else [])
              + a.adapt_option)
     print(HEAD, flush=True)
     rows = []
     meta = {"frames": frames, "refine": refine, "rows": plan, "scale": SCALE, "adapt_options": EXTRA, "truth_substeps": TRUTH_SUBSTEPS,
+            "truth_damping": TRUTH_DAMPING,
             "dim": SUBSPACE_DIM}
     for row in plan:
         rows.append(run_row(a.work, row, frames, refine))
@@ -415,7 +421,10 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
                   f"{paper[0].get('truth_tets', '?')} P2 tets).")
     md = (f"# Accuracy on captures rsl did not make\n\nTruth: P2 tets{' on the mesh refined once' if plan['refine'] else ''}, "
           f"{TRUTH_SUBSTEPS} substeps per frame, hard handles (`rsl synth --truth-order 2 --truth-refine "
-          f"{plan['refine']} --substeps {TRUTH_SUBSTEPS} --handles hard`), {plan['frames']} frames, ν = {POISSON}, "
+          f"{plan['refine']} --substeps {TRUTH_SUBSTEPS} --handles hard"
+          f"{f' --damping {TRUTH_DAMPING:g}' if TRUTH_DAMPING else ''}`), "
+          f"{f'viscous damping β = {TRUTH_DAMPING:g} s declared in capture.toml, ' if TRUTH_DAMPING else ''}"
+          f"{plan['frames']} frames, ν = {POISSON}, "
           f"{cams} cameras at {side}², 40 markers. rsl: fTetWild mesh (`--max-tets {max_tets}`), reduced space r = {SUBSPACE_DIM} "
           f"(generate-data 4 sequences; `train-subspace --cubature-tol` "
           f"{', '.join(f'{c} {t:g}' for c, t in CUBATURE_TOL.items())}), adapt online, window "
