@@ -14,9 +14,9 @@ from scipy.spatial.transform import Rotation
 from stages.sim import potential as pot
 from stages.sim.materials import lame, viscous_density
 from stages.sim.scene import (frame_inputs, handle_reactions, hessian, internal_forces, make_scene, simulate, step,
-                              total_energy, window_adjoint)
+                              total_energy)
 from test_forces_truth import bar  # noqa: F401 (a fixture)
-from test_sim_p2 import clamp, curved_p2, p2_bar, random_state
+from test_sim_p2 import clamp, curved_p2, p2_bar, random_state, window_adjoint_fd_error
 
 from stages.artefacts import mesh_artefact
 
@@ -99,39 +99,7 @@ def test_damping_gradient_and_hessian_match_finite_differences():
 def test_window_adjoint_with_damping_matches_finite_differences():
     """dL/dθ_t through damped steps (the viscous term depends on x_{t−1} and on θ through μ, λ), as
     test_sim_p2's undamped check: a P2 bar of two regions, a moving hard clamp, a window of 2 after 2 frames."""
-    from stages.capture import Track
-    from test_sim_p2 import IDENTITY
-
-    poses = Track(np.arange(4), np.array([IDENTITY, [0, 0, 0.002, 1, 0, 0, 0], [0, 0, 0.004, 1, 0, 0, 0],
-                                          [0.001, 0, 0.005, 1, 0, 0, 0]]), True)
-    from stages.sim.meshgen import box_tets
-
-    v, t = box_tets((3, 1, 1), (0.15, 0.05, 0.05))
-    region = (v[t].mean(1)[:, 0] > 0.075).astype(int)
-    mesh = mesh_artefact(v, t, 1000.0, region, ("a", "b"), order=2)
-    ctl = clamp(True, poses=poses)
-    scene = make_scene(mesh, ctl, "stable_neohookean", 1 / 30, [0, 0, -9.81], damping=BETA)
-    T, w = 4, 2
-    inputs = [frame_inputs(scene, ctl, i) for i in range(T)]
-    young = np.array([[4e4, 1.5e5]] * T) * (1 + 0.1 * np.arange(T))[:, None]
-    poisson = np.array([[0.4, 0.3]] * T)
-    W = np.random.default_rng(5).normal(size=(w, scene.n_vertices, 3))
-
-    def loss(E, nu):
-        X = simulate(scene, inputs, E, nu, rtol=1e-12)
-        return float(np.sum(W * X[T - w:])), X
-
-    _, X = loss(young, poisson)
-    g = window_adjoint(scene, inputs[T - w:], young[T - w:], poisson[T - w:], X[T - w:], X[T - w - 2:T - w], W)
-    worst = 0.0
-    for k in range(w):
-        for r in range(2):
-            for key, arr, h in (("young", 0, 1e-5 * young[T - w + k, r]), ("poisson", 1, 1e-6)):
-                P, M = [young.copy(), poisson.copy()], [young.copy(), poisson.copy()]
-                P[arr][T - w + k, r] += h
-                M[arr][T - w + k, r] -= h
-                fd = (loss(*P)[0] - loss(*M)[0]) / (2 * h)
-                worst = max(worst, abs(g[key][k, r] - fd) / abs(fd))
+    worst = window_adjoint_fd_error(True, BETA)
     assert worst < 1e-4, worst
 
 
