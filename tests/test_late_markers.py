@@ -121,3 +121,17 @@ def test_offline_adapt_says_it_leaves_late_markers_out(beam16, tmp_path):
     assert any("5 marker(s) are first seen after frame 0; --mode offline binds markers at frame 0 only" in m
                for m in rep.messages)
     assert art.extra["late_markers_unbound"] == len(LATE)
+
+
+def test_online_adam_binds_late_markers_too(beam16, tmp_path):
+    """The Adam estimator's online loop binds them as gn's does: by the first window whose 3 frames see them."""
+    from stages.artefacts import AdaptArtefact
+    from stages.steps import adapt
+
+    cap, ws = beam16
+    cap2 = _late_capture(cap, tmp_path)
+    art = AdaptArtefact.load(adapt.run(adapt.AdaptConfig(capture=cap2, workspace=ws, loss="markers", window=3,
+                                                         estimator="adam", space="full", young_init=0.5 * E_TRUE,
+                                                         substeps=1, frames="0:8")))
+    assert art.extra["late_markers_bound"] == [[HIDDEN + adapt.LATE_MARKER_FRAMES - 1, len(LATE)]]
+    assert art.extra["late_markers_unbound"] == 0
