@@ -67,8 +67,7 @@ class MarkerObservation:
         b = bind_markers(x0[:self.n], self.faces, self._raw[0][a])
         faces, dist = self.binding.faces.copy(), self.binding.distance.copy()
         faces[a], dist[a] = b.faces, b.distance
-        self.binding = MarkerBinding(faces, self.binding.bary, dist)  # (the new triangles, for _plane_bary)
-        self.binding = MarkerBinding(faces, self._plane_bary(x0[:self.n]), dist)
+        self.binding = MarkerBinding(faces, self._plane_bary(x0[:self.n], faces), dist)
 
     def fit_to_tracks(self, frames: Sequence[int], X: np.ndarray) -> float:
         """Bind each marker seen in ``frames`` to the material point whose track over them fits its observations
@@ -78,7 +77,7 @@ class MarkerObservation:
         x0 = X[0, :self.n]
         was = self.bound.copy()
         old = self.binding.positions(x0)
-        self._fit(frames, X, np.any(np.all(np.isfinite(self._raw[list(frames)]), axis=-1), axis=0))
+        self._fit(frames, X, self._seen(frames) >= 1)
         self.far = self._far(x0)
         d = np.sum((self.binding.positions(x0) - old)[was] ** 2, axis=-1)
         return float(np.sqrt(np.mean(d))) if len(d) else 0.0
@@ -87,10 +86,14 @@ class MarkerObservation:
         """Bind the markers not bound yet that at least ``need`` of ``frames`` see: each at the material point whose
         track over the frames (X (w, n, 3), the window's estimated positions) fits its observations best.  Returns
         how many."""
-        new = self.late & (np.sum(np.all(np.isfinite(self._raw[list(frames)]), axis=-1), axis=0) >= need)
+        new = self.late & (self._seen(frames) >= need)
         if new.any():
             self._fit(frames, X, new)
         return int(new.sum())
+
+    def _seen(self, frames: Sequence[int]) -> np.ndarray:
+        """(M,) how many of ``frames`` observe each marker (as read, bound or not)."""
+        return np.sum(np.all(np.isfinite(self._raw[list(frames)]), axis=-1), axis=0)
 
     def _fit(self, frames: Sequence[int], X: np.ndarray, which: np.ndarray) -> None:
         """fit_binding_to_tracks for the markers ``which`` (M,) over ``frames``; they become bound."""
@@ -131,12 +134,12 @@ class MarkerObservation:
         grad[:, :self.n] = self.binding.scatter(2.0 * r, self.n)
         return np.sum(r * r, axis=(1, 2)), grad
 
-    def _plane_bary(self, x0: np.ndarray) -> np.ndarray:
+    def _plane_bary(self, x0: np.ndarray, faces: np.ndarray) -> np.ndarray:
         """Barycentric coordinates (M, 3) of each anchored marker's frame-0 position projected on the plane of its
-        bound triangle of x0 — the binding as a smooth function of x0 (the same as the closest point while it lies
-        inside); the other markers' rows are their binding's (they do not depend on x0)."""
+        triangle (``faces`` (M, 3)) of x0 — the binding as a smooth function of x0 (the same as the closest point
+        while it lies inside); the other markers' rows are their binding's (they do not depend on x0)."""
         a = self.anchored
-        tri = x0[self.binding.faces[a]]  # (M_a, 3, 3)
+        tri = x0[faces[a]]  # (M_a, 3, 3)
         o, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
         d = self._raw[0][a] - o
         g = np.stack([np.stack([np.sum(e1 * e1, -1), np.sum(e1 * e2, -1)], -1),
@@ -161,7 +164,8 @@ class MarkerObservation:
                 dB.append(np.zeros_like(self.binding.bary))
                 continue
             h = 1e-6 * scale / vmax
-            dB.append((self._plane_bary(x0 + h * v) - self._plane_bary(x0 - h * v)) / (2 * h))
+            f = self.binding.faces
+            dB.append((self._plane_bary(x0 + h * v, f) - self._plane_bary(x0 - h * v, f)) / (2 * h))
         dB = np.stack(dB)  # (k, M, 3)
         out = []
         for t, x in zip(frames, X):
