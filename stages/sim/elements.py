@@ -162,6 +162,22 @@ def _rotation_svd(F):
 
 
 @nb.njit(cache=True)
+def _add_point_hessian(HF, G, V, T, Ho):
+    """Ho (3k, 3k) += V Bᵀ HF B for a point's 9×9 ∂²Ψ/∂F² HF (row-major vec F) and shape gradients G (k, 3),
+    B[(i,j), (a,kk)] = δ_ik G[a,j]; T (9, 3k) is scratch."""
+    k = G.shape[0]
+    nd = 3 * k
+    for r in range(9):  # T[(i,j), (b,kk)] = Σ_l HF[(i,j),(kk,l)] G[b,l]
+        for b in range(k):
+            for kk in range(3):
+                T[r, 3 * b + kk] = HF[r, 3 * kk] * G[b, 0] + HF[r, 3 * kk + 1] * G[b, 1] + HF[r, 3 * kk + 2] * G[b, 2]
+    for a in range(k):  # H[(a,i),(b,kk)] = V Σ_j G[a,j] T[(i,j),(b,kk)]
+        for i in range(3):
+            for c in range(nd):
+                Ho[3 * a + i, c] += V * (G[a, 0] * T[3 * i, c] + G[a, 1] * T[3 * i + 1, c] + G[a, 2] * T[3 * i + 2, c])
+
+
+@nb.njit(cache=True)
 def snh_point_kernel(x, nodes, grad, weight, mu, lam, want, project, out_index, n_out):
     """Stable Neo-Hookean at quadrature points (materials.stable_neohookean, μ' = 4μ/3, λ' = λ + 5μ/6).
 
@@ -255,16 +271,7 @@ def snh_point_kernel(x, nodes, grad, weight, mu, lam, want, project, out_index, 
                                 sgn = (1.0 if kk == (i + 1) % 3 else -1.0) * (1.0 if ll == (j + 1) % 3 else -1.0)
                                 h += dJ * sgn * F[pp, qq]
                             HF[r, 3 * kk + ll] = h
-            for r in range(9):  # T[(i,j), (b,kk)] = Σ_l HF[(i,j),(kk,l)] G[b,l]
-                for b in range(k):
-                    for kk in range(3):
-                        T[r, 3 * b + kk] = (HF[r, 3 * kk] * G[b, 0] + HF[r, 3 * kk + 1] * G[b, 1]
-                                            + HF[r, 3 * kk + 2] * G[b, 2])
-            for a in range(k):  # H[(a,i),(b,kk)] = V Σ_j G[a,j] T[(i,j),(b,kk)]
-                for i in range(3):
-                    for c in range(nd):
-                        Ho[3 * a + i, c] += V * (G[a, 0] * T[3 * i, c] + G[a, 1] * T[3 * i + 1, c]
-                                                 + G[a, 2] * T[3 * i + 2, c])
+            _add_point_hessian(HF, G, V, T, Ho)
             continue
         _rotation_svd_into(F, U, sig, Vr, work, wv)
         Ji[0], Ji[1], Ji[2] = sig[1] * sig[2], sig[0] * sig[2], sig[0] * sig[1]
@@ -405,17 +412,7 @@ def viscous_point_kernel(x, x_prev, nodes, grad, weight, mu, lam, want, project,
                 for ll in range(3):
                     for j in range(3):
                         HF[3 * i + j, 3 * i + ll] += Sp[ll, j] - S[ll, j]
-        for r in range(9):  # T[(i,j), (b,kk)] = Σ_l HF[(i,j),(kk,l)] G[b,l]
-            for b in range(k):
-                for kk in range(3):
-                    T[r, 3 * b + kk] = (HF[r, 3 * kk] * G[b, 0] + HF[r, 3 * kk + 1] * G[b, 1]
-                                        + HF[r, 3 * kk + 2] * G[b, 2])
-        Ho = hout[o]
-        for a in range(k):  # H[(a,i),(b,kk)] = V Σ_j G[a,j] T[(i,j),(b,kk)]
-            for i in range(3):
-                for c in range(nd):
-                    Ho[3 * a + i, c] += V * (G[a, 0] * T[3 * i, c] + G[a, 1] * T[3 * i + 1, c]
-                                             + G[a, 2] * T[3 * i + 2, c])
+        _add_point_hessian(HF, G, V, T, hout[o])
     return energy, gout, hout
 
 
@@ -450,6 +447,11 @@ def _project_psd(h, how=True):
     return (q * (jnp.abs(w) if how == "abs" else jnp.maximum(w, 0.0))) @ q.T
 
 
+def _b_matrix(g):
+    """B (9, 3k): ∂F_ij/∂x_{a,k} = δ_ik G_aj for shape gradients g (k, 3) (row-major vec F)."""
+    return jnp.einsum("ik,aj->ijak", jnp.eye(3), g).reshape(9, 3 * g.shape[0])
+
+
 def _point_terms_impl(x, nodes, g, weight, mu, lam, material, project):
     """Per point: energies (q,), gradients (q, 3k), Hessians (q, 3k, 3k) (Bᵀ proj(∂²Ψ/∂F²) B w)."""
     psi = energy_density(material)
@@ -464,8 +466,7 @@ def _point_terms_impl(x, nodes, g, weight, mu, lam, material, project):
         hf = jax.hessian(psi)(F, m1, l1).reshape(9, 9)  # row-major vec(F)
         if project:
             hf = _project_psd(hf, project)
-        # B (9, 3k): ∂F_ij/∂x_{a,k} = δ_ik G_aj
-        B = jnp.einsum("ik,aj->ijak", jnp.eye(3), g1).reshape(9, nd)
+        B = _b_matrix(g1)
         return v * B.T @ hf @ B
 
     hess = jax.vmap(hess_one)(xe, g, weight, mu, lam)
@@ -527,7 +528,7 @@ def _damping_terms_impl(x, x_prev, nodes, g, weight, mu, lam, want, project):
             w, Q = jnp.linalg.eigh(S)
             Sp = (Q * (jnp.abs(w) if project == "abs" else jnp.maximum(w, 0.0))) @ Q.T
             hf = hf + jnp.kron(eye, Sp - S)
-        B = jnp.einsum("ik,aj->ijak", jnp.eye(3), g1).reshape(9, nd)
+        B = _b_matrix(g1)
         return v * B.T @ hf @ B
 
     return energy, grad, jax.vmap(hess_one)(xe, xpe, g, weight, mu, lam)
