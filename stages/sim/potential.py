@@ -114,24 +114,23 @@ def tet_lame(scene, young, poisson):
 
 
 # =========================================================================== energies
+def _deformation_gradients(x, s: "SceneData"):
+    """F at every quadrature point (q, 3, 3) of x (n, 3): one per linear tet, four per quadratic."""
+    if s.quad_nodes is None:
+        return deformation_gradients(x, s.tets, s.dm_inv)
+    return jnp.einsum("qki,qkj->qij", x[s.quad_nodes], s.quad_grad)
+
+
 def elastic_energy(x, scene, mu_tet, lam_tet):
     """Σ_q w_q Ψ(F_q; μ, λ of the point's element) over the quadrature points, x (n, 3) m -> J;
     mu_tet, lam_tet (m,) per element.  Linear tets: one point per tet, Σ_e V_e Ψ(Ds Dm⁻¹).
     Quadratic tets: F_q = Σ_a x_a ⊗ ∇N_a(ξ_q) (stages.sim.quadrature)."""
     s = scene_data(scene)
     psi = jax.vmap(energy_density(s.material))
+    F = _deformation_gradients(x, s)
     if s.quad_nodes is None:
-        F = deformation_gradients(x, s.tets, s.dm_inv)  # (m, 3, 3)
         return jnp.sum(s.volumes * psi(F, mu_tet, lam_tet))
-    F = jnp.einsum("qki,qkj->qij", x[s.quad_nodes], s.quad_grad)  # (q, 3, 3)
     return jnp.sum(s.quad_weight * psi(F, mu_tet[s.quad_element], lam_tet[s.quad_element]))
-
-
-def _deformation_gradients(x, s: "SceneData"):
-    """F at every quadrature point (q, 3, 3) of x (n, 3): one per linear tet, four per quadratic."""
-    if s.quad_nodes is None:
-        return deformation_gradients(x, s.tets, s.dm_inv)
-    return jnp.einsum("qki,qkj->qij", x[s.quad_nodes], s.quad_grad)
 
 
 def damping_energy(x, x_prev, scene, mu_tet, lam_tet):

@@ -99,13 +99,6 @@ def _capture_material(config: TrainSubspaceConfig, snap_path: Path):
     return None
 
 
-def _material_model(config: TrainSubspaceConfig, snap_path: Path) -> str:
-    if config.material:
-        return config.material
-    mat = _capture_material(config, snap_path)
-    return mat.model if mat is not None else "stable_neohookean"
-
-
 def _pose_pairs(snap, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(ids whose frame before is in the snapshots, the index of that frame), per the snapshots' sequence and
     frame numbers: the pose pairs of the viscous term's cubature rows."""
@@ -138,7 +131,8 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
     if snap.positions.shape[1] != n:
         raise RslError(f"{snap_path}: snapshots have {snap.positions.shape[1]} vertices but {mesh_path} has {n}; "
                        "rerun generate-data on this mesh.")
-    model = _material_model(config, snap_path)
+    cap_material = _capture_material(config, snap_path)  # (the model unless --material; the damping)
+    model = config.material or (cap_material.model if cap_material is not None else "stable_neohookean")
     if model not in MODELS:
         raise RslError(f"--material {model}: unknown model; use one of {', '.join(MODELS)}.")
     tr, va, split_note = _split(snap, config.validation_fraction, config.seed)
@@ -205,8 +199,7 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
     if config.cubature_tets > 0 and config.cubature_tets < m:
         pick = rng.choice(len(tr), size=min(config.cubature_poses, len(tr)), replace=False)
         z_fit = np.asarray(sub.encode(jnp.asarray(x_tr[pick])))
-        mat = _capture_material(config, snap_path)
-        damping = mat.damping if mat is not None else 0.0
+        damping = cap_material.damping if cap_material is not None else 0.0
         with reporter.task(f"Cubature (≤ {config.cubature_tets} of {m} {what})", None):
             sampler = ReducedForceSampler(sub, z_fit, quad, mu_q, lam_q, model)
             if damping > 0:  # the viscous forces too, at training poses and the frame before each

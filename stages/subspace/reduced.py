@@ -480,17 +480,20 @@ def _cubature_lame(young, poisson, d):
 def _cubature_elastic(x, young, poisson, d, material: str):
     """Σ_{q∈C} w_q V_q Ψ(F_q), F_q = x[nodes_q]ᵀ grad_q, x (n_s, 3) the decoded vertex subset."""
     mu, lam = _cubature_lame(young, poisson, d)
-    F = jnp.einsum("cki,ckj->cij", x[d["cub_nodes"]], d["cub_grad"])
-    return jnp.sum(d["cub_vol"] * jax.vmap(energy_density(material))(F, mu, lam))
+    return jnp.sum(d["cub_vol"] * jax.vmap(energy_density(material))(_cubature_F(x, d), mu, lam))
+
+
+def _cubature_F(x, d):
+    """F_q = x[nodes_q]ᵀ grad_q at the cubature points (c, 3, 3), x (n_s, 3) the decoded vertex subset."""
+    return jnp.einsum("cki,ckj->cij", x[d["cub_nodes"]], d["cub_grad"])
 
 
 def _cubature_damping(x, x1, young, poisson, d, s):
     """β/Δt Σ_{q∈C} w_q V_q D(F_q, F_q,prev) (materials.viscous_density) on the cubature points of the elastic
     energy, x, x1 (n_s, 3) the decoded vertex subset now and at the frame before."""
     mu, lam = _cubature_lame(young, poisson, d)
-    F = jnp.einsum("cki,ckj->cij", x[d["cub_nodes"]], d["cub_grad"])
-    F1 = jnp.einsum("cki,ckj->cij", x1[d["cub_nodes"]], d["cub_grad"])
-    return s.damping / s.dt * jnp.sum(d["cub_vol"] * jax.vmap(viscous_density)(F, F1, mu, lam))
+    return s.damping / s.dt * jnp.sum(d["cub_vol"] * jax.vmap(viscous_density)(_cubature_F(x, d), _cubature_F(x1, d),
+                                                                                 mu, lam))
 
 
 def _q(z, d, kind):
