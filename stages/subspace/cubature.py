@@ -66,28 +66,37 @@ def tet_energies(x, tets, dm_inv, volumes, mu, lam, model: str):
     return point_energies(x, p1_quadrature(tets, dm_inv, volumes), mu, lam, model)
 
 
-def _point_grads(xe, grad, weight, mu, lam, model):
-    """∂(V_q Ψ_q)/∂x_e for points given by their element's node positions xe (c, k, 3) → (c, k, 3)."""
-    psi = energy_density(model)
+VISCOUS = "viscous"
+"""The ``model`` of :func:`_point_grads` whose energy is the viscous term V_q D(F_q, F_q,prev) (ViscousForceSampler)."""
 
-    def one(xe, g, v, mu, lam):
-        return v * psi(xe.T @ g, mu, lam)
 
-    return jax.vmap(jax.grad(one))(xe, grad, weight, mu, lam)
+def _point_grads(xe, xpe, grad, weight, mu, lam, model):
+    """∂(V_q Ψ_q)/∂x_e for points given by their element's node positions xe (c, k, 3) → (c, k, 3); with model
+    :data:`VISCOUS` of V_q D(F_q, F_q,prev) instead, F_q,prev from the positions before, xpe (unused otherwise)."""
+    if model == VISCOUS:
+        def one(xe, xpe, g, v, mu, lam):
+            return v * viscous_density(xe.T @ g, xpe.T @ g, mu, lam)
+    else:
+        psi = energy_density(model)
+
+        def one(xe, xpe, g, v, mu, lam):
+            return v * psi(xe.T @ g, mu, lam)
+
+    return jax.vmap(jax.grad(one))(xe, xpe, grad, weight, mu, lam)
 
 
 @partial(jax.jit, static_argnames=("model",))
-def _cols_jit(x, jq, ids, basis, nodes, grad, weight, mu, lam, model):
-    """g_q for the points ids at one pose, (c, r)."""
+def _cols_jit(x, xp, jq, ids, basis, nodes, grad, weight, mu, lam, model):
+    """g_q for the points ids at one pose (x, and xp before it for the viscous term), (c, r)."""
     te = nodes[ids]
-    ge = _point_grads(x[te], grad[ids], weight[ids], mu[ids], lam[ids], model)  # (c, k, 3)
+    ge = _point_grads(x[te], xp[te], grad[ids], weight[ids], mu[ids], lam[ids], model)  # (c, k, 3)
     return jnp.einsum("cai,caip->cp", ge, basis[te]) @ jq
 
 
 @partial(jax.jit, static_argnames=("model",))
-def _totals_jit(x, jq, region_onehot, basis, nodes, grad, weight, mu, lam, model):
+def _totals_jit(x, xp, jq, region_onehot, basis, nodes, grad, weight, mu, lam, model):
     """Σ_{q∈R} g_q at one pose, (R, r): forces scattered to vertices first, then projected (O(n p))."""
-    ge = _point_grads(x[nodes], grad, weight, mu, lam, model)  # (Q, k, 3)
+    ge = _point_grads(x[nodes], xp[nodes], grad, weight, mu, lam, model)  # (Q, k, 3)
     f = jnp.zeros((region_onehot.shape[1],) + x.shape).at[:, nodes].add(
         region_onehot.T[:, :, None, None] * ge[None])  # (R, n, 3)
     return jnp.einsum("Rni,nip->Rp", f, basis) @ jq
@@ -116,15 +125,16 @@ class ReducedForceSampler:
                              f"({quad.n_points},)")
         zj = jnp.asarray(z)
         self.x = np.asarray(sub.decode(zj))  # (K, n, 3)
+        self.xp = self.x  # the positions before each pose: the viscous term's (ViscousForceSampler), unused here
         self.jq = np.asarray(jax.vmap(sub.jacobian_q)(zj))  # (K, p, r)
         arrays = (jnp.asarray(sub.basis), jnp.asarray(np.asarray(quad.nodes, np.int64)), jnp.asarray(quad.grad),
                   jnp.asarray(quad.weight), jnp.asarray(self.mu), jnp.asarray(self.lam))
 
-        def cols(x, jq, ids):
-            return _cols_jit(x, jq, ids, *arrays, model)
+        def cols(x, xp, jq, ids):
+            return _cols_jit(x, xp, jq, ids, *arrays, model)
 
-        def totals(x, jq, region_onehot):
-            return _totals_jit(x, jq, region_onehot, *arrays, model)
+        def totals(x, xp, jq, region_onehot):
+            return _totals_jit(x, xp, jq, region_onehot, *arrays, model)
 
         self._cols, self._totals = cols, totals
 
@@ -135,66 +145,23 @@ class ReducedForceSampler:
     def columns(self, point_ids: np.ndarray) -> np.ndarray:
         """g_q(z_k) for each pose and point, (K, c, r)."""
         ids = jnp.asarray(point_ids)
-        return np.stack([np.asarray(self._cols(self.x[k], self.jq[k], ids)) for k in range(len(self.x))])
+        return np.stack([np.asarray(self._cols(self.x[k], self.xp[k], self.jq[k], ids)) for k in range(len(self.x))])
 
     def region_totals(self, point_region: np.ndarray, n_regions: int) -> np.ndarray:
         """Σ_{q∈R} g_q(z_k), (K, R, r)."""
         onehot = jnp.asarray(np.eye(n_regions)[point_region])
-        return np.stack([np.asarray(self._totals(self.x[k], self.jq[k], onehot)) for k in range(len(self.x))])
+        return np.stack([np.asarray(self._totals(self.x[k], self.xp[k], self.jq[k], onehot))
+                         for k in range(len(self.x))])
 
 
-def _viscous_grads(xe, xpe, grad, weight, mu, lam):
-    """∂(V_q D(F_q, F_q,prev))/∂x_e (materials.viscous_density) for points given by their element's node positions
-    now xe and before xpe (c, k, 3) → (c, k, 3)."""
-    def one(xe, xpe, g, v, mu, lam):
-        return v * viscous_density(xe.T @ g, xpe.T @ g, mu, lam)
-
-    return jax.vmap(jax.grad(one))(xe, xpe, grad, weight, mu, lam)
-
-
-@jax.jit
-def _viscous_cols_jit(x, xp, jq, ids, basis, nodes, grad, weight, mu, lam):
-    te = nodes[ids]
-    ge = _viscous_grads(x[te], xp[te], grad[ids], weight[ids], mu[ids], lam[ids])
-    return jnp.einsum("cai,caip->cp", ge, basis[te]) @ jq
-
-
-@jax.jit
-def _viscous_totals_jit(x, xp, jq, region_onehot, basis, nodes, grad, weight, mu, lam):
-    ge = _viscous_grads(x[nodes], xp[nodes], grad, weight, mu, lam)
-    f = jnp.zeros((region_onehot.shape[1],) + x.shape).at[:, nodes].add(
-        region_onehot.T[:, :, None, None] * ge[None])
-    return jnp.einsum("Rni,nip->Rp", f, basis) @ jq
-
-
-class ViscousForceSampler:
-    """The reduced viscous forces of the points, ∂/∂z V_q D(F_q(φ(z)), F_q(x_prev)) at pose pairs (z_k, x_prev,k)
-    (a material with damping, Scene.damping: the cubature must integrate this term too, whose integrand — strain
-    rates — differs from the elastic one).  The interface of :class:`ReducedForceSampler`; ``x_prev`` (K, n, 3)."""
+class ViscousForceSampler(ReducedForceSampler):
+    """The reduced viscous forces of the points, ∂/∂z V_q D(F_q(φ(z)), F_q(x_prev)) (materials.viscous_density) at
+    pose pairs (z_k, x_prev,k): a material with damping (Scene.damping), whose cubature must integrate this term
+    too — its integrand, strain rates, differs from the elastic one.  ``x_prev`` (K, n, 3)."""
 
     def __init__(self, sub: SubspaceMap, z: np.ndarray, x_prev: np.ndarray, quad: Quadrature, mu_q, lam_q):
-        self.quad = quad
-        zj = jnp.asarray(z)
-        self.x = np.asarray(sub.decode(zj))
+        super().__init__(sub, z, quad, mu_q, lam_q, VISCOUS)
         self.xp = np.asarray(x_prev, np.float64)
-        self.jq = np.asarray(jax.vmap(sub.jacobian_q)(zj))
-        self._arrays = (jnp.asarray(sub.basis), jnp.asarray(np.asarray(quad.nodes, np.int64)),
-                        jnp.asarray(quad.grad), jnp.asarray(quad.weight), jnp.asarray(np.asarray(mu_q, np.float64)),
-                        jnp.asarray(np.asarray(lam_q, np.float64)))
-
-    @property
-    def n_points(self) -> int:
-        return self.quad.n_points
-
-    def columns(self, point_ids: np.ndarray) -> np.ndarray:
-        ids = jnp.asarray(point_ids)
-        return np.stack([np.asarray(_viscous_cols_jit(self.x[k], self.xp[k], self.jq[k], ids, *self._arrays))
-                         for k in range(len(self.x))])
-
-    def region_totals(self, point_region: np.ndarray, n_regions: int) -> np.ndarray:
-        onehot = jnp.asarray(np.eye(n_regions)[point_region])
-        return np.stack([np.asarray(_viscous_totals_jit(self.x[k], self.xp[k], self.jq[k], onehot, *self._arrays))
-                         for k in range(len(self.x))])
 
 
 class StackedSampler:
