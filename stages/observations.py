@@ -70,14 +70,15 @@ class MarkerObservation:
         self.binding = MarkerBinding(faces, self._plane_bary(x0[:self.n], faces), dist)
 
     def fit_to_tracks(self, frames: Sequence[int], X: np.ndarray) -> float:
-        """Bind each marker seen in ``frames`` to the material point whose track over them fits its observations
-        best, X (w, n, 3) the window's positions, frames[0] the frame the binding's distances refer to
-        (stages.sim.markers.fit_binding_to_tracks); a marker not seen there keeps its state.  Updates :attr:`far`.
+        """Bind each bound marker seen in ``frames`` again, at the material point whose track over them fits its
+        observations best, X (w, n, 3) the window's positions, frames[0] the frame the binding's distances refer to
+        (stages.sim.markers.fit_binding_to_tracks); a marker not seen there keeps its binding, and a marker not bound
+        yet is left to :meth:`bind_late` and its rule on how many frames must see it.  Updates :attr:`far`.
         Returns the RMS motion of the markers bound before, on X[0], m."""
         x0 = X[0, :self.n]
         was = self.bound.copy()
         old = self.binding.positions(x0)
-        self._fit(frames, X, self._seen(frames) >= 1)
+        self._fit(frames, X, was & (self._seen(frames) >= 1))
         self.far = self._far(x0)
         d = np.sum((self.binding.positions(x0) - old)[was] ** 2, axis=-1)
         return float(np.sqrt(np.mean(d))) if len(d) else 0.0

@@ -85,6 +85,21 @@ def test_a_late_marker_counts_only_once_bound_to_its_track(beam16, tmp_path):
     assert np.all(J[LATE] == 0.0) and np.abs(J[keep]).max() > 0
 
 
+def test_fitting_the_bound_markers_to_their_tracks_leaves_late_markers_to_bind_late(beam16, tmp_path):
+    """A moving start's re-fits (MarkerObservation.fit_to_tracks over a window that holds frame 0) refit only the
+    markers already bound: a late marker seen once in that window stays out until bind_late's rule binds it."""
+    cap, ws = beam16
+    cap2 = _late_capture(cap, tmp_path)
+    obs, mesh = _observation(cap2, ws)
+    X = _true_positions(cap, mesh)
+    frames = [0, HIDDEN]  # the late markers seen once here
+    obs.fit_to_tracks(frames, X[frames])
+    assert np.array_equal(np.flatnonzero(obs.late), LATE) and np.isnan(obs.P[:, LATE]).all()
+    keep = np.setdiff1d(np.arange(obs.P.shape[1]), LATE)
+    P = read_markers(cap / "markers.csv")
+    np.testing.assert_allclose(obs.binding.positions(X)[:, keep], P[:, keep], rtol=0, atol=1e-9)
+
+
 def test_online_adapt_binds_late_markers_and_recovers_young(beam16, tmp_path):
     """gn, full space, from 0.5 E_true, 5 of 30 markers hidden over the first 3 frames: each is bound by the
     first window whose 3 frames see it (frames 3–5: at frame 5, recorded in adapt.h5 and said in the summary),
