@@ -9,9 +9,12 @@ per β_true — how far each truth is from converged in time.  Part 2, rsl adapt
 reduced space r = 12 trained on the capture, markers, gn, window 3, E from 0.5 E_true, its default substeps) on the
 finest damped truth as made (β declared in capture.toml) and on a copy that does not declare it (β = 0 simulated),
 and on the undamped truth: the median relative E error over the settled frames (≥ w + 5) and, from `rsl evaluate`,
-the force error against truth/forces.csv.
+the force error against truth/forces.csv.  ``--auto``: instead, rsl adapt --damping auto (β estimated from the
+first frames, stages/damping_profile.py; the subspace's cubature fitted to the viscous forces too,
+train-subspace --viscous-cubature on) on the copy that does not declare β, and on the undamped truth: the same
+columns, the β it estimated and each β it tried.
 
-    nice .venv/bin/python bench/damping.py [--beta 0.003] [--substeps 3,12] [--out docs/results]
+    nice .venv/bin/python bench/damping.py [--beta 0.003] [--substeps 3,12] [--auto] [--out docs/results]
 """
 from __future__ import annotations
 
@@ -79,16 +82,26 @@ def truth_rows(caps: dict) -> list[dict]:
     return rows
 
 
-def adapt_row(cap: Path, ws: Path, beta_true: float, declared: float, substeps: int) -> dict:
+def adapt_row(cap: Path, ws: Path, beta_true: float, declared: float, substeps: int,
+              damping_frames: int | None = None) -> dict:
+    """One rsl adapt row; ``damping_frames``: --damping auto over that many frames (the subspace's cubature fitted to
+    the viscous forces too)."""
     from stages.artefacts import AdaptArtefact
     from stages.capture import load_capture, read_truth
 
-    base = {"beta_true": beta_true, "declared": declared, "truth_substeps": substeps}
+    auto = damping_frames is not None
+    base = {"beta_true": beta_true, "declared": declared, "truth_substeps": substeps,
+            "option": "auto" if auto else ("declared" if declared > 0 else "not declared")}
     pl.mesh(cap, ws, order=2, max_tets=1500, calibrate=False)
-    pl.subspace(cap, ws, frames=FRAMES, dim=12)
+    if not auto:
+        pl.subspace(cap, ws, frames=FRAMES, dim=12)
+    elif not pl.skip(ws / "subspace.h5"):
+        pl.rsl("generate-data", cap, "-w", ws, "--sequences", 4, "--frames", FRAMES, "--workers", 1)
+        pl.rsl("train-subspace", "-w", ws, "--dim", 12, "--viscous-cubature", "on")
+    extra = ["--damping", "auto", "--damping-frames", damping_frames] if auto else []
     try:
         pl.adapt(cap, ws, "--space", "reduced", "--loss", "markers", "--estimator", "gn", "--window", WINDOW,
-                 "--young-init", f"{0.5 * E_TRUE:g}")
+                 "--young-init", f"{0.5 * E_TRUE:g}", *extra)
         pl.evaluate(cap, ws, "--psnr-frames", 0, "--no-plot")
     except RuntimeError as e:
         return {**base, "error": str(e)[-500:]}
@@ -97,6 +110,9 @@ def adapt_row(cap: Path, ws: Path, beta_true: float, declared: float, substeps: 
     y = np.asarray(a.young)[:, 0]
     yt = read_truth(load_capture(cap)).young[np.asarray(a.frames)][:, 0]
     ok = np.arange(len(y)) >= WINDOW + 5
+    prof = a.extra.get("damping_profile") or {}
+    if auto:
+        base.update(damping_frames=damping_frames, tried=prof.get("tried", []), flat=prof.get("flat"))
     return {**base, "simulated": float(a.extra.get("damping", 0.0)), "settled_frames": int(ok.sum()),
             "median_error": float(np.median(np.abs(y[ok] - yt[ok]) / yt[ok])),
             "median_ratio": float(np.median(y[ok] / yt[ok])),
@@ -106,8 +122,14 @@ def adapt_row(cap: Path, ws: Path, beta_true: float, declared: float, substeps: 
 
 TRUTH_HEADER = ("| β_true (s) | truth N | against N | surface RMS (mm) | median handle-force difference (%) |\n"
                 "|---:|---:|---:|---:|---:|")
-ADAPT_HEADER = ("| β_true (s) | truth N | capture declares β (s) | median settled E error (%) | median settled E / E_true "
-                "| force error (%) | s / frame |\n|---:|---:|---:|---:|---:|---:|---:|")
+ADAPT_HEADER = ("| β_true (s) | truth N | β in rsl | β simulated (s) | median settled E error (%) | median settled E / "
+                "E_true | force error (%) | s / frame |\n|---:|---:|---|---:|---:|---:|---:|---:|")
+
+
+def _option(r: dict) -> str:
+    """How rsl had β: declared in capture.toml, not declared (0 simulated), or --damping auto over K frames."""
+    o = r.get("option") or ("declared" if r["declared"] > 0 else "not declared")
+    return f"auto ({r['damping_frames']} frames)" if o == "auto" else o
 
 
 def _truth_row(r: dict) -> str:
@@ -116,20 +138,28 @@ def _truth_row(r: dict) -> str:
 
 
 def _adapt_row(r: dict) -> str:
-    head = f"| {r['beta_true']:g} | {r['truth_substeps']} | {r['declared']:g}"
+    head = f"| {r['beta_true']:g} | {r['truth_substeps']} | {_option(r)}"
     if "error" in r:
-        return f"{head} | failed: {r['error'].rsplit('error: ', 1)[-1].strip()} | — | — | — |"
+        return f"{head} | — | failed: {r['error'].rsplit('error: ', 1)[-1].strip()} | — | — | — |"
     fe = r.get("force_error")
-    return (f"{head} | {100 * r['median_error']:.1f} | {r['median_ratio']:.3f} | "
+    return (f"{head} | {r.get('simulated', r['declared']):.3g} | {100 * r['median_error']:.1f} | "
+            f"{r['median_ratio']:.3f} | "
             f"{'—' if fe is None else f'{100 * fe:.1f}'} | {r['time_per_frame_s']:.2f} |")
 
 
 def summary(truths: list[dict], adapts: list[dict]) -> list[str]:
     """Per damped β_true: E declared against undeclared, beside the undamped truth; the truths' convergence."""
     out = []
-    base = [r for r in adapts if r["beta_true"] == 0 and "error" not in r]
+    base = [r for r in adapts if r["beta_true"] == 0 and "error" not in r and _option(r) == "not declared"]
+    for r in adapts:
+        if "error" not in r and r.get("option") == "auto":
+            tried = ", ".join(f"{b:.3g}" for b, _ in sorted(r["tried"]))
+            out.append(f"- β_true = {r['beta_true']:g} s, --damping auto over {r['damping_frames']} frames: β = "
+                       f"{r['simulated']:.3g} s (tried {tried} s{'; flat' if r.get('flat') else ''}), median settled "
+                       f"E error {100 * r['median_error']:.1f} % (E / E_true {r['median_ratio']:.3f}).")
     for beta in sorted({r["beta_true"] for r in adapts if r["beta_true"] > 0}):
-        by = {r["declared"] > 0: r for r in adapts if r["beta_true"] == beta and "error" not in r}
+        by = {r["declared"] > 0: r for r in adapts if r["beta_true"] == beta and "error" not in r
+              and r.get("option") != "auto"}
         if True in by and False in by:
             d, u = by[True], by[False]
             out.append(f"- β_true = {beta:g} s: declared, median settled E error {100 * d['median_error']:.1f} % "
@@ -160,8 +190,8 @@ def plot(adapts: list[dict], path: Path) -> bool:
     for ax, beta in zip(axes[0], betas):
         for r in adapts:
             if "young" in r and r["beta_true"] in (beta, 0.0):
-                label = (f"β_true {r['beta_true']:g} s, declared {r['declared']:g}" if r["beta_true"]
-                         else "undamped truth")
+                label = (f"β_true {r['beta_true']:g} s, {_option(r)}" if r["beta_true"]
+                         else f"undamped truth, {_option(r)}")
                 ax.plot(np.asarray(r["young"]) / np.asarray(r["young_true"]), "o-", ms=3, label=label)
         ax.axhspan(0.95, 1.05, color="0.9")
         ax.axvline(WINDOW + 5 - 0.5, color="0.6", lw=0.8)
@@ -193,7 +223,10 @@ def write(truths: list[dict], adapts: list[dict], out: Path, plan: dict, run: di
           f"the finest N (surface RMS over all frames; median over handles of the median relative difference of "
           f"their forces). Part 2: rsl adapt on its P2 mesh (`--max-tets 1500`), reduced space r = 12, markers, gn, "
           f"window {WINDOW}, E from 0.5 E_true, its default substeps, on the capture as made (β declared in "
-          f"capture.toml [material] damping) and on a copy that does not declare it (rsl simulates β = 0). Settled: "
+          f"capture.toml [material] damping), on a copy that does not declare it (rsl simulates β = 0), and on that "
+          f"copy with `rsl adapt --damping auto` (β estimated from the first K frames by the profile of the loss over "
+          f"β with E and ν fitted, stages/damping_profile.py; its subspace's cubature fitted to the viscous forces "
+          f"too, `train-subspace --viscous-cubature on`). Settled: "
           f"frames ≥ w + 5. Force error: `rsl evaluate` against truth/forces.csv.", "",
           "## The truths in time", "", TRUTH_HEADER, *[_truth_row(r) for r in truths], "",
           "## rsl adapt", "", ADAPT_HEADER, *[_adapt_row(r) for r in adapts], ""]
@@ -210,23 +243,38 @@ def main() -> None:
     ap.add_argument("--substeps", default="3,12", help="truth substeps per frame N; the last is the finest")
     ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_damping"))
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
+    ap.add_argument("--auto", type=int, default=0, metavar="K",
+                    help="rows of rsl adapt --damping auto over K frames instead (the copy without β, the undamped "
+                         "truth)")
     ap.add_argument("--merge", nargs="+", type=Path, default=None,
                     help="write the page from the rows of these damping.json files (a row in several: the last)")
     a = ap.parse_args()
     if a.merge:
         runs = [json.loads(f.read_text()) for f in a.merge]
         truths = list({(r["beta"], r["substeps"]): r for run in runs for r in run["truths"]}.values())
-        adapts = list({(r["beta_true"], r["declared"], r["truth_substeps"]): r
+        adapts = list({(r["beta_true"], r["declared"], r["truth_substeps"], _option(r)): r
                        for run in runs for r in run["adapt"]}.values())
         truths.sort(key=lambda r: (r["beta"], r["substeps"]))
-        adapts.sort(key=lambda r: (r["beta_true"] == 0, r["beta_true"], -r["declared"]))
+        adapts.sort(key=lambda r: (r["beta_true"] == 0, r["beta_true"], -r["declared"], _option(r)))
         write(truths, adapts, a.out, {**runs[-1]["plan"], "beta": sorted({p["plan"]["beta"] for p in runs})},
               runs[-1])
         print("\n".join(summary(truths, adapts)))
         return
     ns = [int(k) for k in a.substeps.split(",") if k.strip()]
-    plan = {"beta": a.beta, "substeps": ns, "frames": FRAMES}
+    plan = {"beta": a.beta, "substeps": ns, "frames": FRAMES, "auto": a.auto}
     caps = {(b, n): truth(a.work, b, n) for b in (0.0, a.beta) for n in ns}
+    if a.auto:
+        n = ns[-1]
+        print(ADAPT_HEADER, flush=True)
+        adapts = []
+        for cap, ws, beta_true in (
+                (undeclared(caps[(a.beta, n)], a.work / f"cap_b{a.beta:g}_n{n}_undeclared"),
+                 a.work / f"ws_b{a.beta:g}_n{n}_auto", a.beta),
+                (caps[(0.0, n)], a.work / f"ws_b0_n{n}_auto", 0.0)):
+            adapts.append(adapt_row(cap, ws, beta_true, 0.0, n, a.auto))
+            print(_adapt_row(adapts[-1]), flush=True)
+        write([], adapts, a.out, plan)
+        return
     print(TRUTH_HEADER, flush=True)
     truths = truth_rows(caps)
     print(ADAPT_HEADER, flush=True)

@@ -50,10 +50,12 @@ def material_setting(capture: Capture | None, adapt: AdaptArtefact) -> tuple[str
 
 
 def material_damping(capture: Capture | None, adapt: AdaptArtefact) -> float:
-    """β (s) of the material's viscous damping: the capture's [material] damping, else what adapt.h5 records."""
-    if capture is not None:
-        return float(capture.material.damping)
-    return float((adapt.extra or {}).get("damping", 0.0))
+    """β (s) of the material's viscous damping: what adapt.h5 records it simulated with (the capture's [material]
+    damping, --damping, or estimated by --damping auto), else the capture's (an adapt.h5 older than the record)."""
+    recorded = (adapt.extra or {}).get("damping")
+    if recorded is not None:
+        return float(recorded)
+    return float(capture.material.damping) if capture is not None else 0.0
 
 
 def window_young(adapt: AdaptArtefact) -> np.ndarray | None:

@@ -39,21 +39,23 @@ class SceneData:
     LEAVES = ("rest", "tets", "dm_inv", "volumes", "masses", "tet_region", "gravity", "dt",
               "handle_ids", "handle_stiffness", "obstacle_normal", "obstacle_offset", "obstacle_radius",
               "obstacle_half", "friction", "contact_stiffness", "contact_margin", "friction_eps",
-              "quad_nodes", "quad_grad", "quad_weight", "quad_element")
+              "quad_nodes", "quad_grad", "quad_weight", "quad_element", "damping")
     # quad_*: the quadrature points (stages.sim.quadrature.Quadrature) of quadratic tets; None for linear
     # tets, whose one point per tet is (tets, Dm⁻¹, volumes). A hard handle has handle_stiffness 0.
 
-    def __init__(self, leaves: dict, material: str, shapes: tuple, n_regions: int, damping: float = 0.0):
+    def __init__(self, leaves: dict, material: str, shapes: tuple, n_regions: int, damped: bool = False):
         for k in self.LEAVES:
             setattr(self, k, leaves[k])
         self.material = material
         self.shapes = shapes  # obstacle shapes, ("plane" | "sphere" | "box", ...)
         self.n_regions = n_regions
-        self.damping = float(damping)  # β, s (static: a scene without damping traces no damping term)
+        # β (s) is the leaf ``damping`` (one compilation serves every β > 0: adapt --damping auto tries several);
+        # whether there is any is static, so that a scene without damping traces no damping term
+        self.damped = bool(damped)
 
     def tree_flatten(self):
         return (tuple(getattr(self, k) for k in self.LEAVES),
-                (self.material, self.shapes, self.n_regions, self.damping))
+                (self.material, self.shapes, self.n_regions, self.damped))
 
     @classmethod
     def tree_unflatten(cls, aux, children):
@@ -91,13 +93,14 @@ def scene_data(scene) -> SceneData:
         contact_margin=jnp.asarray(getattr(scene, "contact_margin", 0.0), f),
         friction_eps=jnp.asarray(getattr(scene, "friction_eps", 1e-5), f),
         quad_nodes=None, quad_grad=None, quad_weight=None, quad_element=None,
+        damping=jnp.asarray(float(getattr(scene, "damping", 0.0)), f),
     )
     quad = getattr(scene, "quad", None)
     if quad is not None and np.shape(scene.tets)[-1] == 10:
         leaves.update(quad_nodes=jnp.asarray(quad.nodes, np.int32), quad_grad=jnp.asarray(quad.grad, f),
                       quad_weight=jnp.asarray(quad.weight, f), quad_element=jnp.asarray(quad.element, np.int32))
     data = SceneData(leaves, scene.material, tuple(o.shape for o in obs), int(scene.n_regions),
-                     float(getattr(scene, "damping", 0.0)))
+                     float(getattr(scene, "damping", 0.0)) > 0.0)
     try:
         _DATA_CACHE[scene] = data
     except TypeError:
@@ -137,7 +140,7 @@ def damping_energy(x, x_prev, scene, mu_tet, lam_tet):
     """β/Δt Σ_q w_q D(F_q, F_q,prev; μ, λ of the point's element) (materials.viscous_density: Kelvin–Voigt on the
     Green strain), x, x_prev (n, 3) m -> J; 0 when the scene has no damping (β = 0)."""
     s = scene_data(scene)
-    if s.damping == 0.0:
+    if not s.damped:
         return 0.0
     D = jax.vmap(viscous_density)
     F, Fp = _deformation_gradients(x, s), _deformation_gradients(x_prev, s)

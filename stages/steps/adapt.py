@@ -55,6 +55,7 @@ import scipy.optimize
 from stages.artefacts import (KIND_FILES, PARTIAL_ADAPT, AdaptArtefact, MeshArtefact, Provenance, SubspaceArtefact,
                               check_mesh_source, check_same_mesh)
 from stages.capture import CaptureError, check_obstacles_clear, load_capture
+from stages.damping_profile import FLAT_PROFILE, DampingProfile, profile_damping
 from stages.errors import Interrupted, RslError
 from stages.estimator import (ChangeDetector, Prior, WindowFilter, condition, gauss_newton, huber_weights, marginal,
                               matched_arrival, posterior_cov, process_noise, weakly_informed)
@@ -185,6 +186,16 @@ class AdaptConfig:
     material.  On the bar whose E steps, against truths simulated with 3, 12 and 24 substeps per frame, the settled
     median error of E is 4.3–47 % with S = 1, 1.9–12 % with S = 3 and 2.2–3.9 % with S = 6, the default
     (docs/results/time_step.md, which also gives the per-frame time)."""
+    damping: str = ""
+    """β (s) of the material's viscous damping to simulate with: empty, the capture's ([material] damping, 0 when it
+    declares none); a number, that β; auto, estimated from the first --damping-frames frames of the range: the run's
+    estimator over them for each β tried, β taken where their loss is lowest with E and ν fitted
+    (stages/damping_profile.py; adapt.h5 extras damping, damping_profile).  A capture that rings after a pull and
+    declares no β gets a biased E (bar, β_true 3 / 10 ms: −4 / +9 %, docs/results/damping.md).  In the reduced
+    space the subspace's cubature must integrate the viscous forces (train-subspace --viscous-cubature on)."""
+    damping_frames: int = 12
+    """--damping auto: the frames, from the first of the range, that each β tried is run over; the material should
+    be constant over them, and they should show the object move."""
     model_error: float = 0.02
     """gn: relative σ of E that the discretisation itself adds to the reported E ± σ (σ_E = E √(σ²_logE + e²)): the
     error of rsl's mesh and time step against the material, which more frames do not average out (quadratic tets:
@@ -404,11 +415,87 @@ def run(config: AdaptConfig, reporter: Reporter = SilentReporter()) -> Path:
 
 
 def _run(config: AdaptConfig, reporter: Reporter) -> Path:
+    """--damping auto: β estimated first (:func:`_estimate_damping`), then the run with it."""
+    if config.damping.strip().lower() != "auto":
+        return _adapt(config, reporter)
+    return _adapt(config, reporter, _estimate_damping(config, reporter))
+
+
+def _estimate_damping(config: AdaptConfig, reporter: Reporter) -> DampingProfile:
+    """β by the profile of the run's loss over β (stages.damping_profile): for each β tried, the run's estimator
+    over the first --damping-frames frames of its range, nothing written, cost = :func:`_profile_cost`."""
+    where = load_capture(config.capture).toml_path
+    if config.follow:
+        raise RslError(f"{where}: --damping auto needs the first {config.damping_frames} frames before the run "
+                       f"starts; give β as a number with --follow.")
+    if config.damping_frames < 2:
+        raise RslError(f"{where}: --damping-frames must be at least 2, found {config.damping_frames}.")
+    prepare_workspace(Path(config.workspace))
+    sub_path = Path(config.workspace) / KIND_FILES["subspace"]
+    if config.space != "full" and sub_path.exists() and not _cubature_viscous(SubspaceArtefact.load(sub_path)):
+        raise RslError(f"{sub_path}: its cubature was fitted to elastic forces only, so a run with damping would "
+                       f"integrate the viscous forces with elastic weights and bias β and E; run rsl train-subspace "
+                       f"--viscous-cubature on before --damping auto.")
+    with reporter.task("estimating the viscous damping β", None) as task:
+        def cost(beta: float) -> float:
+            try:
+                return _adapt(dataclasses.replace(config, damping=repr(beta)), SilentReporter(),
+                              profile_frames=config.damping_frames)
+            except (SolveCollapsed, RslError):  # a β whose run fails explains the frames worst
+                return math.inf
+
+        prof = profile_damping(cost, on_try=lambda b, c: task.advance(1, beta=f"{b:.3g} s", cost=f"{c:.4g}"))
+    tried = ", ".join(f"{b:.3g} s: {c:.3g}" for b, c in sorted(prof.tried))
+    if prof.flat:
+        reporter.warn(f"{where}: the first {config.damping_frames} frames do not determine the damping (the loss "
+                      f"over β varies by less than {FLAT_PROFILE:.0%}: {tried}); simulating with β = "
+                      f"{prof.beta:.3g} s, their lowest.")
+    else:
+        reporter.info(f"viscous damping β = {prof.beta:.3g} s estimated from the first {config.damping_frames} "
+                      f"frames (the loss with E, ν fitted, per β: {tried})")
+    return prof
+
+
+def _cubature_viscous(sub: SubspaceArtefact) -> bool:
+    """Whether a subspace's energy integrates the viscous term rightly: every point (no cubature), or a cubature
+    fitted to the viscous forces too (train-subspace --viscous-cubature)."""
+    extra = sub.extra or {}
+    return "cubature_points" not in extra or bool(extra.get("cubature_viscous", False))
+
+
+def _profile_cost(rec: "_Record", window: int) -> float:
+    """--damping auto's cost of one β: the mean loss of each window's newest frame at the window's estimate, over
+    the frames from the window's length on (all when fewer)."""
+    fl = np.asarray(rec.frame_loss, float)
+    return float(np.mean(fl[window:] if len(fl) > window else fl)) if len(fl) else math.inf
+
+
+def _simulated_damping(config: AdaptConfig, capture, profile: DampingProfile | None) -> float:
+    """β (s) the run simulates with (AdaptConfig.damping)."""
+    if profile is not None:
+        return profile.beta
+    spec = config.damping.strip()
+    if not spec:
+        return float(capture.material.damping)
+    try:
+        beta = float(spec)
+    except ValueError:
+        beta = math.nan
+    if not (math.isfinite(beta) and beta >= 0):
+        raise RslError(f"{capture.toml_path}: --damping should be a number of seconds ≥ 0 or auto, found '{spec}'.")
+    return beta
+
+
+def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProfile | None = None,
+           profile_frames: int | None = None) -> Path | float:
+    """The run; writes WS/adapt.h5 and returns its path.  ``profile_frames``: one evaluation of --damping auto's
+    profile instead — the first this many frames of the range, nothing written, returns :func:`_profile_cost`."""
     from stages.sim.scene import frame_inputs, make_scene
 
     ws = Path(config.workspace)
     capture = load_capture(config.capture)
     prepare_workspace(ws)  # writable? (checked before any compute) and no stale temp files
+    damping = _simulated_damping(config, capture, damping_profile)
     if not (isinstance(config.substeps, int) and config.substeps >= 1):
         raise RslError(f"{capture.toml_path}: --substeps must be a whole number of at least 1, found "
                        f"{config.substeps}.")
@@ -447,8 +534,7 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     controls = capture.controls()
     check_obstacles_clear(controls, mesh.vertices, capture.controls_path, start=capture.start)
     sim_mesh = _refined_mesh(mesh, config.refine) if config.refine else mesh
-    scene = make_scene(sim_mesh, controls, capture.material.model, capture.dt, capture.gravity,
-                       damping=capture.material.damping)
+    scene = make_scene(sim_mesh, controls, capture.material.model, capture.dt, capture.gravity, damping=damping)
     n = mesh.n_vertices
     inputs_cache: dict[int, object] = {}
 
@@ -465,7 +551,12 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
 
         sub_path = ws / KIND_FILES["subspace"]
         check_same_mesh(mesh_path, sub_path)
-        backend = ReducedSpace(ReducedModel.from_artefacts(SubspaceArtefact.load(sub_path), scene), inputs)
+        sub_art = SubspaceArtefact.load(sub_path)
+        if damping > 0 and profile_frames is None and not _cubature_viscous(sub_art):
+            reporter.warn(f"{sub_path}: its cubature was fitted to elastic forces only, so the viscous forces of "
+                          f"β = {damping:g} s are integrated with elastic weights (7.6 % off on the bar); run rsl "
+                          f"train-subspace --viscous-cubature on.")
+        backend = ReducedSpace(ReducedModel.from_artefacts(sub_art, scene), inputs)
         inputs_used.append(sub_path)
 
     R = scene.n_regions
@@ -518,6 +609,8 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     if n_avail == 0:
         raise CaptureError(f"{capture.root}: holds no frame to adapt to.")
     first, last = _parse_frames(config.frames, n_avail, capture.toml_path)
+    if profile_frames is not None:
+        last = first + profile_frames if last is None else min(last, first + profile_frames)
     rec = _Record()
     # frame -> latest state (positions or z); with --substeps it tells the backend which state a frame holds
     stored: dict[int, np.ndarray] = StoredStates(backend) if config.substeps > 1 else {}
@@ -582,25 +675,22 @@ def _run(config: AdaptConfig, reporter: Reporter) -> Path:
     ctrl_c = CtrlC()
     config = dataclasses.replace(config, gn_trust=resolve_gn_trust(config, obs.kind))  # (adapt.h5 records it)
     loop = _Loop(config, obs, backend, objective, stored, rec, prange, mat.young_range, first, last,
-                 CheckedReporter(reporter, ctrl_c), moving, capture.material.damping)
+                 CheckedReporter(reporter, ctrl_c), moving, damping)
+    rec.damping_profile = damping_profile  # --damping auto's search (None: β given)
     late = getattr(obs, "late", None)
     if config.mode != "online" and late is not None and late.any():
         reporter.warn(f"{capture.markers_path}: {int(late.sum())} marker(s) are first seen after frame 0; --mode "
                       f"{config.mode} binds markers at frame 0 only, so they are left out (--mode online binds each "
                       f"to its track once a window sees it).")
+    if profile_frames is not None:  # one β of --damping auto's profile: nothing is written
+        _estimate(loop, estimator, log_e, s_nu, params, adam)
+        return _profile_cost(rec, config.window)
     try:
         ctrl_c.install()
         if config.mode != "online" and last is None:
             raise RslError(f"{capture.toml_path}: --mode {config.mode} needs a finite frame range (not --follow "
                            f"without --frames).")
-        if estimator == "gn" and config.mode == "online":
-            _online_gn(loop, log_e, s_nu)
-        elif estimator == "gn":  # offline or static: one θ for every frame
-            _offline_gn(loop, log_e, s_nu)
-        elif config.mode == "online":
-            _online(loop, params, adam)
-        else:
-            _offline(loop, params, adam)
+        _estimate(loop, estimator, log_e, s_nu, params, adam)
         status = "complete"
     except KeyboardInterrupt:
         # With --follow, Ctrl-C is the way to end: the frames so far are the complete result.
@@ -1307,6 +1397,18 @@ def _offline_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
         loop.rec.add(t, E, nu, loss, loss, per_frame, sum(per_frame), sE, sN)
 
 
+def _estimate(loop: _Loop, estimator: str, log_e, s_nu, params, adam) -> None:
+    """The frame loop of the run's estimator and mode."""
+    if estimator == "gn" and loop.config.mode == "online":
+        _online_gn(loop, log_e, s_nu)
+    elif estimator == "gn":  # offline or static: one θ for every frame
+        _offline_gn(loop, log_e, s_nu)
+    elif loop.config.mode == "online":
+        _online(loop, params, adam)
+    else:
+        _offline(loop, params, adam)
+
+
 def _wait_for(obs, t: int, timeout: float, poll: float = 0.1, reporter: Reporter = SilentReporter()) -> bool:
     """Wait until frame t is observed; False after ``timeout`` s without it (0: wait for ever).
     Says once that it waits, so a user (or a script) sees the frames so far are done."""
@@ -1382,7 +1484,9 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         "gaussian_anchor": getattr(obs, "anchor_kind", None),
         "refine": config.refine,
         "substeps": config.substeps,
-        "damping": loop.damping,  # β s of the simulation (capture.toml [material] damping)
+        "damping": loop.damping,  # β s of the simulation (capture.toml [material] damping, or --damping)
+        # --damping auto: {"beta", "tried": [[β, cost], ...], "flat"} (stages/damping_profile.py); else None
+        "damping_profile": None if rec.damping_profile is None else rec.damping_profile.as_record(),
         "status": status,  # complete | interrupted | failed
         "estimator": resolve_estimator(config),
         "material_changes_detected": list(getattr(rec, "changes", [])),  # gn: frames whose innovation widened θ
@@ -1464,8 +1568,12 @@ def _report(loop: _Loop, reporter: Reporter, names: list[str], dofs: int, mesh: 
     reporter.info(f"{backend.space:>8} {dofs:>7} {backend.dim:>4} {config.window:>3} | "
                   f"{f:8.3f} {b:8.3f} {r:8.3f} {t:8.3f}")
     reporter.info(_young_meaning(config, mesh))
-    if loop.damping > 0:
-        reporter.info(f"simulated with the capture's viscous damping β = {loop.damping:g} s ([material] damping)")
+    if loop.rec.damping_profile is not None:
+        reporter.info(f"simulated with the viscous damping β = {loop.damping:.3g} s estimated from the first "
+                      f"{config.damping_frames} frames (--damping auto)")
+    elif loop.damping > 0:
+        source = "--damping" if config.damping.strip() else "the capture's [material] damping"
+        reporter.info(f"simulated with the viscous damping β = {loop.damping:g} s ({source})")
     E, nu = rec.young[-1], rec.poisson[-1]
     if rec.young_sigma:  # the estimator's 1σ (E ± σ: the truth lies inside ±2σ about 95 % of the time)
         sE, sN = rec.young_sigma[-1], rec.poisson_sigma[-1]

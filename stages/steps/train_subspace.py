@@ -62,6 +62,11 @@ class TrainSubspaceConfig:
     all-point reduced model ~4× closer (released bar: 1.46 → 0.34 mm RMS, docs/results/reduced_accuracy.md)."""
     cubature_poses: int = 40
     """Training snapshots the cubature is fitted on."""
+    viscous_cubature: Literal["auto", "on", "off"] = "auto"
+    """Fit the cubature to the viscous (damping) forces as well, at pairs of consecutive training poses: auto, when
+    the capture declares a damping ([material] damping > 0); on, also when it does not — for ``rsl adapt --damping
+    auto`` or a β given there (fitted to elastic forces alone, the bar's viscous forces are 7.6 % off, 0.3 % with
+    them: docs/results/damping.md)."""
     material: str = ""
     """Material model for the cubature (default: the capture's)."""
     seed: int = 0
@@ -202,7 +207,8 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
         damping = cap_material.damping if cap_material is not None else 0.0
         with reporter.task(f"Cubature (≤ {config.cubature_tets} of {m} {what})", None):
             sampler = ReducedForceSampler(sub, z_fit, quad, mu_q, lam_q, model)
-            if damping > 0:  # the viscous forces too, at training poses and the frame before each
+            viscous = config.viscous_cubature == "on" or (config.viscous_cubature == "auto" and damping > 0)
+            if viscous:  # the viscous forces too, at training poses and the frame before each
                 now, before = _pose_pairs(snap, np.asarray(tr)[pick])
                 if len(now):
                     sampler = StackedSampler(sampler, ViscousForceSampler(

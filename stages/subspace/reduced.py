@@ -142,7 +142,7 @@ class ReducedModel:
         # leaves stay the full scene's, unused
         leaves.update(rest=jnp.asarray(np.asarray(scene.rest)[vs]), masses=jnp.zeros(len(vs)),
                       gravity=jnp.zeros(3), handle_ids=(), handle_stiffness=())
-        sub_scene = P.SceneData(leaves, full.material, full.shapes, full.n_regions, full.damping)
+        sub_scene = P.SceneData(leaves, full.material, full.shapes, full.n_regions, full.damped)
         nodes_l = local[quad.nodes[ids]]  # (c, k) local vertex ids
         grad_c = np.asarray(quad.grad[ids], np.float64)  # (c, k, 3)
         self.data = dict(
@@ -468,7 +468,7 @@ def _energy_q(q, q1, q2, young, poisson, rin, d, reference: bool):
     x = d["rest_s"] + jnp.einsum("nip,p->ni", d["basis_s"], q)
     x1 = d["rest_s"] + jnp.einsum("nip,p->ni", d["basis_s"], q1)
     e = e + _cubature_elastic(x, young, poisson, d, s.material) + P.external_energy(x, x, s, rin, x1)
-    return e if s.damping == 0.0 else e + _cubature_damping(x, x1, young, poisson, d, s)
+    return e if not s.damped else e + _cubature_damping(x, x1, young, poisson, d, s)
 
 
 def _cubature_lame(young, poisson, d):
@@ -557,7 +557,7 @@ def _H_jit(z, z1, z2, young, poisson, rin, d, kind):
     F = d["F0"] + (d["dF"] @ q).reshape(-1, 3, 3)
     psi = energy_density(s.material)
     hf = jax.vmap(lambda f, m, l: jax.hessian(psi)(f, m, l).reshape(9, 9))(F, mu, lam)  # (c, 9, 9)
-    if s.damping != 0.0:  # the viscous term's ∂²/∂F² at F_prev = F of q_{t−1}, times β/Δt
+    if s.damped:  # the viscous term's ∂²/∂F² at F_prev = F of q_{t−1}, times β/Δt
         F1 = d["F0"] + (d["dF"] @ q1).reshape(-1, 3, 3)
         hf = hf + s.damping / s.dt * jax.vmap(lambda f, f1, m, l: jax.hessian(viscous_density)(f, f1, m, l)
                                               .reshape(9, 9))(F, F1, mu, lam)
