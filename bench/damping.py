@@ -256,7 +256,7 @@ def main() -> None:
                        for run in runs for r in run["adapt"]}.values())
         truths.sort(key=lambda r: (r["beta"], r["substeps"]))
         adapts.sort(key=lambda r: (r["beta_true"] == 0, r["beta_true"], -r["declared"], _option(r)))
-        write(truths, adapts, a.out, {**runs[-1]["plan"], "beta": sorted({p["plan"]["beta"] for p in runs})},
+        write(truths, adapts, a.out, {**runs[-1]["plan"], "beta": sorted({b for p in runs for b in np.atleast_1d(p["plan"]["beta"]).tolist()})},
               runs[-1])
         print("\n".join(summary(truths, adapts)))
         return

@@ -83,8 +83,6 @@ def test_bad_damping_options_end_with_one_sentence(tmp_path):
     from stages.steps import adapt
 
     cap = tmp_path / "cap"
-    cap.mkdir()
-    from stages.capture import load_capture  # noqa: F401
     with pytest.raises(RslError, match="--damping should be a number of seconds ≥ 0 or auto, found 'soft'"):
         adapt._simulated_damping(adapt.AdaptConfig(capture=cap, workspace=tmp_path, damping="soft"),
                                  type("C", (), {"toml_path": cap / "capture.toml",
@@ -99,3 +97,15 @@ def test_a_subspace_counts_as_viscous_only_with_every_point_or_a_viscous_cubatur
     assert not _cubature_viscous(sub({"cubature_points": [1, 2]}))
     assert not _cubature_viscous(sub({"cubature_points": [1, 2], "cubature_viscous": False}))
     assert _cubature_viscous(sub({"cubature_points": [1, 2], "cubature_viscous": True}))
+
+
+def test_the_force_replay_takes_the_damping_adapt_simulated_with():
+    """stages.results.material_damping: adapt.h5's recorded β (declared, --damping, or estimated by --damping auto)
+    over the capture's; an adapt.h5 older than the record falls back to the capture's."""
+    from stages.results import material_damping
+
+    capture = type("C", (), {"material": type("M", (), {"damping": 0.0})})()
+    art = lambda extra: type("A", (), {"extra": extra})()  # noqa: E731
+    assert material_damping(capture, art({"damping": 0.0068})) == 0.0068
+    assert material_damping(capture, art({})) == 0.0
+    assert material_damping(None, art({})) == 0.0
