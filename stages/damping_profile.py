@@ -33,8 +33,15 @@ class DampingProfile:
     tried: list = field(default_factory=list)
     flat: bool = False
 
+    def within(self, fraction: float = FLAT_PROFILE) -> tuple[float, float]:
+        """(smallest, largest) β tried whose cost is within ``fraction`` of the lowest: how well the frames pin β."""
+        lowest = min(c for _, c in self.tried)
+        near = [b for b, c in self.tried if c <= (1 + fraction) * lowest]
+        return min(near), max(near)
+
     def as_record(self) -> dict:
-        return {"beta": self.beta, "tried": [[b, c] for b, c in self.tried], "flat": self.flat}
+        return {"beta": self.beta, "tried": [[b, c] for b, c in self.tried], "flat": self.flat,
+                "within_5_percent": list(self.within())}
 
 
 def profile_damping(cost: Callable[[float], float], grid: tuple = DAMPING_GRID, limits: tuple = DAMPING_LIMITS,

@@ -33,6 +33,8 @@ def test_a_cost_quadratic_in_log_beta_has_its_minimum_found_exactly(beta_true):
 def test_a_cost_lowest_without_damping_gives_zero():
     prof = profile_damping(lambda b: 1.0 + 100 * b)
     assert prof.beta == 0.0 and not prof.flat
+    assert prof.within() == pytest.approx((0.0, 10 ** -3.5), rel=1e-9)  # cost ≤ 1.05
+    assert prof.within(0.2) == pytest.approx((0.0, 1e-3), rel=1e-9)  # cost ≤ 1.2
 
 
 def test_a_flat_profile_is_flagged_and_a_failed_beta_counts_as_the_worst():

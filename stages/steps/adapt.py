@@ -451,8 +451,10 @@ def _estimate_damping(config: AdaptConfig, reporter: Reporter) -> DampingProfile
                       f"over β varies by less than {FLAT_PROFILE:.0%}: {tried}); simulating with β = "
                       f"{prof.beta:.3g} s, their lowest.")
     else:
+        lo, hi = prof.within()
         reporter.info(f"viscous damping β = {prof.beta:.3g} s estimated from the first {config.damping_frames} "
-                      f"frames (the loss with E, ν fitted, per β: {tried})")
+                      f"frames (the loss within {FLAT_PROFILE:.0%} of its lowest for β {lo:.3g}–{hi:.3g} s; with E, ν "
+                      f"fitted, per β: {tried})")
     return prof
 
 
