@@ -4,8 +4,10 @@
 controls in the full space with θ(t) from the capture's start state, S implicit-Euler steps per frame, optionally
 Richardson-extrapolated over S and 2S, with θ(t) as adapt.h5 records it or smoothed per segment
 (stages/forces.py: replay_forces, replay_theta; `--force-substeps`, `--force-extrapolate`, `--force-theta`).
-The model has no material damping, so the dynamic part of a hard handle's reaction carries implicit Euler's
-numerical damping and converges only at first order in Δt / S — on both sides: the truth's forces too.
+Without material damping the dynamic part of a hard handle's reaction carries implicit Euler's numerical damping
+and converges only at first order in Δt / S — on both sides: the truth's forces too.  ``--truth-damping β``: truths
+of a damped material ([material] damping = β declared, the replays simulate it), where the motion is damped by the
+material rather than by the integrator alone.
 
 Captures as bench/accuracy.py makes them (`rsl synth --truth-order 2 --handles hard`; sample_data/bar pulled by a
 cable with E stepping E0 → 2E0 → 4E0 for each start state, the two-region beam), each simulated with several
@@ -66,6 +68,7 @@ import accuracy as acc  # noqa: E402  (the accuracy captures: the same scenes, c
 
 E0, POISSON, MAX_TETS, WINDOW = acc.E0, acc.POISSON, acc.MAX_TETS, acc.WINDOW
 FRAMES = 36
+TRUTH_DAMPING: dict = {}  # --truth-damping: {"beta": β s} declared by every truth (and simulated by the replays)
 CASES = {  # name -> (scene, start): the accuracy captures (bench/accuracy.py scene_args)
     "bar_equilibrium": (lambda: acc.scene_args("bar", FRAMES), "equilibrium"),
     "bar_rest": (lambda: acc.scene_args("bar", FRAMES), "rest"),
@@ -106,15 +109,17 @@ def extrapolated_table(coarse: list[dict], fine: list[dict]) -> list[dict]:
 
 
 def truths(work: Path, case: str, truth_substeps: list[int]) -> tuple[dict[int, Path], dict[int, list[dict]], list[dict]]:
-    """The captures of ``case`` simulated with each truth substep count (made when missing), their forces.csv rows,
-    and the reference rows (Richardson of the two finest, or the one truth)."""
+    """The captures of ``case`` simulated with each truth substep count (made when missing; with TRUTH_DAMPING β
+    declared), their forces.csv rows, and the reference rows (Richardson of the two finest, or the one truth)."""
     from stages.capture import read_forces_csv
 
     scene_fn, start = CASES[case]
     caps, rows = {}, {}
+    beta = TRUTH_DAMPING.get("beta", 0.0)
     for n in truth_substeps:
-        caps[n] = pl.foreign_capture(work / f"{case}_truth{n}", scene_fn(), start=start, frames=FRAMES,
-                                     poisson=POISSON, substeps=n)
+        caps[n] = pl.foreign_capture(work / f"{case}_truth{n}" + (f"_b{beta:g}" if beta else ""), scene_fn(),
+                                     start=start, frames=FRAMES, poisson=POISSON, substeps=n,
+                                     extra=["--damping", beta] if beta else [])
         rows[n] = read_forces_csv(caps[n] / "truth" / "forces.csv")
     fine = sorted(truth_substeps)
     ref = rows[fine[-1]] if len(fine) == 1 else extrapolated_table(rows[fine[-2]], rows[fine[-1]])
@@ -158,7 +163,8 @@ def replays(scene, controls, young, poisson, start: str, steps: list[int], dt: f
         key = hashlib.sha1(b"".join([np.ascontiguousarray(scene.rest).tobytes(), repr(controls).encode(),
                                      np.ascontiguousarray(young, np.float64).tobytes(),
                                      np.ascontiguousarray(poisson, np.float64).tobytes(),
-                                     f"{start} {S} {scene.dt!r}".encode()])).hexdigest()[:20]
+                                     f"{start} {S} {scene.dt!r}".encode(),
+                                     f" β {scene.damping!r}".encode() if scene.damping else b""])).hexdigest()[:20]
         path = None if cache is None else cache / f"{key}.json"
         if path is not None and path.is_file():
             got = json.loads(path.read_text())
@@ -247,7 +253,8 @@ def part_time(work: Path, case: str, truth_substeps: list[int], substeps: list[i
     truth = read_truth(cap)
     controls = cap.controls()
     dt = float(cap.dt)
-    scene = make_scene(mesh, controls, cap.material.model, dt, np.asarray(cap.gravity, np.float64))
+    scene = make_scene(mesh, controls, cap.material.model, dt, np.asarray(cap.gravity, np.float64),
+                       damping=cap.material.damping)
     regions = list(mesh.region_names)
     young = by_region(truth.young[:FRAMES], truth.region_names, regions, "truth/material.csv")
     poisson = by_region(truth.poisson[:FRAMES], truth.region_names, regions, "truth/material.csv")
@@ -290,7 +297,8 @@ def part_theta(work: Path, case: str, truth_substeps: list[int], adapt_ws: list[
         mesh = MeshArtefact.load(ws / "mesh.h5")
         ad = AdaptArtefact.load(ws / "adapt.h5")
         cfg = read_provenance(ws / "adapt.h5").get("config", {})
-        scene = make_scene(mesh, controls, cap.material.model, dt, np.asarray(cap.gravity, np.float64))
+        scene = make_scene(mesh, controls, cap.material.model, dt, np.asarray(cap.gravity, np.float64),
+                       damping=cap.material.damping)
         regions = list(mesh.region_names)
         T = len(ad.frames)
         young = by_region(np.asarray(ad.young), list(ad.region_names), regions, "adapt.h5")
@@ -569,6 +577,9 @@ def main() -> None:
     ap.add_argument("--cache", type=Path, default=None,
                     help="folder of the replay cache (default WORK/cache; a new folder re-measures every replay)")
     ap.add_argument("--name", default="forces_converged", help="file stem of the report in --out (NAME.md/.json/.png)")
+    ap.add_argument("--truth-damping", type=float, default=0.0,
+                    help="β (s) of a viscous damping every truth simulates and declares (rsl synth --damping); the "
+                         "replays simulate it too (use a --cache of its own)")
     ap.add_argument("--merge", nargs="+", type=Path, default=None,
                     help="only write the report from the rows of these NAME.json files (runs split by case)")
     a = ap.parse_args()
@@ -581,6 +592,8 @@ def main() -> None:
         return
     if a.cache is not None:
         CACHE["dir"] = a.cache
+    if a.truth_damping:
+        TRUTH_DAMPING["beta"] = a.truth_damping
     truth_substeps = sorted({int(s) for s in a.truth_substeps.split(",")})
     cases = a.cases.split(",")
     unknown = [c for c in cases if c not in CASES]
@@ -588,7 +601,8 @@ def main() -> None:
         raise SystemExit(f"unknown case(s) {unknown}; known: {', '.join(CASES)}")
     a.work.mkdir(parents=True, exist_ok=True)
     plan = {"part": a.part, "cases": cases, "frames": FRAMES, "max_tets": MAX_TETS, "work": str(a.work),
-            "truth_substeps": truth_substeps, "cache": str(CACHE.get("dir", a.work / "cache"))}
+            "truth_substeps": truth_substeps, "cache": str(CACHE.get("dir", a.work / "cache")),
+            "truth_damping": a.truth_damping}
     rows: list[dict] = []
     if a.part == "time":
         substeps = sorted({int(s) for s in a.substeps.split(",")})
