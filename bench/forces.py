@@ -117,7 +117,7 @@ def truths(work: Path, case: str, truth_substeps: list[int]) -> tuple[dict[int, 
     caps, rows = {}, {}
     beta = TRUTH_DAMPING.get("beta", 0.0)
     for n in truth_substeps:
-        caps[n] = pl.foreign_capture(work / f"{case}_truth{n}" + (f"_b{beta:g}" if beta else ""), scene_fn(),
+        caps[n] = pl.foreign_capture(work / (f"{case}_truth{n}" + (f"_b{beta:g}" if beta else "")), scene_fn(),
                                      start=start, frames=FRAMES, poisson=POISSON, substeps=n,
                                      extra=["--damping", beta] if beta else [])
         rows[n] = read_forces_csv(caps[n] / "truth" / "forces.csv")
