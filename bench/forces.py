@@ -466,8 +466,8 @@ def summary(rows: list[dict]) -> list[str]:
 def default_line() -> str:
     from stages.forces import FORCE_EXTRAPOLATE, FORCE_SUBSTEPS, FORCE_THETA
 
-    rep = (f"Richardson ({FORCE_SUBSTEPS}, {2 * FORCE_SUBSTEPS})" if FORCE_EXTRAPOLATE
-           else f"plain, S = {FORCE_SUBSTEPS}")
+    s = f"{FORCE_SUBSTEPS}" if FORCE_SUBSTEPS else "adapt.h5's substeps"
+    rep = f"Richardson ({s}, 2 × {s})" if FORCE_EXTRAPOLATE else f"plain, S = {s}"
     return (f"stages.forces defaults when this report was written (`rsl export --forces`, `rsl evaluate`, `rsl report`): replay "
             f"'{rep}', θ(t) '{FORCE_THETA}'.")
 
@@ -489,7 +489,10 @@ def write(rows: list[dict], out: Path, plan: dict, name: str) -> None:
     parts = [f"# Forces of the full-space replay against a truth refined in time\n\n"
              f"Captures as bench/accuracy.py makes them (`rsl synth --truth-order 2 --handles hard`, {FRAMES} "
              f"frames at 30 fps, ν = {POISSON}), each simulated with several numbers N of implicit-Euler substeps "
-             f"per frame.  Reference per capture ("
+             f"per frame"
+             + (f", with a viscous damping β = {plan['truth_damping']:g} s declared (`rsl synth --damping`) that the "
+                f"replays simulate too" if plan.get("truth_damping") else "")
+             + ".  Reference per capture ("
              + "; ".join(f"{c}: {v}" for c, v in per_case.items()) + f"): the Richardson "
              f"extrapolation of its two finest truths, frame by frame (2 F_2N − F_N: cancels implicit Euler's "
              f"first-order error where the truths are in their asymptotic range), or its one truth.  Errors: median "

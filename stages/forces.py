@@ -81,8 +81,8 @@ from stages.results import previous_states
 from stages.sim import stress as st
 
 APPLIED = ("applied_fx_N", "applied_fy_N", "applied_fz_N")
-FORCE_SUBSTEPS = 1  # default implicit-Euler steps per frame S of the replay (docs/results/forces_converged.md)
-FORCE_EXTRAPOLATE = True  # default: Richardson-extrapolate the replay over S and 2S substeps (module doc)
+FORCE_SUBSTEPS = 0  # default implicit-Euler steps per frame S of the replay: 0 = adapt.h5's own (module doc)
+FORCE_EXTRAPOLATE = False  # default: plain, not Richardson-extrapolated over S and 2S substeps (module doc)
 FORCE_THETA = "smoothed"  # default θ(t) of the replay: "smoothed" | "online" (as adapt.h5 records it) | "segment"
 THETA_RULES = ("online", "segment", "smoothed")
 

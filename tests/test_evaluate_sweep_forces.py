@@ -100,8 +100,14 @@ def test_forces_are_replayed_whatever_adapt_h5_recorded(same_model, rsl):
     assert p.returncode == 0, p.stderr[-2000:]
     f = json.loads((ws / "evaluation.json").read_text())["forces"]
     assert f["median_relative_error"] < 1e-4 and "replay" in f["source"] and "1 substep" in f["source"]
-    # the default: Richardson over 1 and 2 substeps (stages.forces.FORCE_EXTRAPOLATE), named in the source
-    p = rsl("evaluate", cap, "-w", ws, "--psnr-frames", "0", "--no-plot", "--force-substeps", "0")
+    # the default (stages.forces FORCE_SUBSTEPS, FORCE_EXTRAPOLATE): adapt.h5's own substeps, plain, as above
+    p = rsl("evaluate", cap, "-w", ws, "--psnr-frames", "0", "--no-plot")
+    assert p.returncode == 0, p.stderr[-2000:]
+    f = json.loads((ws / "evaluation.json").read_text())["forces"]
+    assert f["median_relative_error"] < 1e-4 and "Richardson" not in f["source"], f["source"]
+    # Richardson over S and 2S on request, named in the source
+    p = rsl("evaluate", cap, "-w", ws, "--psnr-frames", "0", "--no-plot", "--force-substeps", "1",
+            "--force-extrapolate")
     assert p.returncode == 0, p.stderr[-2000:]
     f = json.loads((ws / "evaluation.json").read_text())["forces"]
     assert "Richardson-extrapolated from 1 and 2 substeps" in f["source"], f["source"]

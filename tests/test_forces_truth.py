@@ -159,13 +159,14 @@ def foreign_cable():
 def test_replay_of_the_true_young_converges_in_time_toward_a_finer_truth(foreign_cable):
     """The replay's handle force with the true E approaches a truth simulated finer in time (12 substeps per frame)
     as the replay's substeps grow — implicit Euler's numerical damping shrinks with the step — and the stages'
-    default rule (`--force-substeps S`, `--force-extrapolate`: Richardson over S and 2S) is closer to it than the
-    plain replay with as many steps per frame (3S).  The truth is deliberately not simulated at the replays' steps:
-    a match there would only show the replay copying the truth's integrator (docs/results/forces.md)."""
+    default rule (`--force-substeps 0`: adapt's own substeps, 6 by default, plain) is closer to it than the former
+    default, Richardson over 1 and 2 substeps.  The truth is deliberately not simulated at the replays' steps: a
+    match there would only show the replay copying the truth's integrator (docs/results/forces.md)."""
     import dataclasses
 
     from stages.forces import (FORCE_EXTRAPOLATE, FORCE_SUBSTEPS, FORCE_THETA, force_errors, force_table,
-                               replay_forces)
+                               replay_forces, replay_substeps)
+    from stages.steps.adapt import AdaptConfig
     from stages.steps.evaluate import EvaluateConfig
     from stages.steps.export import ExportConfig
 
@@ -175,15 +176,18 @@ def test_replay_of_the_true_young_converges_in_time_toward_a_finer_truth(foreign
         assert defaults["force_substeps"] == FORCE_SUBSTEPS
         assert defaults["force_extrapolate"] == FORCE_EXTRAPOLATE
         assert defaults["force_theta"] == FORCE_THETA
-    steps = sorted({1, FORCE_SUBSTEPS, 2 * FORCE_SUBSTEPS, 3 * FORCE_SUBSTEPS})
+    adapt_default = type("A", (), {"extra": {"substeps": AdaptConfig.substeps}})()
+    s_default = replay_substeps(FORCE_SUBSTEPS, adapt_default)  # an adapt.h5 of adapt's default substeps
+    steps = sorted({1, 2, 3, s_default})
     assert TRUTH_SUBSTEPS > max(steps)
-    err = {}
-    for S in steps:
-        rows, _, _ = replay_forces(scene, ctl, young, poisson, "equilibrium", S)
-        err[S] = force_errors(force_table(rows, 1.0 / FPS), truth)["base"]["median_relative_error"]
-    rows, _, _ = replay_forces(scene, ctl, young, poisson, "equilibrium", FORCE_SUBSTEPS, extrapolate=True)
-    err_default = force_errors(force_table(rows, 1.0 / FPS), truth)["base"]["median_relative_error"]
-    print(err, err_default)
+
+    def error(S, extrapolate=False):
+        rows, _, _ = replay_forces(scene, ctl, young, poisson, "equilibrium", S, extrapolate=extrapolate)
+        return force_errors(force_table(rows, 1.0 / FPS), truth)["base"]["median_relative_error"]
+
+    err = {S: error(S) for S in steps}
+    err_default = error(s_default, FORCE_EXTRAPOLATE)
+    err_richardson_1_2 = error(1, True)
+    print(err, err_default, err_richardson_1_2)
     assert all(err[a] > err[b] for a, b in zip(steps, steps[1:])), err
-    if FORCE_EXTRAPOLATE:  # Richardson (S, 2S) costs 3S steps per frame: closer than plain 3S
-        assert err_default < err[3 * FORCE_SUBSTEPS], (err, err_default)
+    assert err_default < err_richardson_1_2, (err_default, err_richardson_1_2)

@@ -105,9 +105,9 @@ class ExportConfig:
     video_fps: float = 0.0
     """Frame rate of the MP4s; 0 = the capture's fps."""
     force_substeps: int = FORCE_SUBSTEPS
-    """Implicit-Euler steps per frame S of the full-space replay the forces are computed on; 0 = adapt's --substeps (docs/results/forces_converged.md)."""
+    """Implicit-Euler steps per frame S of the full-space replay the forces are computed on; 0 (the default) = adapt's --substeps, the time step θ was estimated with (docs/results/forces_converged.md, forces_damped.md)."""
     force_extrapolate: bool = FORCE_EXTRAPOLATE
-    """Richardson-extrapolate the replay's forces in time, 2 F(2S) − F(S) from replays with S and 2S steps per frame: cancels implicit Euler's first-order error, costs 3S steps per frame (docs/results/forces_converged.md)."""
+    """Richardson-extrapolate the replay's forces in time, 2 F(2S) − F(S) from replays with S and 2S steps per frame: cancels implicit Euler's first-order error, costs 3S steps per frame.  Off by default: plain at adapt's 6 substeps came closer to truths converged in time than Richardson (1, 2) on every capture measured (docs/results/forces_converged.md, forces_damped.md)."""
     force_theta: Literal["online", "segment", "smoothed"] = FORCE_THETA
     """θ(t) of the replay: smoothed (the default) = adapt.h5's E ± σ and ν ± σ smoothed over the whole run (Rauch–Tung–Striebel) under the gn filter's own random walk (its --process-noise, --change-sigma at each detected change); online = each frame's estimate as adapt.h5 records it (frame t's force uses estimates up to t); segment = the last estimate of each segment between the material changes adapt's gn estimator detected.  On the frames where the truth's force converges in time (a constant E; before a step of E) smoothed erred less than online on every capture measured (two-region beam 26 → 5 %, bar before its step 7.8 → 1.1 %, docs/results/forces_theta.md); it carries a later material into earlier frames when a change is detected a few frames before the true one.  An adam run with images is held per segment between its located changes at its anchor calibrations' fits (adapt.h5 anchor_calibrations); one without keeps its recorded θ(t)."""
 
