@@ -13,10 +13,10 @@ truth/forces.csv): the force at frame t is the residual of the LAST implicit-Eul
 (Δt / S with S substeps per frame, from that step's own x_{t−1}, x_{t−2}), at its held vertices.
 * :func:`replay_forces` (export, evaluate and report for an online run, :func:`adapted_forces`): the controls
   re-simulated in the full space with θ(t) of the trajectory (:func:`replay_theta`), the capture's start state and
-  S substeps per frame (:func:`replay_substeps`: ``--force-substeps``, default :data:`FORCE_SUBSTEPS`), so every
-  step is a solved step of the model (free-vertex residual 0, held vertices at their targets, inertia from that
-  step's own states); by default (:data:`FORCE_EXTRAPOLATE`, ``--force-extrapolate``) two replays, with S and 2S
-  substeps, Richardson-extrapolated frame by frame (:func:`richardson`: 2 F_2S − F_S).
+  S substeps per frame (:func:`replay_substeps`: ``--force-substeps``, default :data:`FORCE_SUBSTEPS` = 0, adapt's
+  own), so every step is a solved step of the model (free-vertex residual 0, held vertices at their targets,
+  inertia from that step's own states); with ``--force-extrapolate`` (off by default, :data:`FORCE_EXTRAPOLATE`)
+  two replays, with S and 2S substeps, Richardson-extrapolated frame by frame (:func:`richardson`: 2 F_2S − F_S).
 * :func:`trajectory_forces`: the recorded positions themselves, with frame-level finite differences.  Only
   meaningful for a trajectory that IS one simulation: an online adapt records frame t from a window solved with
   θ_t (a splice of simulations, so x − 2x_{t−1} + x_{t−2} is not an acceleration), and a reduced-space state
@@ -24,20 +24,32 @@ truth/forces.csv): the force at frame t is the residual of the LAST implicit-Eul
   (docs/results/accuracy.md, first row; truth P2, 3 substeps, hard base): recorded positions 62 % median error
   (reduced space), 78 % (full space); the replay of the same θ(t) 14 % (S = 1) / 11 % (S = 3, full-space θ).
 
-The time step of the replay: the model has no material damping, so the dynamic part of a hard handle's reaction
-(the inertia of the oscillating body) carries implicit Euler's numerical damping, an error of first order in
-Δt / S — on the truth's side too.  docs/results/forces_converged.md (bench/forces.py --part time) compares the
+The time step of the replay.  The default replays θ(t) with the time step it was estimated with (adapt's
+--substeps, 6 by default), plainly: the estimated θ is the θ of that discretisation, and a replay finer in time
+meets the part of the material that θ absorbed from the estimate's own numerical damping.  The adapted θ(t)
+(smoothed) of the bars with E steps (equilibrium start / released at rest) and the two-region beam against truths
+converged in time (docs/results/forces_theta_undamped.md, forces_theta_damped.md; bench/forces.py --part theta),
+plain at adapt's S = 6 / Richardson (1, 2), the former default / Richardson (6, 12) at 3× the CPU: undamped 22.8 /
+28.1 / 11.2 %, 28.9 / 52.5 / 36.8 %, 2.0 / 2.9 / 2.3 %; damped (β = 3 ms declared) 19.1 / 25.5 / 16.4 %, 37.7 /
+47.6 / 20.0 %.  With β estimated (`rsl adapt --damping auto`, by hand with `rsl evaluate`, accuracy_notes.md
+nineteenth stop) 5.6 / 15.9 / 21.2 % and 23.3 / 38.7 / — %; the dinosaur (undamped) 9.2 / 13.1 / — %.  Plain at
+adapt's S is below Richardson (1, 2) on every capture; Richardson (6, 12) is lower on three and higher on two.  Against the table's truths of 3 substeps per frame it reads worse (bars 8.7 / 23.1 / 11.6 % against
+4.4 / 8.8 / 4.9 % for the equilibrium, rest and moving starts; the dinosaur 6.1 against 9.0 %): Richardson (1, 2)
+takes 3 steps per frame as that truth did (its integrator's damping, see below).  Without material damping the dynamic part of a hard handle's reaction (the inertia of the oscillating
+body) carries implicit Euler's numerical damping, an error of first order in Δt / S — on the truth's side too.  docs/results/forces_converged.md (bench/forces.py --part time) compares the
 replays of the true E with truths simulated with N = 12, 24 (48) substeps and extrapolated (2 F_2N − F_N):
 * where the truths converge in time — the two-region beam (constant E; N = 12 and 24 differ by 0.7 %) and the
   bars' frames before their first E step (0.1–3.5 %) — so does the replay: plain S = 1 / 3 / 12 err 8.0 / 4.4 /
   1.8 % on the beam, 3.1 / 1.3 / 0.4 % (bar, equilibrium start) and 25 / 15 / 6.6 % (bar released at rest, which
   rings from t = 0); Richardson (1, 2) — 3 steps per frame, like S = 3, at 1.15× its CPU — 3.8, 0.6 and 12.2 %,
-  lower than S = 3 on every capture: hence the default S = 1 with extrapolation;
+  lower than S = 3 on every capture, and plain S = 6 2.7, 0.6 and 10.5 % (the former default was Richardson (1, 2));
 * after an instantaneous step of E the undamped body rings with modes implicit Euler damps at every step
   measured: the truths themselves differ by 11 % (N = 12 vs 24) and 9.5 % (24 vs 48), and over all frames no
   replay measured comes within 14 % of the reference on the bars (plain S = 12: 29–30 %; Richardson (6, 12), 18
   steps per frame: 15–18 %).  The force of an undamped model after a sudden change of stiffness depends on the
-  integrator by tens of per cent; a damping model would make it a definite quantity.
+  integrator by tens of per cent.  With a damped material (β = 3 ms, docs/results/forces_damped.md) the truths
+  converge (N = 12 against 24: 4.6 / 8.8 % on the bars) and the true E's replay does too: Richardson (6, 12)
+  3.6 / 8.8 %, plain S = 6 15.4 / 31.2 %, Richardson (1, 2) 19.7 / 41.3 %.
 Against a truth made with 3 substeps, plain S = 3 errs ~1 % only because it copies that truth's integrator
 (docs/results/forces.md).
 
