@@ -280,6 +280,7 @@ def part_theta(work: Path, case: str, truth_substeps: list[int], adapt_ws: list[
     from stages.artefacts import AdaptArtefact, MeshArtefact, read_provenance
     from stages.capture import load_capture, read_truth
     from stages.forces import filter_model, replay_theta, smoothed_theta
+    from stages.results import material_damping
     from stages.sim.scene import make_scene
 
     caps, trows, ref = truths(work, case, truth_substeps)
@@ -298,7 +299,7 @@ def part_theta(work: Path, case: str, truth_substeps: list[int], adapt_ws: list[
         ad = AdaptArtefact.load(ws / "adapt.h5")
         cfg = read_provenance(ws / "adapt.h5").get("config", {})
         scene = make_scene(mesh, controls, cap.material.model, dt, np.asarray(cap.gravity, np.float64),
-                       damping=cap.material.damping)
+                           damping=material_damping(cap, ad))  # the β adapt simulated (declared or estimated)
         regions = list(mesh.region_names)
         T = len(ad.frames)
         young = by_region(np.asarray(ad.young), list(ad.region_names), regions, "adapt.h5")
