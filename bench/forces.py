@@ -300,6 +300,8 @@ def part_theta(work: Path, case: str, truth_substeps: list[int], adapt_ws: list[
         cfg = read_provenance(ws / "adapt.h5").get("config", {})
         scene = make_scene(mesh, controls, cap.material.model, dt, np.asarray(cap.gravity, np.float64),
                            damping=material_damping(cap, ad))  # the β adapt simulated (declared or estimated)
+        scene_true = scene if material_damping(cap, ad) == cap.material.damping else make_scene(
+            mesh, controls, cap.material.model, dt, np.asarray(cap.gravity, np.float64), damping=cap.material.damping)
         regions = list(mesh.region_names)
         T = len(ad.frames)
         young = by_region(np.asarray(ad.young), list(ad.region_names), regions, "adapt.h5")
@@ -333,7 +335,8 @@ def part_theta(work: Path, case: str, truth_substeps: list[int], adapt_ws: list[
                 thetas[rule] = replay_theta(young, poisson, ad.extra, rule, sy, sp, model)[:2]
         before = first_change(by_region(truth.young[:T], truth.region_names, regions, "truth/material.csv"))
         for label, (y, p) in thetas.items():
-            plain = replays(scene, controls, y, p, cap.start, steps, dt, f"{case}, {ws.name}, {label}",
+            plain = replays(scene_true if label == "true E" else scene, controls, y, p, cap.start, steps, dt,
+                            f"{case}, {ws.name}, {label}",
                             CACHE.get("dir", work / "cache"))
             got = method_rows(plain, specs, ref, dt, {**base, "theta": label, "first_change": before,
                                                        "reference": reference_name(truth_substeps),
