@@ -423,8 +423,9 @@ def theta_summary(rows: list[dict], incumbent: str = "online") -> list[str]:
     its error is below the ``incumbent``'s and on which it is not (the metrics before the first change of E only
     for captures whose E changes)."""
     th = [r for r in rows if r["part"] == "theta" and r.get("adapt")]
-    rules = [k for k in dict.fromkeys(r["theta"] for r in th) if k != incumbent]
-    if not rules:
+    present = list(dict.fromkeys(r["theta"] for r in th))
+    rules = [k for k in present if k != incumbent]
+    if not rules or incumbent not in present:  # (one rule measured: nothing to compare)
         return []
     out = ["| replay | error | " + " | ".join(f"'{k}' below '{incumbent}'" for k in rules) + " |",
            "| --- | --- | " + " | ".join("---" for _ in rules) + " |"]
