@@ -124,13 +124,13 @@ def gaussians(cap: Path, ws: Path, frame: int = 0, segment_method: str | None = 
 
 
 def subspace(cap: Path, ws: Path, frames: int, dim: int, sequences: int = 4, workers: int = 1,
-             reuse: bool = True) -> Path:
-    """``rsl generate-data CAP -w WS --sequences N --frames F --workers K`` and ``rsl train-subspace -w WS --dim r``
-    (skipped per :func:`skip` on WS/subspace.h5).  Returns WS."""
+             reuse: bool = True, train_options: Iterable = ()) -> Path:
+    """``rsl generate-data CAP -w WS --sequences N --frames F --workers K`` and ``rsl train-subspace -w WS --dim r
+    TRAIN_OPTIONS...`` (skipped per :func:`skip` on WS/subspace.h5).  Returns WS."""
     ws = Path(ws)
     if not skip(ws / "subspace.h5", reuse):
         rsl("generate-data", cap, "-w", ws, "--sequences", sequences, "--frames", frames, "--workers", workers)
-        rsl("train-subspace", "-w", ws, "--dim", dim)
+        rsl("train-subspace", "-w", ws, "--dim", dim, *train_options)
     return ws
 
 

@@ -93,11 +93,7 @@ def adapt_row(cap: Path, ws: Path, beta_true: float, declared: float, substeps: 
     base = {"beta_true": beta_true, "declared": declared, "truth_substeps": substeps,
             "option": "auto" if auto else ("declared" if declared > 0 else "not declared")}
     pl.mesh(cap, ws, order=2, max_tets=1500, calibrate=False)
-    if not auto:
-        pl.subspace(cap, ws, frames=FRAMES, dim=12)
-    elif not pl.skip(ws / "subspace.h5"):
-        pl.rsl("generate-data", cap, "-w", ws, "--sequences", 4, "--frames", FRAMES, "--workers", 1)
-        pl.rsl("train-subspace", "-w", ws, "--dim", 12, "--viscous-cubature", "on")
+    pl.subspace(cap, ws, frames=FRAMES, dim=12, train_options=["--viscous-cubature", "on"] if auto else [])
     extra = ["--damping", "auto", "--damping-frames", damping_frames] if auto else []
     try:
         pl.adapt(cap, ws, "--space", "reduced", "--loss", "markers", "--estimator", "gn", "--window", WINDOW,

@@ -298,9 +298,9 @@ def part_theta(work: Path, case: str, truth_substeps: list[int], adapt_ws: list[
         mesh = MeshArtefact.load(ws / "mesh.h5")
         ad = AdaptArtefact.load(ws / "adapt.h5")
         cfg = read_provenance(ws / "adapt.h5").get("config", {})
-        scene = make_scene(mesh, controls, cap.material.model, dt, np.asarray(cap.gravity, np.float64),
-                           damping=material_damping(cap, ad))  # the β adapt simulated (declared or estimated)
-        scene_true = scene if material_damping(cap, ad) == cap.material.damping else make_scene(
+        beta = material_damping(cap, ad)  # the β adapt simulated (declared or estimated)
+        scene = make_scene(mesh, controls, cap.material.model, dt, np.asarray(cap.gravity, np.float64), damping=beta)
+        scene_true = scene if beta == cap.material.damping else make_scene(
             mesh, controls, cap.material.model, dt, np.asarray(cap.gravity, np.float64), damping=cap.material.damping)
         regions = list(mesh.region_names)
         T = len(ad.frames)

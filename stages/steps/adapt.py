@@ -554,7 +554,7 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
         sub_path = ws / KIND_FILES["subspace"]
         check_same_mesh(mesh_path, sub_path)
         sub_art = SubspaceArtefact.load(sub_path)
-        if damping > 0 and profile_frames is None and not _cubature_viscous(sub_art):
+        if damping > 0 and not _cubature_viscous(sub_art):
             reporter.warn(f"{sub_path}: its cubature was fitted to elastic forces only, so the viscous forces of "
                           f"β = {damping:g} s are integrated with elastic weights (7.6 % off on the bar); run rsl "
                           f"train-subspace --viscous-cubature on.")
