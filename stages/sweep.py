@@ -1,7 +1,8 @@
 """Loss sweeps: the whole-sequence (or window) loss of a capture over a grid of fixed E — the check that a
 loss is unbiased (its minimum at E_true) before an optimiser runs on it.
 
-For each E of the grid (one value for every region, or a scale of each region's E), the capture is
+For each E of the grid (one value for every region, a scale of each region's E, or one region's E with the
+others held), the capture is
 simulated in full space from its declared start state (docs/capture.md: x_0 = rest or the static
 equilibrium with this E, x_{−1} = x_{−2} = x_0, one implicit-Euler step per frame), observations are
 anchored to the simulated frame-0 state as ``rsl adapt`` anchors them (markers bound to the nearest point of
@@ -43,7 +44,7 @@ from stages.sim.meshgen import refine_tets, surface_faces
 class SweepResult:
     """Losses over a grid of E and the refined minimum."""
 
-    young: np.ndarray  # (K,) Pa, the grid (region 0's E when regions are scaled together)
+    young: np.ndarray  # (K,) Pa, the grid (region 0's E when regions are scaled together, else the swept region's)
     loss: np.ndarray  # (K,) summed loss per grid point
     frame_loss: np.ndarray  # (K, T) per frame
     young_min: float  # Pa, parabolic refinement in log E (the grid minimum at the grid's ends)
@@ -139,7 +140,8 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
           workspace: Path | None = None, cameras: Sequence[str] | None = None, poisson: float | None = None,
           start: str | None = None, refine: int = 0, substeps: int = 1,
           reporter: Callable[[str], None] | None = None, base_young: Sequence[float] | None = None,
-          anchor_young: float | None = None, past_young: np.ndarray | None = None) -> SweepResult:
+          anchor_young: float | None = None, past_young: np.ndarray | None = None,
+          region: str | None = None) -> SweepResult:
     """The loss of ``capture`` (stages.capture.Capture) on ``mesh`` (a MeshArtefact: P1 or P2; ``refine``
     splits its tets 8-fold that many times) over the grid of E (Pa; every region's E scaled with region 0's
     ``base_young`` value (R,) Pa, default capture.toml's; one region: E itself) with ν fixed (``poisson`` or
@@ -150,7 +152,8 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
     ``past_young`` (a, R) Pa: frames 0..a−1 simulated once with this E per frame (a history of the material, e.g.
     the truth's before a step of E; ν as above), frames a..b−1 continued from them with each grid value
     (stages.sim.static.continue_frames): the loss of the frames after a change of material, given the past
-    (a = frames[0])."""
+    (a = frames[0]).  ``region``: only that region's E takes the grid's values, every other region held at its
+    ``base_young`` (the check that one region's loss is lowest at its own E_true, the others known)."""
     from stages.sim.scene import frame_inputs, make_scene  # JAX and numba physics: loaded on use
     from stages.sim.static import continue_frames, last_states, simulate_from_start
 
@@ -172,6 +175,9 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
     names = list(scene.region_names)
     base = (np.array([capture.material.region_young(r) for r in names], float) if base_young is None
             else np.asarray(base_young, float).reshape(len(names)))
+    if region is not None and region not in names:
+        raise ValueError(f"the mesh has no region {region!r} (its regions: {', '.join(names)})")
+    swept = names.index(region) if region is not None else None
     nu = np.array([poisson if poisson is not None else capture.material.region_poisson(r) for r in names], float)
     obs_T = None
     if loss == "markers":
@@ -202,7 +208,7 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
 
     def X_of(e: float) -> np.ndarray:
         if e not in cache:
-            young = base * (e / base[0])
+            young = base * (e / base[0]) if swept is None else np.where(np.arange(len(base)) == swept, e, base)
             cache.clear()
             if past is None:
                 cache[e] = simulate_fixed(scene, ctl, young, nu, T_sim, start, substeps)
@@ -232,7 +238,7 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
     return SweepResult(np.asarray(grid, float), total, per, float(math.exp(lmin)), i, interior,
                        {"start": start, "frames": [a, b], "n_vertices": int(scene.n_vertices),
                         "n_elements": int(len(scene.tets)), "order": int(np.asarray(mesh.tets).shape[1] == 10) + 1,
-                        "refine": int(refine), "loss": loss})
+                        "refine": int(refine), "loss": loss, "region": region})
 
 
 def _vision(capture, workspace, cameras, mesh, X_of, grid, frames, anchor_young=None) -> np.ndarray:

@@ -176,3 +176,11 @@ def test_evaluate_sweep_minimum_lies_at_the_truth(same_model, rsl):
     # a bad grid is one sentence
     p = rsl("evaluate", cap, "-w", ws, "--sweep", "--sweep-min", "2", "--sweep-max", "1")
     assert p.returncode != 0 and "Traceback" not in p.stderr and "--sweep-min" in p.stderr
+    # a region the mesh does not have is one sentence naming mesh.h5; the one region swept alone is E itself
+    p = rsl("evaluate", cap, "-w", ws, "--sweep", "--sweep-region", "tip")
+    assert p.returncode != 0 and "Traceback" not in p.stderr and "mesh.h5" in p.stderr and "'tip'" in p.stderr
+    p = rsl("evaluate", cap, "-w", ws, "--sweep", "--sweep-points", "3", "--sweep-min", "0.8", "--sweep-max", "1.25",
+            "--sweep-region", "body", "--no-plot")
+    assert p.returncode == 0, p.stderr[-2000:]
+    sw = json.loads((ws / "evaluation.json").read_text())["sweep"]
+    assert sw["region"] == "body" and abs(sw["min_over_true"] - 1) < 0.01 and "of region body" in p.stderr

@@ -92,3 +92,28 @@ def test_a_sweep_after_a_step_of_e_given_the_past_is_lowest_at_the_new_e(box, tm
     assert plain.loss.min() > 1e3 * res.loss[2] + 1e-12
     with pytest.raises(ValueError, match="past_young"):
         sweep(cap, mesh, grid, "markers", frames=(5, 10), poisson=0.45, past_young=np.full((4, 1), 6e4))
+
+
+def test_one_regions_sweep_is_lowest_at_its_own_truth(box, tmp_path):
+    """region=...: only that region's E takes the grid's values, the other held at its base_young. On rsl's own
+    two-region model each region's marker loss vanishes at its own E_true; the stiff half swept with the body held
+    at a wrong E is not reproduced; an unknown region is refused."""
+    path, v, t = box
+    out = run(SynthConfig(mesh=path, out=tmp_path / "two", scenario="cable", cameras=1, frames=8, resolution=32,
+                          markers=12, calib_views=0, young=6e4, region="stiff=1.8e5@x>0.5", size=0.2))
+    cap = load_capture(out)
+    pm = prepare_mesh(v, t, 0.2, "stiff=1.8e5@x>0.5")
+    mesh = mesh_artefact(pm.vertices, pm.tets, cap.density, pm.tet_region, tuple(pm.region_names))
+    scales = np.array([0.7, 0.85, 1.0, 1.15, 1.3])
+    truth = {"body": 6e4, "stiff": 1.8e5}
+    base = [truth[r] for r in pm.region_names]
+    for name, e in truth.items():
+        res = sweep(cap, mesh, e * scales, "markers", poisson=0.45, base_young=base, region=name)
+        assert res.interior and res.i_min == 2 and res.young_min == pytest.approx(e, rel=0.01), name
+        assert res.loss[2] < 1e-12 * res.loss.max(), name
+        assert res.info["region"] == name
+    off = sweep(cap, mesh, 1.8e5 * scales, "markers", poisson=0.45, base_young=[0.7 * b for b in base],
+                region="stiff")
+    assert off.loss.min() > 1e3 * res.loss[2] + 1e-12  # the body held at 0.7 E_true: no stiff E reproduces it
+    with pytest.raises(ValueError, match="no region 'tip'"):
+        sweep(cap, mesh, scales, "markers", poisson=0.45, region="tip")

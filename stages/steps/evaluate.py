@@ -75,6 +75,8 @@ class EvaluateConfig:
     """Frames of the sweep, 'A:B' (B excluded); empty = the whole sequence."""
     sweep_substeps: int = 1
     """Implicit-Euler steps per frame in the sweep's simulation."""
+    sweep_region: str = ""
+    """Sweep only this region's E, every other region held at the truth's; empty = every region's E scaled together."""
     force_substeps: int = FORCE_SUBSTEPS
     """Implicit-Euler steps per frame S of the full-space replay the forces are computed on; 0 (the default) = adapt's --substeps, the time step θ was estimated with (docs/results/forces_converged.md, forces_damped.md)."""
     force_extrapolate: bool = FORCE_EXTRAPOLATE
@@ -141,7 +143,8 @@ def run(config: EvaluateConfig, reporter: Reporter = SilentReporter()) -> Path:
         if sw["loss_contrast"] < 1e-4:
             where += (f" — but the loss is flat over the grid (it varies by {sw['loss_contrast']:.1e}): it does not "
                       f"tell E")
-        summary.append(f"{sw['loss']} loss lowest at E = {sw['young_min']:.4g} Pa = {sw['min_over_true']:.3f} "
+        of = f" of region {sw['region']}" if sw["region"] else ""
+        summary.append(f"{sw['loss']} loss lowest at E{of} = {sw['young_min']:.4g} Pa = {sw['min_over_true']:.3f} "
                        f"E_true{where}")
     out["provenance"] = Provenance.make(config, inputs).inputs
     path = ws / "evaluation.json"
@@ -262,8 +265,9 @@ def _sweep_frames(spec: str, capture) -> tuple[int, int] | None:
 
 
 def _sweep(config, ws, capture, truth, mesh, reporter) -> dict:
-    """The loss over a grid of E (stages.sweep.sweep): every region's E scaled with region 0's, ν at the truth's
-    (per region, at the first swept frame); the grid around E_ref = the truth's E of region 0 there."""
+    """The loss over a grid of E (stages.sweep.sweep): every region's E scaled with region 0's (or, with
+    --sweep-region, that region's alone, the others at the truth's), ν at the truth's (per region, at the first
+    swept frame); the grid around E_ref = the truth's E of region 0 (the swept region) there."""
     frames = _sweep_frames(config.sweep_frames, capture)
     f0 = frames[0] if frames else 0
     if f0 >= len(truth.young):
@@ -272,31 +276,37 @@ def _sweep(config, ws, capture, truth, mesh, reporter) -> dict:
     missing = [r for r in names if r not in truth.region_names]
     if missing:
         raise RslError(f"{capture.truth_dir / 'material.csv'}: lists no region '{missing[0]}' of mesh.h5.")
+    region = config.sweep_region.strip() or None
+    if region is not None and region not in names:
+        raise RslError(f"{ws / KIND_FILES['mesh']}: has no region '{region}' (--sweep-region); its regions are "
+                       f"{', '.join(names)}.")
+    ref = names.index(region) if region is not None else 0
     idx = [truth.region_names.index(r) for r in names]
     e_true = truth.young[f0, idx]  # (R,)
     nu_true = truth.poisson[f0, idx]
     if len(np.unique(nu_true)) > 1:
         reporter.warn(f"{capture.truth_dir / 'material.csv'}: regions differ in ν; the sweep holds every region at "
-                      f"ν = {nu_true[0]:g} (region {names[0]}).")
-    grid = e_true[0] * np.geomspace(config.sweep_min, config.sweep_max, config.sweep_points)
-    scale = e_true / e_true[0]  # the truth's ratios between regions are kept along the grid
+                      f"ν = {nu_true[ref]:g} (region {names[ref]}).")
+    grid = e_true[ref] * np.geomspace(config.sweep_min, config.sweep_max, config.sweep_points)
     if config.sweep_loss == "markers" and capture.markers() is None:
         raise RslError(f"{capture.root}: holds no markers.csv (or markers.c3d); use --sweep-loss vision.")
-    with reporter.task(f"{config.sweep_loss} loss sweep over {len(grid)} values of E", len(grid)) as task:
-        try:
+    what = f"E of region {region}" if region is not None else "E"
+    with reporter.task(f"{config.sweep_loss} loss sweep over {len(grid)} values of {what}", len(grid)) as task:
+        try:  # base_young = the truth's E: scaled together (its ratios between regions kept), or held but one
             res = sweep(capture, mesh, grid, config.sweep_loss, frames=frames, workspace=ws,
-                        poisson=float(nu_true[0]), substeps=config.sweep_substeps, base_young=e_true[0] * scale,
-                        reporter=lambda _m: task.advance(1))
+                        poisson=float(nu_true[ref]), substeps=config.sweep_substeps, base_young=e_true,
+                        reporter=lambda _m: task.advance(1), region=region)
         except ValueError as e:  # a missing or mismatched input of the loss, said in one sentence
             raise RslError(f"{str(e).rstrip('.')}.") from None
-    e_ref = float(e_true[0])
+    e_ref = float(e_true[ref])
     return {"loss": config.sweep_loss, "frames": res.info["frames"], "start": res.info["start"],
-            "substeps": config.sweep_substeps, "poisson": float(nu_true[0]), "young_pa": res.young.tolist(),
+            "substeps": config.sweep_substeps, "poisson": float(nu_true[ref]), "region": region,
+            "young_pa": res.young.tolist(),
             "loss_values": res.loss.tolist(), "young_min": res.young_min, "interior": res.interior,
             # (max − min) / max over the grid: ~0 when the loss does not depend on E (e.g. images of a still capture)
             "loss_contrast": float((res.loss.max() - res.loss.min()) / max(abs(res.loss.max()), 1e-300)),
             "young_true": e_ref, "min_over_true": res.young_min / e_ref,
-            "constant_truth": bool(np.all(truth.young[res.info["frames"][0]:res.info["frames"][1], idx[0]] == e_ref)),
+            "constant_truth": bool(np.all(truth.young[res.info["frames"][0]:res.info["frames"][1], idx[ref]] == e_ref)),
             "order": res.info["order"], "n_vertices": res.info["n_vertices"]}
 
 
@@ -313,7 +323,8 @@ def _plot_sweep(path: Path, sw: dict) -> None:
                                                        f"({sw['min_over_true']:.3f} E_true)")
     ax.axvline(sw["young_true"], color="tab:red", ls="--", label=f"E_true {sw['young_true']:.4g} Pa")
     ax.set_xscale("log")
-    ax.set_xlabel("Young's modulus E (Pa)")
+    ax.set_xlabel("Young's modulus E (Pa)" + (f", region {sw['region']} (the others at the truth's)"
+                                              if sw.get("region") else ""))
     ax.set_ylabel(f"{sw['loss']} loss, frames {sw['frames'][0]}..{sw['frames'][1] - 1}")
     ax.set_title(f"loss sweep (start {sw['start']}, ν = {sw['poisson']:g}, P{sw['order']} mesh)")
     ax.legend(fontsize=8)
