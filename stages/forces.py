@@ -349,18 +349,22 @@ def walk_variances(frames: np.ndarray, changes: Sequence[int], model: FilterMode
 
 
 def rts_theta(young: np.ndarray, young_sigma: np.ndarray, poisson: np.ndarray, poisson_sigma: np.ndarray,
-              frames: np.ndarray, changes: Sequence[int], model: FilterModel) -> tuple[np.ndarray, np.ndarray]:
+              frames: np.ndarray, changes: Sequence[int], model: FilterModel,
+              young_floor: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """θ(t) (T, R) of a gn online run smoothed over the whole run under the filter's own random walk
     (:func:`rts_smooth` per region, log E and s = logit((ν − lo) / (hi − lo)) apart — the filter's covariance
     between them is not recorded): the means and σ adapt.h5 records per frame (young, young_sigma Pa, poisson,
     poisson_sigma), their model-error floor taken out (P = σ² − e², the filter's own variance: the floor is a bias
-    that more frames do not average), the walk of :func:`walk_variances`.  ν with σ at the floor (held, or not
+    that more frames do not average; e per frame and region from ``young_floor`` (T, R), adapt.h5's extra
+    'young_model_error', else the model's one e), the walk of :func:`walk_variances`.  ν with σ at the floor (held, or not
     fitted) and a fixed ν range keep their recorded values."""
     young, poisson = np.asarray(young, np.float64), np.asarray(poisson, np.float64)
     sy, sp = np.asarray(young_sigma, np.float64), np.asarray(poisson_sigma, np.float64)
     qe, qs = walk_variances(frames, changes, model)
     log_e = np.log(young)
-    var_e = np.maximum(np.nan_to_num((sy / young) ** 2, nan=0.0) - model.model_error ** 2, 0.0)
+    floor = (model.model_error if young_floor is None
+             else np.broadcast_to(np.asarray(young_floor, np.float64), young.shape))
+    var_e = np.maximum(np.nan_to_num((sy / young) ** 2, nan=0.0) - floor ** 2, 0.0)
     out_e = np.exp(np.stack([rts_smooth(log_e[:, r], var_e[:, r], qe)[0] for r in range(young.shape[1])], axis=1))
     lo, hi = model.poisson_range
     if hi - lo <= 1e-9:
@@ -419,8 +423,10 @@ def replay_theta(young: np.ndarray, poisson: np.ndarray, extra: dict | None, rul
     if rule == "smoothed":
         if young_sigma is None or poisson_sigma is None or model is None or np.size(young_sigma) != young.size:
             return young, poisson, "θ(t) of adapt.h5 (its σ or its filter settings not recorded: not smoothed)"
+        floor = extra.get("young_model_error")  # per frame and region (runs before it: the model's one e)
+        floor = None if floor is None or np.size(floor) != young.size else np.asarray(floor, np.float64)
         y, p = rts_theta(young, young_sigma, poisson, np.broadcast_to(poisson_sigma, poisson.shape),
-                         np.arange(len(young)), changes, model)
+                         np.arange(len(young)), changes, model, floor)
         return y, p, (f"θ(t) of adapt.h5 smoothed over the run (Rauch–Tung–Striebel, the filter's random walk, "
                       f"{len(changes)} detected change(s))")
     y, p = smoothed_theta(young, poisson, changes)

@@ -208,6 +208,36 @@ def test_sigma_of_a_parameter_held_at_its_bound_is_not_tiny():
     assert sE[0] >= 2e6 * np.log(100) / np.sqrt(12) * (1 - 1e-12)
 
 
+def test_model_error_floors_grow_where_the_data_inform_a_region_weakly():
+    """e_i = e √(max I / I_i), capped at MODEL_ERROR_SPREAD_MAX e: one region or equal information gives e; a region
+    with 16× less information 4 e; none at all the cap.  sigma_from_cov adds each region's floor in quadrature; the
+    floor's √ scaling is the bias (Jᵀ J)⁻¹ Jᵀ δ of a least-squares fit under a model error δ along the weak
+    direction (checked on a two-parameter linear fit)."""
+    from types import SimpleNamespace
+
+    from stages.parameters import theta_from_params
+    from stages.windows import MODEL_ERROR_SPREAD_MAX, model_error_floors, sigma_from_cov
+
+    assert model_error_floors(0.02, None) == 0.02
+    np.testing.assert_allclose(model_error_floors(0.02, np.array([5.0])), [0.02])
+    np.testing.assert_allclose(model_error_floors(0.02, np.array([3.0, 3.0])), [0.02, 0.02])
+    np.testing.assert_allclose(model_error_floors(0.02, np.array([16.0, 1.0, 0.0])),
+                               [0.02, 0.08, 0.02 * MODEL_ERROR_SPREAD_MAX])
+    assert model_error_floors(0.02, np.zeros(2)) == 0.02
+    # the bias of a fit along each unit-norm direction scaled by √I_i, under a model error δ of fixed size along it
+    rng = np.random.default_rng(3)
+    q, _ = np.linalg.qr(rng.normal(size=(50, 2)))
+    J = q * np.sqrt([16.0, 1.0])  # orthogonal columns: I = diag(16, 1)
+    bias = [np.linalg.lstsq(J, 0.1 * q[:, i], rcond=None)[0][i] for i in range(2)]
+    assert bias[1] / bias[0] == pytest.approx(4.0, rel=1e-9)
+    prange = (0.3, 0.49)
+    gn = SimpleNamespace(R=2, fit_poisson=False, young_range=None, obj=SimpleNamespace(prange=prange))
+    gn.theta = lambda p: (*theta_from_params(p[:2], np.zeros(2), prange), np.zeros(2))
+    sE, _ = sigma_from_cov(gn, np.log([1e5, 3e5]), np.diag([0.01 ** 2, 0.01 ** 2]), 0.02,
+                           information=np.array([16.0, 1.0]))
+    np.testing.assert_allclose(sE, [1e5 * np.hypot(0.01, 0.02), 3e5 * np.hypot(0.01, 0.08)], rtol=1e-9)
+
+
 def test_gauss_newton_takes_a_failed_trial_as_a_rejected_step():
     """A trial point whose evaluation fails (adapt: a collapsed simulation → r = inf) is rejected like a worse one:
     the damping grows and a shorter step is taken; the minimum is still reached."""

@@ -166,6 +166,28 @@ def test_replay_theta_smoothed_and_its_fallbacks():
     assert "not smoothed" in how
 
 
+def test_rts_theta_takes_out_each_regions_own_floor():
+    """adapt.h5's extra 'young_model_error' (T, R): each region's recorded floor is taken out of its σ (the weakly
+    informed region's larger floor too), and replay_theta passes it on; without it the model's one e."""
+    from stages.forces import replay_theta, rts_smooth, rts_theta, walk_variances
+
+    T = 6
+    young = np.array([[1.0, 3.0], [1.02, 2.4], [0.99, 2.7], [1.0, 2.9], [1.01, 3.1], [1.0, 3.0]]) * 1e5
+    rel = np.array([[0.03, 0.12]] * T)
+    floors = np.array([[0.02, 0.09]] * T)
+    nu, snu = np.full((T, 2), 0.45), np.full((T, 2), 0.02)
+    y, _ = rts_theta(young, young * rel, nu, snu, np.arange(T), [], _model(), floors)
+    qe, _ = walk_variances(np.arange(T), [], _model())
+    for r in range(2):
+        want, _ = rts_smooth(np.log(young[:, r]), rel[:, r] ** 2 - floors[:, r] ** 2, qe)
+        np.testing.assert_allclose(np.log(y[:, r]), want, rtol=0, atol=1e-12)
+    one, _ = rts_theta(young, young * rel, nu, snu, np.arange(T), [], _model())
+    assert not np.allclose(one[:, 1], y[:, 1])  # the stiff region's floor matters
+    extra = {"estimator": "gn", "material_changes_detected": [], "young_model_error": floors.tolist()}
+    y2, _, _ = replay_theta(young, nu, extra, "smoothed", young * rel, snu, _model())
+    np.testing.assert_array_equal(y2, y)
+
+
 # ------------------------------------------------------------------------------------------------- the CLI
 @pytest.mark.slow
 def test_evaluate_and_export_replay_the_smoothed_theta_when_asked(tmp_path, rsl):

@@ -72,7 +72,7 @@ from stages.window_backends import (FullSpace, Guarded, ReducedSpace, SolveColla
 from stages.moving_start import start_basis, start_directions, start_prior
 from stages.observations import MarkerObservation, VisionObservation
 from stages.windows import (STATE_PRIOR_SCALE, GNWindow, StartWindow, StaticWindow, WindowObjective, controls_static,
-                            past_directions, sigma_from_cov, state_directions)
+                            model_error_floors, past_directions, sigma_from_cov, state_directions)
 
 
 
@@ -197,9 +197,11 @@ class AdaptConfig:
     """--damping auto: the frames, from the first of the range, that each β tried is run over; the material should
     be constant over them, and they should show the object move."""
     model_error: float = 0.02
-    """gn: relative σ of E that the discretisation itself adds to the reported E ± σ (σ_E = E √(σ²_logE + e²)): the
+    """gn: relative σ of E that the discretisation itself adds to the reported E ± σ (σ_E = E √(σ²_logE + e_i²)): the
     error of rsl's mesh and time step against the material, which more frames do not average out (quadratic tets:
-    1–3 %, docs/results/convergence.md, loss_sweep.md; calibrated in docs/results/estimator.md)."""
+    1–3 %, docs/results/convergence.md, loss_sweep.md; calibrated in docs/results/estimator.md).  With several
+    regions, e_i = e √(I_max / I_i) (at most 10 e), I_i the window's information on region i's log E: a region the
+    data tell weakly carries more of the model's error (stages.windows.model_error_floors, region_sweep.md)."""
     model_error_poisson: float = 0.02
     """gn: σ of ν that the discretisation itself adds to the reported ν ± σ (in quadrature; ν is weakly identified
     and absorbs model error, calibrated in docs/results/estimator.md)."""
@@ -322,6 +324,7 @@ class _Record:
     t_tot: list = dataclasses.field(default_factory=list)
     young_sigma: list = dataclasses.field(default_factory=list)
     poisson_sigma: list = dataclasses.field(default_factory=list)
+    model_error: list = dataclasses.field(default_factory=list)  # gn: per frame, the relative floor e_i of σ_E (R,)
 
     def add(self, frame: int, young, poisson, loss: float, frame_loss: float, times: tuple[float, float, float],
             total_s: float, young_sigma=None, poisson_sigma=None) -> None:
@@ -1330,8 +1333,10 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                 stored[-1] = gn.last_states[0] - gn.last_before[1] + gn.last_before[0]
             # σ from the covariance with the noise level this window's own residuals show (RSS/dof, Huber-
             # consistent: estimator.residual_scale2), the ν bounds and the model-error floor (sigma_from_cov)
+            info_e = np.diag(n_data)[:R]  # the window's data's information on each region's log E
             sE, sN = sigma_from_cov(gn, res.p, res.cov_scaled[:k_th, :k_th], config.model_error,
-                                     config.model_error_poisson)
+                                     config.model_error_poisson, info_e)
+            rec.model_error.append(np.broadcast_to(model_error_floors(config.model_error, info_e), (R,)).tolist())
             if len(frames) == w:  # frame t0 leaves the window: fold it into the arrival cost
                 s_fold = sigma * float(np.sqrt(max(res.scale2, 1.0)))  # never more certain than σ says
                 J0 = J_lin[0][:, :k_th].copy()
@@ -1391,12 +1396,15 @@ def _offline_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     cov = np.array(res.cov_scaled, dtype=float)
     if hasattr(obs, "sigma_floor"):  # silhouettes: a mask outline's error no residual shows (stages/silhouette.py)
         cov[np.arange(gn.R), np.arange(gn.R)] += obs.sigma_floor()[:gn.R] ** 2
-    sE, sN = sigma_from_cov(gn, res.p, cov, config.model_error, config.model_error_poisson)
+    info_e = np.diag(np.asarray(res.jtwj, float))[:gn.R]
+    sE, sN = sigma_from_cov(gn, res.p, cov, config.model_error, config.model_error_poisson, info_e)
+    floors = np.broadcast_to(model_error_floors(config.model_error, info_e), (gn.R,)).tolist()
     per_frame = tuple(np.asarray(gn.times) / len(frames))
     for i, t in enumerate(frames):
         loop.stored[t] = gn.last_states[i]
         loss = _frame_loss(obs, gn.last_rs[i])
         loop.rec.add(t, E, nu, loss, loss, per_frame, sum(per_frame), sE, sN)
+        loop.rec.model_error.append(floors)
 
 
 def _estimate(loop: _Loop, estimator: str, log_e, s_nu, params, adam) -> None:
@@ -1456,8 +1464,9 @@ def _offline(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
 def _trim_record(rec: _Record) -> None:
     """Drop a frame whose record a Ctrl-C cut half-way (its entries are appended one by one): every per-frame
     list keeps the frames all of them have."""
-    names = [f.name for f in dataclasses.fields(rec) if f.name not in ("young_sigma", "poisson_sigma")]
-    names += [k for k in ("young_sigma", "poisson_sigma") if getattr(rec, k)]  # empty with Adam
+    sigmas = ("young_sigma", "poisson_sigma", "model_error")
+    names = [f.name for f in dataclasses.fields(rec) if f.name not in sigmas]
+    names += [k for k in sigmas if getattr(rec, k)]  # empty with Adam
     k = min(len(getattr(rec, f)) for f in names)
     for f in names:
         del getattr(rec, f)[k:]
@@ -1511,6 +1520,9 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         "ended": "ctrl-c" if ended_by_ctrl_c else ("last frame" if status == "complete" else "error"),
         "wall_s": wall_s,
         "young_meaning": _young_meaning(config, mesh),
+        # gn: per frame and region, the relative model-error floor in young_sigma (stages.windows.model_error_floors:
+        # --model-error spread over the regions by how weakly the data inform each), the smoother takes it out
+        "young_model_error": list(rec.model_error) if len(rec.model_error) == len(rec.frames) else None,
     }
     late = getattr(obs, "late", None)
     if late is not None and (getattr(rec, "late_bindings", []) or late.any()):
