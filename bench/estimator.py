@@ -169,6 +169,9 @@ def _run_case(scene: str, seed: int, with_adam: bool, variants: dict, substeps: 
                        "young_rel": (a.young[:, r] / truth[:T, r]).tolist(),
                        "sigma_rel": (sd / truth[:T, r]).tolist(), "poisson": a.poisson[:, r].tolist(),
                        "poisson_sigma": sdn.tolist()}
+                floors = a.extra.get("young_model_error")  # gn: the per-region floor in σ_E/E, per frame
+                if floors is not None and np.shape(floors) == a.young.shape:
+                    row["model_error_floor"] = np.asarray(floors, float)[:, r].tolist()
                 rows.append(row)
                 print(f"{scene:16} seed {seed} {name:6} {label:4}: settle {row['settle_frames']} "
                       f"med {row['median_abs_err_settled']:.2%} max {row['max_abs_err_settled']:.2%} "
@@ -560,7 +563,9 @@ def _frac(values: list, rows: list) -> str:
 def _floor_table(gn: list, data: dict) -> list[str]:
     """Coverage of E ± 2σ and ν ± 2σ on the settled frames had the run reported another model-error floor: the
     floor enters σ only in quadrature (σ_E/E = √(σ²_logE + e²), σ_ν = √(σ²_ν,stat + e_ν²); the estimates do not
-    depend on it), so the statistical part is recovered from the stored σ and the floor swapped."""
+    depend on it), so the statistical part is recovered from the stored σ and the floor swapped.  A row that recorded
+    its per-region floors (adapt.h5 extra young_model_error: e spread over the regions, stages.windows.
+    model_error_floors) keeps its spread: e' × (floor / e) replaces the floor."""
     e_run, en_run = data.get("model_error", 0.02), data.get("model_error_poisson", 0.0)
     es, ens = (0.0, 0.01, 0.02, 0.03, 0.04), (0.0, 0.01, 0.02, 0.03)
     cov_e, cov_n = {e: [0, 0] for e in es}, {e: [0, 0] for e in ens}
@@ -571,10 +576,12 @@ def _floor_table(gn: list, data: dict) -> list[str]:
         settled = np.zeros(T, bool)
         for a, b in zip([0] + steps, steps + [T]):
             settled[min(a + W + 5, b):b] = True
-        s_log = np.sqrt(np.maximum((sr / rel) ** 2 - e_run ** 2, 0.0))
+        floor = np.asarray(r.get("model_error_floor", np.full(T, e_run)), float)
+        spread = floor / e_run if e_run > 0 else np.ones(T)
+        s_log = np.sqrt(np.maximum((sr / rel) ** 2 - floor ** 2, 0.0))
         s_nu = np.sqrt(np.maximum(sn ** 2 - en_run ** 2, 0.0))
         for e in es:
-            ok = np.abs(rel - 1) <= 2 * rel * np.sqrt(s_log ** 2 + e ** 2)
+            ok = np.abs(rel - 1) <= 2 * rel * np.sqrt(s_log ** 2 + (e * spread) ** 2)
             cov_e[e][0] += int(ok[settled].sum())
             cov_e[e][1] += int(settled.sum())
         for e in ens:
