@@ -572,15 +572,19 @@ class GNWindow:
         return (a - b) / pred[1]
 
 
-MODEL_ERROR_SPREAD_MAX = 10.0
-"""Largest factor by which a weakly informed region's model-error floor exceeds ``model_error`` (a region the
-window's data hardly see: its floor is capped at 10 e)."""
+MODEL_ERROR_SPREAD_MAX = 6.0
+"""Largest factor by which a weakly informed region's model-error floor exceeds ``model_error``.  On the two-region
+beam the stiff half's information is ~1 % of the body's (the √ ratio alone would give 20 e), and its loss minimum
+lies 0.79–1.12 E_true over four discretisations (docs/results/region_sweep.md): 6 e = 12 % keeps each of them
+within 2σ without the 40 % band of 20 e."""
 
 
 def model_error_floors(model_error: float, information: np.ndarray | None) -> np.ndarray | float:
     """Per-region relative model-error floor of E (R,):
 
         e_i = e · min(√(max_j I_j / I_i), MODEL_ERROR_SPREAD_MAX),   I_i = (Jᵀ W J)_ii, the data's information on log E_i
+
+(adapt: Jᵀ W J summed over the run's windows so far, or the offline fit's)
 
     A systematic error δ of the model's residuals (the discretisation's) biases a least-squares estimate by
     (Jᵀ J)⁻¹ Jᵀ δ, ≈ |δ| / √I_i for region i: a region the data tell weakly carries that error many times over

@@ -200,8 +200,9 @@ class AdaptConfig:
     """gn: relative σ of E that the discretisation itself adds to the reported E ± σ (σ_E = E √(σ²_logE + e_i²)): the
     error of rsl's mesh and time step against the material, which more frames do not average out (quadratic tets:
     1–3 %, docs/results/convergence.md, loss_sweep.md; calibrated in docs/results/estimator.md).  With several
-    regions, e_i = e √(I_max / I_i) (at most 10 e), I_i the window's information on region i's log E: a region the
-    data tell weakly carries more of the model's error (stages.windows.model_error_floors, region_sweep.md)."""
+    regions, e_i = e √(I_max / I_i) (at most 6 e), I_i the data's information on region i's log E summed over the
+    windows so far: a region the data tell weakly carries more of the model's error (stages.windows.
+    model_error_floors, region_sweep.md)."""
     model_error_poisson: float = 0.02
     """gn: σ of ν that the discretisation itself adds to the reported ν ± σ (in quadrature; ν is weakly identified
     and absorbs model error, calibrated in docs/results/estimator.md)."""
@@ -1182,6 +1183,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     sigma = None
     sens: dict[int, np.ndarray] = {}  # frame -> d state/dp (k_θ, …)
     sig_hist: list[float] = []
+    info_run = np.zeros(gn.R)  # the data's information on each region's log E, summed over the run's windows
     # images: σ is a robust per-pixel level, but the pixels' misfit is correlated (blocks, frames): the data term's
     # variance factor s² is the cluster-robust one of the last windows (median of 5; 1 for markers, whose σ is
     # already their RMS)
@@ -1333,10 +1335,12 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                 stored[-1] = gn.last_states[0] - gn.last_before[1] + gn.last_before[0]
             # σ from the covariance with the noise level this window's own residuals show (RSS/dof, Huber-
             # consistent: estimator.residual_scale2), the ν bounds and the model-error floor (sigma_from_cov)
-            info_e = np.diag(n_data)[:R]  # the window's data's information on each region's log E
+            # the data's information on each region's log E summed over the windows so far: the model's error
+            # biases the run's estimate by (Σ Jᵀ W J)⁻¹ Σ Jᵀ δ, spread over the regions as their summed information
+            info_run += np.nan_to_num(np.diag(res.jtwj)[:R])  # Jᵀ W J without σ (σ changes between windows)
             sE, sN = sigma_from_cov(gn, res.p, res.cov_scaled[:k_th, :k_th], config.model_error,
-                                     config.model_error_poisson, info_e)
-            rec.model_error.append(np.broadcast_to(model_error_floors(config.model_error, info_e), (R,)).tolist())
+                                     config.model_error_poisson, info_run)
+            rec.model_error.append(np.broadcast_to(model_error_floors(config.model_error, info_run), (R,)).tolist())
             if len(frames) == w:  # frame t0 leaves the window: fold it into the arrival cost
                 s_fold = sigma * float(np.sqrt(max(res.scale2, 1.0)))  # never more certain than σ says
                 J0 = J_lin[0][:, :k_th].copy()
