@@ -150,18 +150,21 @@ def write(cases: list[dict], out: Path, n_truth: int, previous: dict | None = No
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "truth_substeps": n_truth, "cases": cases}
     (out / "region_sweep.json").write_text(json.dumps(data, indent=1))
-    head = ("| region swept | rsl's mesh | tets | substeps per frame | grid: points, E/E_true | E_min / E_true | bias | "
+    head = ("| region swept | rsl's mesh | tets | substeps per frame | grid: points, E/E_true | E_min / E_true | "
+            "bias | "
             "curvature d² ln L / d(ln E)² | lowest loss on the grid (m²) | time (s) | measured (UTC) |\n"
             "| --- | --- | ---: | ---: | --- | --- | --- | ---: | ---: | ---: | --- |")
     table = "\n".join([head] + [_row(c) for c in cases])
     within = [c for c in cases if abs(c["ratio"] - 1) <= 0.03]
     md = (f"# Region sweep: is each region's loss lowest at its own E?\n\n"
           f"Truth: the two-region beam of [accuracy.md](accuracy.md) (sample_data/bar pulled by a cable, the far half "
-          f"x > 0.5 three times stiffer: body {acc.E0:g} Pa, stiff {3 * acc.E0:g} Pa; ν = {acc.POISSON}), P2 tets on the shipped mesh, hard handles, {n_truth} implicit substeps per "
+          f"x > 0.5 three times stiffer: body {acc.E0:g} Pa, stiff {3 * acc.E0:g} Pa; ν = {acc.POISSON}), P2 tets "
+          f"on the shipped mesh, hard handles, {n_truth} implicit substeps per "
           f"frame, start = equilibrium, {FRAMES} frames, 40 markers.  Each row: the whole-sequence marker loss over a "
           f"grid of one region's E, the other region at its E_true, ν at the truth's, full-space simulation from the "
           f"declared start (`rsl evaluate --sweep --sweep-region`); the minimum refined by a parabola in log E.  "
-          f"Curvature: how sharply the loss tells that region's E.\n\n{table}\n\n"
+          f"Curvature: how sharply the loss tells that region's E.  A row on the truth's own mesh at its {n_truth} "
+          f"substeps is the truth's own model: its minimum checks the sweep itself.\n\n{table}\n\n"
           f"{len(within)} of {len(cases)} minima lie within 3 % of E_true.\n\n"
           f"Machine: {data['machine']}; date {data['date']}.  Produced by `bench/region_sweep.py`.\n\n"
           f"![loss over each region's E](region_sweep.png)\n")

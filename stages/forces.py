@@ -356,8 +356,8 @@ def rts_theta(young: np.ndarray, young_sigma: np.ndarray, poisson: np.ndarray, p
     between them is not recorded): the means and σ adapt.h5 records per frame (young, young_sigma Pa, poisson,
     poisson_sigma), their model-error floor taken out (P = σ² − e², the filter's own variance: the floor is a bias
     that more frames do not average; e per frame and region from ``young_floor`` (T, R), adapt.h5's extra
-    'young_model_error', else the model's one e), the walk of :func:`walk_variances`.  ν with σ at the floor (held, or not
-    fitted) and a fixed ν range keep their recorded values."""
+    'young_model_error', else the model's one e), the walk of :func:`walk_variances`.  ν with σ at the floor (held,
+    or not fitted) and a fixed ν range keep their recorded values."""
     young, poisson = np.asarray(young, np.float64), np.asarray(poisson, np.float64)
     sy, sp = np.asarray(young_sigma, np.float64), np.asarray(poisson_sigma, np.float64)
     qe, qs = walk_variances(frames, changes, model)

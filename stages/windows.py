@@ -582,13 +582,13 @@ within 2σ without the 40 % band of 20 e."""
 def model_error_floors(model_error: float, information: np.ndarray | None) -> np.ndarray | float:
     """Per-region relative model-error floor of E (R,):
 
-        e_i = e · min(√(max_j I_j / I_i), MODEL_ERROR_SPREAD_MAX),   I_i = (Jᵀ W J)_ii, the data's information on log E_i
+        e_i = e · min(√(max_j I_j / I_i), MODEL_ERROR_SPREAD_MAX),   I_i = (Jᵀ W J)_ii
 
-(adapt: Jᵀ W J summed over the run's windows so far, or the offline fit's)
-
-    A systematic error δ of the model's residuals (the discretisation's) biases a least-squares estimate by
-    (Jᵀ J)⁻¹ Jᵀ δ, ≈ |δ| / √I_i for region i: a region the data tell weakly carries that error many times over
-    (the two-region beam's stiff half: its loss minimum moves by ±15 % between meshes, docs/results/region_sweep.md).
+    I_i is the data's information on log E_i (adapt: Jᵀ W J summed over the run's windows so far, or the offline
+    fit's).  A systematic error δ of the model's residuals (the discretisation's) biases a least-squares estimate
+    by (Jᵀ J)⁻¹ Jᵀ δ, ≈ |δ| / √I_i for region i: a region the data tell weakly carries that error many times over
+    (the two-region beam's stiff half: its loss minimum lies 0.79–1.12 E_true over four discretisations,
+    docs/results/region_sweep.md).
     e (``model_error``, calibrated on single-region scenes) is the best-informed region's floor; one region, equal
     information, or ``information`` None: e itself (a float)."""
     if information is None:
