@@ -642,9 +642,9 @@ def test_adapt_gn_markers_recovers_young_with_sigma(beam, rsl):
     from stages.artefacts import AdaptArtefact
     from test_adapt_e2e import E_TRUE
 
-    cap, ws = beam
+    cap, ws = beam  # rsl synth's one implicit step per frame: --substeps 1 keeps adapt the capture's own model
     proc = rsl("adapt", cap, "-w", ws, "--space", "full", "--loss", "markers", "--window", "3",
-               "--young-init", str(E_TRUE / 4), "--estimator", "gn")
+               "--young-init", str(E_TRUE / 4), "--estimator", "gn", "--substeps", "1")
     assert proc.returncode == 0, proc.stderr
     assert "±" in proc.stderr
     art = AdaptArtefact.load(ws / "adapt.h5")
@@ -652,11 +652,15 @@ def test_adapt_gn_markers_recovers_young_with_sigma(beam, rsl):
     assert np.all(np.abs(art.young[20:, 0] / E_TRUE - 1) < 0.01), art.young[:, 0]
     assert np.all(np.abs(art.young[20:, 0] - E_TRUE) <= 3 * art.young_sigma[20:, 0]), art.young_sigma[:, 0]
     assert art.young_sigma[0, 0] > art.young_sigma[-1, 0] > 0  # it knows it has learnt
+    floors = np.asarray(art.extra["young_model_error"])  # one region: the --model-error default on every frame
+    assert floors.shape == art.young.shape and np.allclose(floors, 0.02)
     proc = rsl("adapt", cap, "-w", ws, "--space", "full", "--loss", "markers", "--mode", "offline",
-               "--young-init", str(E_TRUE / 4), "--estimator", "gn", "--frames", "0:12", "--offline-iters", "8")
+               "--young-init", str(E_TRUE / 4), "--estimator", "gn", "--frames", "0:12", "--offline-iters", "8",
+               "--substeps", "1")
     assert proc.returncode == 0, proc.stderr
     art = AdaptArtefact.load(ws / "adapt.h5")
     assert abs(art.young[0, 0] / E_TRUE - 1) < 0.01 and np.all(np.isfinite(art.young_sigma))
+    assert np.allclose(art.extra["young_model_error"], 0.02) and len(art.extra["young_model_error"]) == 12
     # Adam reports no σ: NaN
     proc = rsl("adapt", cap, "-w", ws, "--space", "full", "--loss", "markers", "--frames", "0:4", "--estimator", "adam")
     assert proc.returncode == 0, proc.stderr
