@@ -185,7 +185,8 @@ def run_once(cap: Path, ws: Path, out: Path, estimator: str, w: int, n_frames: i
             "gn_evaluations": float(np.mean(gn_its[sel, 1])) if len(gn_its) == len(sel) else None,
             "young": np.asarray(art.young).tolist(), "young_sigma": np.asarray(art.young_sigma).tolist(),
             "frames": np.asarray(art.frames).tolist(),
-            "gn_trust": read_provenance(path)["config"].get("gn_trust")}  # the value that ran (adapt.h5)
+            # the value that ran: adapt.h5's extra (runs before it recorded it in the provenance's config)
+            "gn_trust": art.extra.get("gn_trust", read_provenance(path)["config"].get("gn_trust"))}
 
 
 def markdown(data: dict) -> str:

@@ -446,9 +446,10 @@ def test_gn_trust_negative_is_rejected(beam_step, tmp_path):
 
 def test_gn_images_at_the_default_trust_take_one_evaluation_and_record_it(beam_step, tmp_path, monkeypatch):
     """Images, gn at AdaptConfig's default --gn-trust, rsl adapt's default iterations: the small last steps are taken
-    on the quadratic model (GNWindow.extrapolate, gauss_newton unchecked) and adapt.h5 records the resolved 5; markers at
-    the default: every step tested (no extrapolation) and 0 recorded."""
-    from stages.artefacts import read_provenance
+    on the quadratic model (GNWindow.extrapolate, gauss_newton unchecked) and adapt.h5 records the resolved 5 (its
+    extra; the provenance keeps the option as given, None, so that `rsl run` finds the artefact up to date); markers
+    at the default: every step tested (no extrapolation) and 0 recorded."""
+    from stages.artefacts import AdaptArtefact, read_provenance
     from stages.steps import adapt
     from test_adapt_e2e import _image_workspace
 
@@ -465,7 +466,8 @@ def test_gn_images_at_the_default_trust_take_one_evaluation_and_record_it(beam_s
     monkeypatch.setattr(adapt, "gauss_newton", counted)
     iters = adapt.AdaptConfig.iters_per_frame
     _, _, skipped = _online(cap, ws2, None, "vision", "0:10", monkeypatch, substeps=1, iters_per_frame=iters)
-    assert read_provenance(ws2 / "adapt.h5")["config"]["gn_trust"] == adapt.GN_TRUST_IMAGES
+    assert AdaptArtefact.load(ws2 / "adapt.h5").extra["gn_trust"] == adapt.GN_TRUST_IMAGES
+    assert read_provenance(ws2 / "adapt.h5")["config"]["gn_trust"] is None
     unchecked = [r for r in results if not r.checked]
     assert len(skipped) >= 3 and len(unchecked) == len(skipped), (skipped, len(unchecked))
     # a linearisation per iteration and a trial per iteration but the last (every step tested: 2 per iteration)
@@ -473,4 +475,4 @@ def test_gn_images_at_the_default_trust_take_one_evaluation_and_record_it(beam_s
         [(r.iterations, r.evaluations) for r in unchecked]
     ws3 = _mesh_workspace(ws, tmp_path / "ws3")
     _, _, skipped = _online(cap, ws3, None, "markers", "0:6", monkeypatch, substeps=1)
-    assert skipped == [] and read_provenance(ws3 / "adapt.h5")["config"]["gn_trust"] == 0.0
+    assert skipped == [] and AdaptArtefact.load(ws3 / "adapt.h5").extra["gn_trust"] == 0.0

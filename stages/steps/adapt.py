@@ -213,8 +213,8 @@ class AdaptConfig:
     window continues these first-order states, with more it simulates its frames again); the next frame's
     linearisation renders that estimate, and when its data cost exceeds the prediction by more than 1 (a 1-σ step
     lowers the cost by ½) that frame's step is tested again; larger steps are always tested (Levenberg–Marquardt).
-    0: every step is tested.  Default (resolve_gn_trust; adapt.h5 records the value that ran): 5 with images, 0 with
-    markers and silhouettes.  Images, Bar-like case, at the default 2 iterations per frame, against 0: E moves by
+    0: every step is tested.  Default (resolve_gn_trust; adapt.h5's extra gn_trust records the value that ran): 5
+    with images, 0 with markers and silhouettes.  Images, Bar-like case, at the default 2 iterations per frame, against 0: E moves by
     ≤ 0.24 σ_E, gn's wall time per frame 0.93 times adam's instead of 1.03 (docs/results/adapt_speed.md; 10 and 20
     took the very same steps at 2 iterations, by hand); markers, bar with E
     steps (3 substeps per frame, by hand on bench/accuracy.py's capture): up to 3.1 σ_E right after a change,
@@ -679,7 +679,6 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
     # Ctrl-C raises KeyboardInterrupt at once as usual, but is also counted (stages/interrupt.py): one that
     # compiled code lost ends the loop when the frame is recorded (the progress step), and none can abort the save
     ctrl_c = CtrlC()
-    config = dataclasses.replace(config, gn_trust=resolve_gn_trust(config, obs.kind))  # (adapt.h5 records it)
     loop = _Loop(config, obs, backend, objective, stored, rec, prange, mat.young_range, first, last,
                  CheckedReporter(reporter, ctrl_c), moving, damping)
     rec.damping_profile = damping_profile  # --damping auto's search (None: β given)
@@ -1504,6 +1503,9 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         "damping_profile": None if rec.damping_profile is None else rec.damping_profile.as_record(),
         "status": status,  # complete | interrupted | failed
         "estimator": resolve_estimator(config),
+        # gn: the --gn-trust that ran (its default resolved from the loss); the provenance keeps the option as given,
+        # so that `rsl run` finds an adapt.h5 made with the default up to date
+        "gn_trust": resolve_gn_trust(config, obs.kind),
         "material_changes_detected": list(getattr(rec, "changes", [])),  # gn: frames whose innovation widened θ
         # gn: per frame, the change test's normalised innovation rᵀr/(mσ²) (None: not tested)
         "innovation_ratio": [None if not np.isfinite(z) else float(z) for z in getattr(rec, "innovation", [])],
