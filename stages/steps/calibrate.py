@@ -91,6 +91,9 @@ class CalibrateConfig:
     """SfM: all cameras share one set of intrinsics (identical cameras; steadier with few images)."""
     sfm_max_image_size: int = 1600
     """SfM: images are downscaled to at most this many pixels for feature extraction."""
+    sfm_threads: int = 2
+    """SfM: threads of feature extraction, matching and mapping (pycolmap).  1 makes a run repeatable: with more,
+    thread scheduling changes the matches, and three photos' self-calibrated focal length moves by several %."""
     seed: int = 0
     """Seed of the random choices in SfM."""
 
@@ -113,6 +116,8 @@ def run(config: CalibrateConfig, reporter: Reporter = SilentReporter()) -> Path:
         cams, method = cameras_from_transforms(config.from_transforms, names), "transforms"
         inputs = [Path(config.from_transforms)]
     elif config.sfm:
+        if config.sfm_threads < 1:
+            raise RslError(f"--sfm-threads should be at least 1, found {config.sfm_threads}.")
         cams, method = _sfm(cap, config, reporter), "sfm"
     elif config.board:
         cams, method, inputs = _board(cap, config, reporter, Path(config.workspace))
@@ -327,7 +332,7 @@ def _sfm(cap: Capture, config: CalibrateConfig, reporter: Reporter) -> list[Came
                 images[f"{c}/{v}"] = read_image(p)
     with tempfile.TemporaryDirectory(prefix="rsl_sfm_") as tmp, reporter.task("structure from motion", None):
         rec = reconstruct(images, Path(tmp), seed=config.seed, max_image_size=config.sfm_max_image_size,
-                          single_camera=config.sfm_single_camera)
+                          single_camera=config.sfm_single_camera, num_threads=config.sfm_threads)
     missing = [c for c in cap.camera_names if f"{c}/frame0" not in rec.poses]
     if missing:
         raise RslError(f"{cap.root / 'frames'}: SfM could not register frame 0 of camera(s) "
