@@ -76,3 +76,12 @@ def test_scale_by_board_and_distance():
     c0, c1 = (-R.T @ t for (_, R, t) in cams[:2])
     assert scale_by_distance(rec, "c0/frame0", "c1/frame0", float(np.linalg.norm(c0 - c1))) == \
         pytest.approx(1 / s_true, rel=1e-9)
+
+
+def test_sfm_threads_below_one_is_one_sentence(tmp_path):
+    """--sfm-threads 0 is refused before any work, in one sentence naming the option."""
+    from stages.errors import RslError
+
+    cap = make_capture(tmp_path / "cap", ["c0", "c1"])
+    with pytest.raises(RslError, match="--sfm-threads should be at least 1, found 0"):
+        run(CalibrateConfig(cap, tmp_path / "ws", sfm=True, sfm_threads=0))
