@@ -33,11 +33,14 @@ plain at adapt's S = 6 / Richardson (1, 2), the former default / Richardson (6, 
 28.1 / 11.2 %, 28.9 / 52.5 / 36.8 %, 2.0 / 2.9 / 2.3 %; damped (β = 3 ms declared) 19.1 / 25.5 / 16.4 %, 37.7 /
 47.6 / 20.0 %.  With β estimated (`rsl adapt --damping auto`, by hand with `rsl evaluate`, accuracy_notes.md
 nineteenth stop) 5.6 / 15.9 / 21.2 % and 23.3 / 38.7 / — %; the dinosaur (undamped) 9.2 / 13.1 / — %.  Plain at
-adapt's S is below Richardson (1, 2) on every capture; Richardson (6, 12) is lower on three and higher on two.  Against the table's truths of 3 substeps per frame it reads worse (bars 8.7 / 23.1 / 11.6 % against
-4.4 / 8.8 / 4.9 % for the equilibrium, rest and moving starts; the dinosaur 6.1 against 9.0 %): Richardson (1, 2)
-takes 3 steps per frame as that truth did (its integrator's damping, see below).  Without material damping the dynamic part of a hard handle's reaction (the inertia of the oscillating
-body) carries implicit Euler's numerical damping, an error of first order in Δt / S — on the truth's side too.  docs/results/forces_converged.md (bench/forces.py --part time) compares the
-replays of the true E with truths simulated with N = 12, 24 (48) substeps and extrapolated (2 F_2N − F_N):
+adapt's S is below Richardson (1, 2) on every capture; Richardson (6, 12) is lower on three and higher on two.
+Against the table's truths of 3 substeps per frame it reads worse (bars 8.7 / 23.1 / 11.6 % against 4.4 / 8.8 /
+4.9 % for the equilibrium, rest and moving starts; the dinosaur 6.1 against 9.0 %): Richardson (1, 2) takes 3 steps
+per frame as that truth did (its integrator's damping, see below).  Without material damping the dynamic part of a
+hard handle's reaction (the inertia of the oscillating body) carries implicit Euler's numerical damping, an error of
+first order in Δt / S — on the truth's side too.  docs/results/forces_converged.md (bench/forces.py --part time)
+compares the replays of the true E with truths simulated with N = 12, 24 (48) substeps and extrapolated
+(2 F_2N − F_N):
 * where the truths converge in time — the two-region beam (constant E; N = 12 and 24 differ by 0.7 %) and the
   bars' frames before their first E step (0.1–3.5 %) — so does the replay: plain S = 1 / 3 / 12 err 8.0 / 4.4 /
   1.8 % on the beam, 3.1 / 1.3 / 0.4 % (bar, equilibrium start) and 25 / 15 / 6.6 % (bar released at rest, which
