@@ -579,46 +579,42 @@ lies 0.79–1.12 E_true over four discretisations (docs/results/region_sweep.md)
 within 2σ without the 40 % band of 20 e."""
 
 
-def model_error_floors(model_error: float, information: np.ndarray | None) -> np.ndarray | float:
+def model_error_floors(model_error: float, information: np.ndarray) -> np.ndarray:
     """Per-region relative model-error floor of E (R,):
 
         e_i = e · min(√(max_j I_j / I_i), MODEL_ERROR_SPREAD_MAX),   I_i = (Jᵀ W J)_ii
 
-    I_i is the data's information on log E_i (adapt: Jᵀ W J summed over the run's windows so far, or the offline
-    fit's).  A systematic error δ of the model's residuals (the discretisation's) biases a least-squares estimate
-    by (Jᵀ J)⁻¹ Jᵀ δ, ≈ |δ| / √I_i for region i: a region the data tell weakly carries that error many times over
-    (the two-region beam's stiff half: its loss minimum lies 0.79–1.12 E_true over four discretisations,
-    docs/results/region_sweep.md).
-    e (``model_error``, calibrated on single-region scenes) is the best-informed region's floor; one region, equal
-    information, or ``information`` None: e itself (a float)."""
-    if information is None:
-        return float(model_error)
-    info = np.asarray(information, np.float64)
+    I_i is the data's information on log E_i (R,) (adapt: Jᵀ W J summed over the run's windows so far, or the
+    offline fit's).  A systematic error δ of the model's residuals (the discretisation's) biases a least-squares
+    estimate by (Jᵀ J)⁻¹ Jᵀ δ, ≈ |δ| / √I_i for region i: a region the data tell weakly carries that error many
+    times over (the two-region beam's stiff half: its loss minimum lies 0.79–1.12 E_true over four
+    discretisations, docs/results/region_sweep.md).  e (``model_error``, calibrated on single-region scenes) is the
+    best-informed region's floor; one region, equal information, or none at all: e for every region."""
+    info = np.asarray(information, np.float64).reshape(-1)
     top = float(np.max(info)) if info.size else 0.0
     if not top > 0:
-        return float(model_error)
+        return np.full(info.size, float(model_error))
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.sqrt(np.where(info > 0, top / info, np.inf))
     return float(model_error) * np.minimum(ratio, MODEL_ERROR_SPREAD_MAX)
 
 
-def sigma_from_cov(gn: GNWindow, p: np.ndarray, cov: np.ndarray, model_error: float = 0.0,
-                   model_error_poisson: float = 0.0, information: np.ndarray | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def sigma_from_cov(gn: GNWindow, p: np.ndarray, cov: np.ndarray, model_error: float | np.ndarray = 0.0,
+                   model_error_poisson: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """σ of E and of ν per region from the covariance of p (k, k):
 
         σ_E = E √(σ²_logE + e_i²),   σ_ν = √((ν'(s) σ_s)² + e_ν²)  (0 when ν is held),
 
-    e_i = :func:`model_error_floors` (``model_error`` spread over the regions by the data's ``information`` (R,) on
-    each log E; None: ``model_error`` for every region), e_ν = ``model_error_poisson`` (the error of E, relative,
-    and of ν that the discretisation itself makes, added in quadrature: it does not average out over frames).  A
+    e_i = ``model_error`` (one for every region, or per region (R,): :func:`model_error_floors`), e_ν =
+    ``model_error_poisson`` (the error of E, relative, and of ν that the discretisation itself makes, added in
+    quadrature: it does not average out over frames).  A
     parameter held at a bound of its range ([material] young_range, poisson_range)
     reports at least the σ of a uniform prior over the range (stages.estimator.bounded_sigma): there the data
     do not locate it (and the sigmoid's slope ν'(s) → 0 would shrink σ_ν to nothing)."""
     R = gn.R
     E, nu, s = gn.theta(p)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    s_log = np.sqrt(sd[:R] ** 2 + model_error_floors(model_error, information) ** 2)
+    s_log = np.sqrt(sd[:R] ** 2 + np.asarray(model_error, np.float64) ** 2)
     if gn.young_range is not None:
         s_log = bounded_sigma(np.log(E), s_log, np.log(gn.young_range[0]), np.log(gn.young_range[1]))
     sE = E * s_log

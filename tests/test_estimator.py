@@ -209,21 +209,20 @@ def test_sigma_of_a_parameter_held_at_its_bound_is_not_tiny():
 
 
 def test_model_error_floors_grow_where_the_data_inform_a_region_weakly():
-    """e_i = e √(max I / I_i), capped at MODEL_ERROR_SPREAD_MAX e: one region or equal information gives e; a region
-    with 16× less information 4 e; none at all the cap.  sigma_from_cov adds each region's floor in quadrature; the
-    floor's √ scaling is the bias (Jᵀ J)⁻¹ Jᵀ δ of a least-squares fit under a model error δ along the weak
-    direction (checked on a two-parameter linear fit)."""
+    """e_i = e √(max I / I_i), capped at MODEL_ERROR_SPREAD_MAX e: one region, equal information or none at all gives
+    e; a region with 16× less information 4 e, one with none the cap.  sigma_from_cov adds each region's floor in
+    quadrature; the floor's √ scaling is the bias (Jᵀ J)⁻¹ Jᵀ δ of a least-squares fit under a model error δ along
+    the weak direction (checked on a two-parameter linear fit)."""
     from types import SimpleNamespace
 
     from stages.parameters import theta_from_params
     from stages.windows import MODEL_ERROR_SPREAD_MAX, model_error_floors, sigma_from_cov
 
-    assert model_error_floors(0.02, None) == 0.02
     np.testing.assert_allclose(model_error_floors(0.02, np.array([5.0])), [0.02])
     np.testing.assert_allclose(model_error_floors(0.02, np.array([3.0, 3.0])), [0.02, 0.02])
     np.testing.assert_allclose(model_error_floors(0.02, np.array([16.0, 1.0, 0.0])),
                                [0.02, 0.08, 0.02 * MODEL_ERROR_SPREAD_MAX])
-    assert model_error_floors(0.02, np.zeros(2)) == 0.02
+    np.testing.assert_allclose(model_error_floors(0.02, np.zeros(2)), [0.02, 0.02])  # no information at all
     # the bias of a fit along each unit-norm direction scaled by √I_i, under a model error δ of fixed size along it
     rng = np.random.default_rng(3)
     q, _ = np.linalg.qr(rng.normal(size=(50, 2)))
@@ -233,8 +232,8 @@ def test_model_error_floors_grow_where_the_data_inform_a_region_weakly():
     prange = (0.3, 0.49)
     gn = SimpleNamespace(R=2, fit_poisson=False, young_range=None, obj=SimpleNamespace(prange=prange))
     gn.theta = lambda p: (*theta_from_params(p[:2], np.zeros(2), prange), np.zeros(2))
-    sE, _ = sigma_from_cov(gn, np.log([1e5, 3e5]), np.diag([0.01 ** 2, 0.01 ** 2]), 0.02,
-                           information=np.array([16.0, 1.0]))
+    sE, _ = sigma_from_cov(gn, np.log([1e5, 3e5]), np.diag([0.01 ** 2, 0.01 ** 2]),
+                           model_error_floors(0.02, np.array([16.0, 1.0])))
     np.testing.assert_allclose(sE, [1e5 * np.hypot(0.01, 0.02), 3e5 * np.hypot(0.01, 0.08)], rtol=1e-9)
 
 

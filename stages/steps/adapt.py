@@ -1333,13 +1333,13 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                 start_c = res.p[k_th:].copy()
                 stored[-1] = gn.last_states[0] - gn.last_before[1] + gn.last_before[0]
             # σ from the covariance with the noise level this window's own residuals show (RSS/dof, Huber-
-            # consistent: estimator.residual_scale2), the ν bounds and the model-error floor (sigma_from_cov)
-            # the data's information on each region's log E summed over the windows so far: the model's error
-            # biases the run's estimate by (Σ Jᵀ W J)⁻¹ Σ Jᵀ δ, spread over the regions as their summed information
+            # consistent: estimator.residual_scale2), the ν bounds and the model-error floors (sigma_from_cov): the
+            # model's error biases the run's estimate by (Σ Jᵀ W J)⁻¹ Σ Jᵀ δ, so the floor is spread over the
+            # regions by the data's information on each log E summed over the windows so far (model_error_floors)
             info_run += np.nan_to_num(np.diag(res.jtwj)[:R])  # Jᵀ W J without σ (σ changes between windows)
-            sE, sN = sigma_from_cov(gn, res.p, res.cov_scaled[:k_th, :k_th], config.model_error,
-                                     config.model_error_poisson, info_run)
-            rec.model_error.append(np.broadcast_to(model_error_floors(config.model_error, info_run), (R,)).tolist())
+            floors = model_error_floors(config.model_error, info_run)
+            sE, sN = sigma_from_cov(gn, res.p, res.cov_scaled[:k_th, :k_th], floors, config.model_error_poisson)
+            rec.model_error.append(floors.tolist())
             if len(frames) == w:  # frame t0 leaves the window: fold it into the arrival cost
                 s_fold = sigma * float(np.sqrt(max(res.scale2, 1.0)))  # never more certain than σ says
                 J0 = J_lin[0][:, :k_th].copy()
@@ -1399,15 +1399,14 @@ def _offline_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     cov = np.array(res.cov_scaled, dtype=float)
     if hasattr(obs, "sigma_floor"):  # silhouettes: a mask outline's error no residual shows (stages/silhouette.py)
         cov[np.arange(gn.R), np.arange(gn.R)] += obs.sigma_floor()[:gn.R] ** 2
-    info_e = np.diag(np.asarray(res.jtwj, float))[:gn.R]
-    sE, sN = sigma_from_cov(gn, res.p, cov, config.model_error, config.model_error_poisson, info_e)
-    floors = np.broadcast_to(model_error_floors(config.model_error, info_e), (gn.R,)).tolist()
+    floors = model_error_floors(config.model_error, np.diag(np.asarray(res.jtwj, float))[:gn.R])
+    sE, sN = sigma_from_cov(gn, res.p, cov, floors, config.model_error_poisson)
     per_frame = tuple(np.asarray(gn.times) / len(frames))
     for i, t in enumerate(frames):
         loop.stored[t] = gn.last_states[i]
         loss = _frame_loss(obs, gn.last_rs[i])
         loop.rec.add(t, E, nu, loss, loss, per_frame, sum(per_frame), sE, sN)
-        loop.rec.model_error.append(floors)
+        loop.rec.model_error.append(floors.tolist())
 
 
 def _estimate(loop: _Loop, estimator: str, log_e, s_nu, params, adam) -> None:
