@@ -53,9 +53,9 @@ def test_step_solves_again_when_the_solution_inverts_upright_elements(monkeypatc
     calls = []
     real = S._solve
 
-    def fake(nt, x0, hessian_mode, rtol, xtol, max_iterations, where, feasible):
+    def fake(nt, x0, hessian_mode, rtol, xtol, max_iterations, where, feasible, **kw):
         calls.append((feasible, x0.copy()))
-        x, info = real(nt, x0, hessian_mode, rtol, xtol, max_iterations, where, feasible)
+        x, info = real(nt, x0, hessian_mode, rtol, xtol, max_iterations, where, feasible, **kw)
         if not feasible:  # pretend Newton ended in a folded state
             x = x.copy()
             top = np.argmax(x[:, 2])
@@ -72,3 +72,26 @@ def test_step_solves_again_when_the_solution_inverts_upright_elements(monkeypatc
     monkeypatch.setattr(S, "_solve", real)
     x2, info2 = S.step(scene, inp, [1e4], [0.45], scene.rest, scene.rest)  # an upright solution: one solve
     assert "inversion_retry" not in info2 and np.array_equal(x, x2)
+
+
+def test_a_blocked_retry_keeps_the_inverted_minimum(monkeypatch):
+    """When the upright solve stalls against det F = 0 above Φ of the first solve's inverted state (info["blocked"],
+    given that Φ as its ceiling), step returns the first solve's state and info, iterations counting both."""
+    scene, inp = _scene(1)
+    real, seen = S._solve, {}
+
+    def fake(nt, x0, hessian_mode, rtol, xtol, max_iterations, where, feasible, **kw):
+        x, info = real(nt, x0, hessian_mode, rtol, xtol, max_iterations, where, feasible)
+        if not feasible:
+            x = x.copy()
+            x[np.argmax(x[:, 2]), 2] = -0.05
+            seen.update(x=x, energy=nt.energy(x), iterations=info["iterations"])
+            return x, info
+        seen["ceiling"] = kw["ceiling"]
+        return x, {**info, "iterations": 3, "blocked": True}
+
+    monkeypatch.setattr(S, "_solve", fake)
+    x, info = S.step(scene, inp, [1e4], [0.45], scene.rest, scene.rest)
+    assert seen["ceiling"] == seen["energy"] and np.array_equal(x, seen["x"])
+    assert info["inversion_retry"] and info["retry_blocked"] and "blocked" not in info
+    assert info["iterations"] == seen["iterations"] + 3
