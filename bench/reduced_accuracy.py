@@ -226,15 +226,16 @@ CUBATURE_MAX_POINTS = 300  # train-subspace's default --cubature-tets
 CUBATURE_POSES = 40  # train-subspace's default --cubature-poses
 
 
-def refit_cubature(ws: Path, tol: float):
+def refit_cubature(ws: Path, tol: float, nu_span: list | None = None):
     """WS/subspace.h5 with its cubature refitted at ``tol`` as `rsl train-subspace` fits it (its split, seed 0,
-    ``CUBATURE_POSES`` training poses, the stored median material, ≤ ``CUBATURE_MAX_POINTS`` points)."""
+    ``CUBATURE_POSES`` training poses, the stored median E at the ν it was fitted at — both ends of the snapshots'
+    ν, or their median for older files; ``nu_span``: these ν (R,) instead —, the viscous forces' rows where it had
+    them, ≤ ``CUBATURE_MAX_POINTS`` points)."""
     import jax.numpy as jnp
 
     from stages.artefacts import MeshArtefact, SnapshotsArtefact, SubspaceArtefact, read_provenance
-    from stages.sim.materials import lame
-    from stages.steps.train_subspace import _split
-    from stages.subspace.cubature import ReducedForceSampler, fit_cubature, mesh_quadrature
+    from stages.steps.train_subspace import _pose_pairs, _split, elastic_samplers
+    from stages.subspace.cubature import StackedSampler, ViscousForceSampler, fit_cubature, mesh_quadrature
     from stages.subspace.networks import SubspaceMap
 
     art = SubspaceArtefact.load(ws / "subspace.h5")
@@ -243,17 +244,24 @@ def refit_cubature(ws: Path, tol: float):
     mesh, snap = MeshArtefact.load(ws / "mesh.h5"), SnapshotsArtefact.load(ws / "snapshots.h5")
     seed = int(cfg.get("seed", 0))
     tr, _, _ = _split(snap, float(cfg.get("validation_fraction", 0.15)), seed)
-    mu_r, lam_r = lame(np.asarray(art.extra["cubature_young"]), np.asarray(art.extra["cubature_poisson"]))
     quad = mesh_quadrature(mesh.vertices, mesh.tets, mesh.dm_inv, mesh.rest_volumes)
     region_q = np.asarray(mesh.tet_region)[quad.element]
     rng = np.random.default_rng(seed)
     pick = rng.choice(len(tr), size=min(CUBATURE_POSES, len(tr)), replace=False)
     z = np.asarray(sub.encode(jnp.asarray(snap.positions[tr][pick])))
-    sampler = ReducedForceSampler(sub, z, quad, np.asarray(mu_r)[region_q], np.asarray(lam_r)[region_q],
-                                  art.extra["material"])
+    if nu_span is None:
+        nu_span = art.extra.get("cubature_poisson_fitted", [art.extra["cubature_poisson"]])
+    nu_span = [np.asarray(nu, np.float64) for nu in nu_span]
+    samplers = elastic_samplers(sub, z, quad, np.asarray(art.extra["cubature_young"]), nu_span, region_q,
+                                art.extra["material"])
+    if art.extra.get("cubature_viscous"):  # the viscous rows too, as train-subspace adds them
+        now, before = _pose_pairs(snap, np.asarray(tr)[pick])
+        z_now = np.asarray(sub.encode(jnp.asarray(snap.positions[now])))
+        samplers += [ViscousForceSampler(sub, z_now, snap.positions[before], quad, e.mu, e.lam) for e in samplers]
+    sampler = StackedSampler(*samplers)
     ids, w, info = fit_cubature(sampler, region_q, len(mesh.region_names), CUBATURE_MAX_POINTS, tol, seed=seed)
     extra = dict(art.extra, cubature_points=ids.tolist(), cubature_weights=w.tolist(),
-                 cubature_error_rel=info["error_rel"])
+                 cubature_error_rel=info["error_rel"], cubature_poisson_fitted=[nu.tolist() for nu in nu_span])
     return SubspaceArtefact(art.subspace_kind, art.dim, art.weights, art.train_error_m, art.val_error_m, extra)
 
 

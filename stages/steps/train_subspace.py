@@ -104,6 +104,36 @@ def _capture_material(config: TrainSubspaceConfig, snap_path: Path):
     return None
 
 
+def cubature_materials(poisson: np.ndarray, prior_range: tuple[float, float] | None = None) -> list[np.ndarray]:
+    """The ν per region (R,) the cubature's forces are fitted at: both ends of the capture's [material]
+    poisson_range (``prior_range``, the range rsl adapt estimates ν in) when known, else the smallest and the
+    largest of the snapshots' ν (S, R); one value where the two ends are equal.  The energies are linear in (μ, λ)
+    (stable Neo-Hookean up to a constant: μ_s[½(I_C − 3) − ¾(J − 1) − ½ log(I_C + 1)] + ½ λ_s (J − 1)²; Yeoh,
+    linear, viscous), so the reduced forces are g_q = μ g_q^μ + λ g_q^λ, and a cubature fitted at two ratios λ/μ
+    integrates both parts, hence every ν between.  Fitted at one ν only it matched their sum: on the bar released
+    from rest against a truth converged in time, adapt's ν then went to 0.483 and E to 0.92 E_true over the first
+    12 frames (full space 0.437 and 0.98; accuracy_notes.md, twenty-first stop)."""
+    poisson = np.asarray(poisson, np.float64)
+    lo, hi = poisson.min(axis=0), poisson.max(axis=0)
+    if prior_range is not None:
+        lo, hi = np.full_like(lo, float(prior_range[0])), np.full_like(hi, float(prior_range[1]))
+    return [lo, hi] if np.any(hi - lo > 1e-6) else [lo]
+
+
+def elastic_samplers(sub, z: np.ndarray, quad, young: np.ndarray, nu_span: list, region_q: np.ndarray, model: str):
+    """The reduced elastic forces at poses z (K, r) per ν of ``nu_span`` (cubature_materials), E ``young`` (R,)
+    Pa per region, μ and λ per quadrature point of region ``region_q`` (q,): the samplers whose stacked rows the
+    cubature is fitted to."""
+    from stages.sim.materials import lame
+    from stages.subspace.cubature import ReducedForceSampler
+
+    out = []
+    for nu in nu_span:
+        mu_r, lam_r = lame(np.asarray(young, np.float64), np.asarray(nu, np.float64))
+        out.append(ReducedForceSampler(sub, z, quad, np.asarray(mu_r)[region_q], np.asarray(lam_r)[region_q], model))
+    return out
+
+
 def _pose_pairs(snap, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(ids whose frame before is in the snapshots, the index of that frame), per the snapshots' sequence and
     frame numbers: the pose pairs of the viscous term's cubature rows."""
@@ -116,9 +146,9 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
     """Train the subspace and its cubature; write WS/subspace.h5."""
     import jax.numpy as jnp  # JAX, equinox and optax load in run: rsl train-subspace --help stays light
 
-    from stages.sim.materials import MODELS, lame
-    from stages.subspace.cubature import (ReducedForceSampler, StackedSampler, ViscousForceSampler, cubature_error,
-                                          fit_cubature, mesh_quadrature)
+    from stages.sim.materials import MODELS
+    from stages.subspace.cubature import (StackedSampler, ViscousForceSampler, cubature_error, fit_cubature,
+                                          mesh_quadrature)
     from stages.subspace.train import fit_subspace, reconstruction_error
 
     ws = Path(config.workspace)
@@ -184,19 +214,19 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
                      "lbs_span_train_error_m": span_tr, "lbs_span_val_error_m": span_va,
                      "lbs_span_train_error_rel": span_tr / diag, "lbs_span_val_error_rel": span_va / diag}
 
-    # cubature at the snapshots' median material per region
+    # cubature at the snapshots' median E per region, at both ends of ν's range (cubature_materials)
     n_reg = len(mesh.region_names)
-    young = np.median(snap.young, axis=0) if snap.young.shape[1] == n_reg else np.full(n_reg, np.median(snap.young))
-    poisson = np.median(snap.poisson, axis=0) if snap.poisson.shape[1] == n_reg else \
-        np.full(n_reg, np.median(snap.poisson))
-    mu_r, lam_r = lame(young, poisson)
+    per_region = snap.young.shape[1] == n_reg
+    young = np.median(snap.young, axis=0) if per_region else np.full(n_reg, np.median(snap.young))
+    poisson = np.median(snap.poisson, axis=0) if per_region else np.full(n_reg, np.median(snap.poisson))
+    nu_span = cubature_materials(snap.poisson if per_region else np.tile(snap.poisson.reshape(-1, 1), n_reg),
+                                 cap_material.poisson_range if cap_material is not None else None)
     order = element_order(mesh.tets)
     try:
         quad = mesh_quadrature(mesh.vertices, mesh.tets, mesh.dm_inv, mesh.rest_volumes)
     except ValueError as e:
         raise RslError(f"{mesh_path}: {e}; re-run tetrahedralize.") from None
     region_q = np.asarray(mesh.tet_region)[quad.element]  # the region of each quadrature point
-    mu_q, lam_q = np.asarray(mu_r)[region_q], np.asarray(lam_r)[region_q]
     rng = np.random.default_rng(config.seed)
     m = quad.n_points
     what = "tets" if order == 1 else "quadrature points"
@@ -206,26 +236,28 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
         z_fit = np.asarray(sub.encode(jnp.asarray(x_tr[pick])))
         damping = cap_material.damping if cap_material is not None else 0.0
         with reporter.task(f"Cubature (≤ {config.cubature_tets} of {m} {what})", None):
-            sampler = ReducedForceSampler(sub, z_fit, quad, mu_q, lam_q, model)
+            samplers = elastic_samplers(sub, z_fit, quad, young, nu_span, region_q, model)
             viscous = config.viscous_cubature == "on" or (config.viscous_cubature == "auto" and damping > 0)
             if viscous:  # the viscous forces too, at training poses and the frame before each
                 now, before = _pose_pairs(snap, np.asarray(tr)[pick])
                 if len(now):
-                    sampler = StackedSampler(sampler, ViscousForceSampler(
-                        sub, np.asarray(sub.encode(jnp.asarray(snap.positions[now]))), snap.positions[before], quad,
-                        mu_q, lam_q))
+                    z_now = np.asarray(sub.encode(jnp.asarray(snap.positions[now])))
+                    samplers += [ViscousForceSampler(sub, z_now, snap.positions[before], quad, e.mu, e.lam)
+                                 for e in samplers]
+            sampler = StackedSampler(*samplers)
             ids, w, cinfo = fit_cubature(sampler, region_q, n_reg, config.cubature_tets,
                                          config.cubature_tol, seed=config.seed)
             val_cub = float("nan")
             if len(va):
                 pv = rng.choice(len(va), size=min(config.cubature_poses, len(va)), replace=False)
-                sv = ReducedForceSampler(sub, np.asarray(sub.encode(jnp.asarray(x_va[pv]))), quad, mu_q, lam_q,
-                                         model)
+                z_va = np.asarray(sub.encode(jnp.asarray(x_va[pv])))
+                sv = StackedSampler(*elastic_samplers(sub, z_va, quad, young, nu_span, region_q, model))
                 val_cub = cubature_error(sv, region_q, n_reg, ids, w)
         # quadrature point ids (for linear tets: tet ids) and weights; the order they index
         extra_cub = {"cubature_points": ids.tolist(), "cubature_weights": w.tolist(), "cubature_order": order,
                      "cubature_error_rel": cinfo["error_rel"], "cubature_error_val_rel": val_cub,
-                     "cubature_viscous": isinstance(sampler, StackedSampler)}
+                     "cubature_viscous": viscous and len(samplers) > len(nu_span),
+                     "cubature_poisson_fitted": [nu.tolist() for nu in nu_span]}
     r, p = sub.dim, sub.p
     extra = {
         "layers": ([3 * n, p, 200, 200, r] if config.kind == "autoencoder" else [3 * n, r]),

@@ -1,0 +1,187 @@
+"""The reduced space's cubature fitted at one ν against one fitted at both ends of the snapshots' ν.
+
+The elastic energies are linear in (μ, λ), so the reduced forces are g = μ g^μ + λ g^λ.  `rsl train-subspace` used
+to fit its cubature at the snapshots' median ν alone, which matches the sum there and not each part; it now fits
+it at their smallest and largest ν (stages.steps.train_subspace.cubature_materials).  Per capture and workspace
+given (LABEL=CAPTURE:WS, the workspace with mesh.h5, snapshots.h5 and an existing subspace.h5), the workspace's
+own subspace (the same network weights) gets its cubature refitted both ways at ``--tol`` (bench/reduced_accuracy.
+refit_cubature: train-subspace's poses, seed and point cap), and `rsl adapt` runs with each, one after the other,
+in a copy of the workspace (online, markers, reduced, window 3, E from 0.5 E_true(0), adapt's other defaults).
+
+Columns: cubature points, the median E error per region over the settled frames (≥ w + 5 after the start and
+after each step of E_true, as bench/accuracy.py), the median ν over the same frames against the truth's, and the
+median s / frame of each run with its ratio to the one-ν run (measured back to back, the same machine and load).
+
+    .venv/bin/python bench/cubature_poisson.py LABEL=CAPTURE:WS [...] [--tol 0.002] [--out docs/results]
+        [--adapt-option=--loss --adapt-option=vision] [--append]
+    .venv/bin/python bench/cubature_poisson.py --from-json docs/results/cubature_poisson.json
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+os.environ.setdefault("JAX_ENABLE_X64", "1")
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+VARIANTS = ("one ν (median)", "both ends of ν")
+
+
+def run_row(label: str, capture: Path, ws: Path, tol: float, options: list[str]) -> list[dict]:
+    """The two variants' rows for one capture and workspace."""
+    from reduced_accuracy import refit_cubature, settled
+
+    from stages.artefacts import AdaptArtefact, SnapshotsArtefact
+    from stages.capture import load_capture, read_truth
+    from stages.steps.train_subspace import cubature_materials
+
+    cap = load_capture(capture)
+    truth = read_truth(cap)
+    snap = SnapshotsArtefact.load(ws / "snapshots.h5")
+    spans = {VARIANTS[0]: [np.median(snap.poisson, axis=0)],
+             VARIANTS[1]: cubature_materials(snap.poisson, cap.material.poisson_range)}
+    rows = []
+    for variant, span in spans.items():
+        art = refit_cubature(ws, tol, span)
+        row = {"label": label, "capture": str(capture), "truth": truth_of(capture), "variant": variant, "tol": tol,
+               "adapt_options": options,
+               "nu_fitted": [np.asarray(s).tolist() for s in span], "points": len(art.extra["cubature_points"]),
+               "fit_error_rel": art.extra["cubature_error_rel"]}
+        with tempfile.TemporaryDirectory() as tmp:
+            wt = Path(tmp) / "ws"
+            wt.mkdir()
+            for f in ("mesh.h5", "cameras.h5", "snapshots.h5", "masks.h5", "gaussians.h5"):
+                if (ws / f).is_file():
+                    shutil.copy(ws / f, wt / f)
+            art.save(wt / "subspace.h5")
+            T = truth.young.shape[0]
+            E0 = float(np.asarray(truth.young)[0, 0])
+            env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
+            p = subprocess.run([sys.executable, "-m", "rsl_cli.app", "adapt", str(capture), "-w", str(wt),
+                                "--space", "reduced", "--loss", "markers", "--window", "3",
+                                "--young-init", f"{0.5 * E0:g}", *options], capture_output=True, text=True, env=env,
+                               cwd=ROOT)
+            if p.returncode != 0:
+                row["adapt_error"] = p.stderr.strip().splitlines()[-1][:300] if p.stderr.strip() else "failed"
+            else:
+                ad = AdaptArtefact.load(wt / "adapt.h5")
+                fr = np.asarray(ad.frames)
+                cols = [list(truth.region_names).index(r) for r in ad.region_names]  # the truth's, in adapt's order
+                yt = np.asarray(truth.young, float)[:T][fr][:, cols]
+                nt = np.asarray(truth.poisson, float)[:T][fr][:, cols]
+                ok = settled(yt)
+                y, nu = np.asarray(ad.young, float), np.asarray(ad.poisson, float)
+                row.update({"regions": list(ad.region_names),
+                            "median_error": np.median(np.abs(y - yt)[ok] / yt[ok], axis=0).tolist(),
+                            "median_poisson": np.median(nu[ok], axis=0).tolist(),
+                            "poisson_true": np.median(nt[ok], axis=0).tolist(),
+                            "s_per_frame": float(np.median(np.asarray(ad.time_total_s)[1:])),
+                            "young_ratio": (y / yt).tolist()})
+        rows.append(row)
+        print(json.dumps({k: v for k, v in row.items() if k != "young_ratio"}), flush=True)
+    return rows
+
+
+def truth_of(capture: str) -> str:
+    """How the capture's truth was simulated, from capture.toml's [synth] table: "N = 24, β = 3 ms, start rest"."""
+    import tomllib
+
+    syn = tomllib.loads((Path(capture) / "capture.toml").read_text()).get("synth", {})
+    beta = float(syn.get("damping", 0.0))
+    return (f"N = {syn.get('substeps', '?')}" + (f", β = {1e3 * beta:g} ms" if beta else "")
+            + f", start {syn.get('start', '?')}")
+
+
+def _options(r: dict) -> str:
+    """The row's extra rsl adapt options, as they were passed ("" for none)."""
+    opts = " ".join(r.get("adapt_options", []))
+    return f" (`{opts}`)" if opts else ""
+
+
+def _per_region(r: dict, key: str, fmt) -> str:
+    """One value per region, named when there are several ("body 1.8, stiff 7.5")."""
+    v = r[key]
+    return ", ".join(fmt(x) if len(v) == 1 else f"{name} {fmt(x)}" for name, x in zip(r["regions"], v))
+
+
+def markdown(res: dict) -> str:
+    """The page, from the measured rows alone."""
+    rows = res["rows"]
+    lines = ["# The reduced space's cubature: fitted at one ν or at two", "",
+             f"Each capture's own subspace (the same network), its cubature refitted at tol {res['tol']:g} at the "
+             "snapshots' median ν alone (what `rsl train-subspace` did) and at two ν (what it does now, "
+             "`train_subspace.cubature_materials`: the ends of capture.toml's poisson_range; the first rows "
+             "measured took the ends of the snapshots' ν, the column ν fitted gives them); `rsl adapt` online, "
+             "markers unless the options say otherwise, reduced, window 3, E from 0.5 E_true, once with each, back "
+             "to back. Truth: P2 tets, hard handles, N substeps per frame (capture.toml [synth]). Settled frames: "
+             "≥ w + 5 after the start and after each step of E_true. Produced by `bench/cubature_poisson.py`.", "",
+             "| capture | truth | cubature fitted at | ν fitted | points | median settled E error per region (%) | "
+             "median settled ν (truth) | s / frame | s / frame ÷ one-ν run |",
+             "| --- | --- | --- | --- | ---: | --- | --- | ---: | ---: |"]
+    base: dict = {}
+    for r in rows:
+        truth = r.get("truth") or truth_of(r["capture"])
+        nus = " / ".join(", ".join(f"{x:.3f}" for x in s) for s in r["nu_fitted"])
+        if "adapt_error" in r:
+            lines.append(f"| {r['label']}{_options(r)} | {truth} | {r['variant']} | {nus} | {r['points']} | "
+                         f"adapt failed: {r['adapt_error']} | — | — | — |")
+            continue
+        key = (r["label"], tuple(r.get("adapt_options", [])))
+        if r["variant"] == VARIANTS[0]:
+            base[key] = r["s_per_frame"]
+        ratio = r["s_per_frame"] / base[key] if key in base else float("nan")
+        err = _per_region(r, "median_error", lambda x: f"{100 * x:.1f}")
+        nu = _per_region(r, "median_poisson", lambda x: f"{x:.3f}")
+        nu_true = ", ".join(f"{x:.2f}" for x in r["poisson_true"])
+        lines.append(f"| {r['label']}{_options(r)} | {truth} | {r['variant']} | {nus} | {r['points']} | {err} | "
+                     f"{nu} ({nu_true}) | {r['s_per_frame']:.2f} | {ratio:.2f} |")
+    lines += ["", f"Ended {res['ended']} (load average {res['load_average']:.1f}), {res['machine']}.", ""]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("rows", nargs="*", help="LABEL=CAPTURE:WS")
+    ap.add_argument("--tol", type=float, default=0.002, help="train-subspace --cubature-tol of the refits")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
+    ap.add_argument("--from-json", type=Path, default=None, help="rewrite the page from this JSON")
+    ap.add_argument("--adapt-option", action="append", default=[],
+                    help="one more rsl adapt option for these rows (repeat per word: --adapt-option=--loss "
+                         "--adapt-option=vision)")
+    ap.add_argument("--append", action="store_true", help="add these rows to the page's existing JSON")
+    a = ap.parse_args()
+    if a.from_json is not None:
+        res = json.loads(a.from_json.read_text())
+    else:
+        old = a.out / "cubature_poisson.json"
+        rows = json.loads(old.read_text())["rows"] if a.append and old.is_file() else []
+        for spec in a.rows:
+            label, rest = spec.split("=", 1)
+            capture, ws = rest.split(":", 1)
+            rows += run_row(label, Path(capture), Path(ws), a.tol, a.adapt_option)
+        res = {"tol": a.tol, "rows": rows, "ended": datetime.datetime.now(datetime.timezone.utc).isoformat(
+            timespec="seconds"), "load_average": os.getloadavg()[0],
+            "machine": f"{platform.machine()} {os.cpu_count()} CPUs, Python {platform.python_version()}"}
+        a.out.mkdir(parents=True, exist_ok=True)
+        (a.out / "cubature_poisson.json").write_text(json.dumps(res, indent=1))
+    page = markdown(res)
+    a.out.mkdir(parents=True, exist_ok=True)
+    (a.out / "cubature_poisson.md").write_text(page)
+    print(page)
+
+
+if __name__ == "__main__":
+    main()
