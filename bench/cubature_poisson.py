@@ -1,12 +1,13 @@
-"""The reduced space's cubature fitted at one ν against one fitted at both ends of the snapshots' ν.
+"""The reduced space's cubature fitted at one ν against one fitted at both ends of ν's range.
 
-The elastic energies are linear in (μ, λ), so the reduced forces are g = μ g^μ + λ g^λ.  `rsl train-subspace` used
-to fit its cubature at the snapshots' median ν alone, which matches the sum there and not each part; it now fits
-it at their smallest and largest ν (stages.steps.train_subspace.cubature_materials).  Per capture and workspace
-given (LABEL=CAPTURE:WS, the workspace with mesh.h5, snapshots.h5 and an existing subspace.h5), the workspace's
-own subspace (the same network weights) gets its cubature refitted both ways at ``--tol`` (bench/reduced_accuracy.
-refit_cubature: train-subspace's poses, seed and point cap), and `rsl adapt` runs with each, one after the other,
-in a copy of the workspace (online, markers, reduced, window 3, E from 0.5 E_true(0), adapt's other defaults).
+The elastic energies are linear in (μ, λ), so the reduced forces are g = μ g^μ + λ g^λ.  `rsl train-subspace`
+fits its cubature at the snapshots' median ν alone by default, which matches the sum there and not each part;
+``--cubature-poisson range`` fits it at both ends of ν's range (stages.steps.train_subspace.cubature_materials).
+Per capture and workspace given (LABEL=CAPTURE:WS, the workspace with mesh.h5, snapshots.h5 and an existing
+subspace.h5), the workspace's own subspace (the same network weights) gets its cubature refitted both ways at
+``--tol`` (bench/reduced_accuracy.refit_cubature: train-subspace's poses, seed and point cap), and `rsl adapt` runs
+with each, one after the other, in a copy of the workspace (online, markers, reduced, window 3, E from
+0.5 E_true(0), adapt's other defaults).
 
 Columns: cubature points, the median E error per region over the settled frames (≥ w + 5 after the start and
 after each step of E_true, as bench/accuracy.py), the median ν over the same frames against the truth's, and the
@@ -122,9 +123,10 @@ def markdown(res: dict) -> str:
     rows = res["rows"]
     lines = ["# The reduced space's cubature: fitted at one ν or at two", "",
              f"Each capture's own subspace (the same network), its cubature refitted at tol {res['tol']:g} at the "
-             "snapshots' median ν alone (what `rsl train-subspace` did) and at two ν (what it does now, "
-             "`train_subspace.cubature_materials`: the ends of capture.toml's poisson_range; the first rows "
-             "measured took the ends of the snapshots' ν, the column ν fitted gives them); `rsl adapt` online, "
+             "snapshots' median ν alone (`rsl train-subspace`'s default, `--cubature-poisson median`) and at two ν "
+             "(`--cubature-poisson range`, `train_subspace.cubature_materials`: the ends of capture.toml's "
+             "poisson_range; the first rows measured took the ends of the snapshots' ν, the column ν fitted gives "
+             "them); `rsl adapt` online, "
              "markers unless the options say otherwise, reduced, window 3, E from 0.5 E_true, once with each, back "
              "to back. Truth: P2 tets, hard handles, N substeps per frame (capture.toml [synth]). Settled frames: "
              "≥ w + 5 after the start and after each step of E_true. Produced by `bench/cubature_poisson.py`.", "",
@@ -154,7 +156,7 @@ def markdown(res: dict) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("rows", nargs="*", help="LABEL=CAPTURE:WS")
+    ap.add_argument("rows", nargs="*", help="LABEL=CAPTURE:WS (split at the last =)")
     ap.add_argument("--tol", type=float, default=0.002, help="train-subspace --cubature-tol of the refits")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
     ap.add_argument("--from-json", type=Path, default=None, help="rewrite the page from this JSON")
@@ -169,7 +171,7 @@ def main() -> None:
         old = a.out / "cubature_poisson.json"
         rows = json.loads(old.read_text())["rows"] if a.append and old.is_file() else []
         for spec in a.rows:
-            label, rest = spec.split("=", 1)
+            label, rest = spec.rsplit("=", 1)  # (a label may hold "=": "N = 3")
             capture, ws = rest.split(":", 1)
             rows += run_row(label, Path(capture), Path(ws), a.tol, a.adapt_option)
         res = {"tol": a.tol, "rows": rows, "ended": datetime.datetime.now(datetime.timezone.utc).isoformat(

@@ -175,3 +175,20 @@ def test_damping_page_follows_its_rows(tmp_path) -> None:
     m.write(d["truths"], adapts, tmp_path, d["plan"], d)
     page = (tmp_path / "damping.md").read_text()
     assert "undeclared 23.4 % (0.766)" in page and (tmp_path / "damping.png").stat().st_size > 0
+
+
+def test_cubature_poisson_page_follows_its_rows() -> None:
+    """bench/cubature_poisson.py: each row's errors per region and ν as measured, s / frame against its own
+    one-ν run (the same label and options), a failed run said as such."""
+    m = load_bench("cubature_poisson")
+    d = json.loads((RESULTS / "cubature_poisson.json").read_text())
+    rows = [r for r in d["rows"] if len(r.get("median_error", [])) == 2][:2]
+    assert [r["variant"] for r in rows] == list(m.VARIANTS)
+    rows = copy.deepcopy(rows)
+    rows[0]["s_per_frame"], rows[1]["s_per_frame"] = 0.5, 1.6
+    rows[1]["median_error"] = [0.0123, 0.0456]
+    failed = dict(copy.deepcopy(rows[1]), label="x", adapt_error="the solve failed")
+    page = m.markdown(dict(d, rows=rows + [failed]))
+    assert "| 1.60 | 3.20 |" in page and "| 0.50 | 1.00 |" in page
+    assert f"{rows[1]['regions'][0]} 1.2, {rows[1]['regions'][1]} 4.6" in page
+    assert "adapt failed: the solve failed" in page

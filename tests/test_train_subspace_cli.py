@@ -140,3 +140,21 @@ def test_named_array_subspace_file_loads_into_the_equinox_network(tmp_path):
     J_ref = np.asarray(jax.jacfwd(phi_ref)(jnp.asarray(z)))
     assert np.abs(model.jacobian(z) - J_ref).max() <= 1e-13 * np.abs(J_ref).max()
     assert np.array_equal(model.decode(np.zeros(r)), mesh.vertices)  # φ(0) = x̄
+
+
+@pytest.mark.parametrize("choice", ["median", "range"])
+def test_cubature_poisson_choice_is_recorded(tmp_path, choice):
+    """--cubature-poisson median fits the cubature at the snapshots' median ν alone, range at both ends of their ν
+    (snapshots without a capture: no poisson_range to take); extra cubature_poisson_fitted records which."""
+    ws, _ = _workspace(tmp_path)
+    snap = SnapshotsArtefact.load(ws / "snapshots.h5")
+    nu = np.linspace(0.32, 0.48, len(snap.positions))[:, None]
+    SnapshotsArtefact(snap.positions, snap.young, nu, snap.sequence, snap.frame, ["body"]).save(
+        ws / "snapshots.h5", Provenance.make({"capture": None}))
+    art = SubspaceArtefact.load(run(TrainSubspaceConfig(workspace=ws, dim=3, kind="pca", cubature_tets=40,
+                                                        cubature_poses=10, cubature_poisson=choice)))
+    got = art.extra["cubature_poisson_fitted"]
+    if choice == "median":
+        np.testing.assert_allclose(got, [[np.median(nu)]])
+    else:
+        np.testing.assert_allclose(got, [[0.32], [0.48]])

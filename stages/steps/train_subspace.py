@@ -67,6 +67,16 @@ class TrainSubspaceConfig:
     the capture declares a damping ([material] damping > 0); on, also when it does not — for ``rsl adapt --damping
     auto`` or a β given there (fitted to elastic forces alone, the bar's viscous forces are 7.6 % off, 0.3 % with
     them: docs/results/damping.md)."""
+    cubature_poisson: Literal["median", "range"] = "median"
+    """ν the cubature's forces are fitted at: median — the snapshots' median ν alone (it matches the sum of the
+    shear and volumetric forces there, not each); range — both ends of capture.toml's poisson_range (the
+    snapshots' ν without a capture), so that it integrates each part and ν moves the forces as in full space
+    (cubature_materials).  Measured on 12 captures, the same networks, rsl adapt back to back (docs/results/
+    cubature_poisson.md): range is better on 6 of the 8 bar and beam rows with markers (the two-region beam's stiff
+    half 15.0 → 6.7 %, the damped bar released from rest 7.6 → 3.9 %), worse on the dinosaur (6.6 → 11.9 %,
+    4.9 → 13.7 %) and on both bar rows with images (1.0 → 3.8 %, 3.8 → 7.1 %): ν then wanders where the data
+    inform it weakly and E follows.  Mean median settled E error 5.2 % median against 5.7 % range: the default
+    stays median; use range for markers on bars and beams."""
     material: str = ""
     """Material model for the cubature (default: the capture's)."""
     seed: int = 0
@@ -110,9 +120,10 @@ def cubature_materials(poisson: np.ndarray, prior_range: tuple[float, float] | N
     largest of the snapshots' ν (S, R); one value where the two ends are equal.  The energies are linear in (μ, λ)
     (stable Neo-Hookean up to a constant: μ_s[½(I_C − 3) − ¾(J − 1) − ½ log(I_C + 1)] + ½ λ_s (J − 1)²; Yeoh,
     linear, viscous), so the reduced forces are g_q = μ g_q^μ + λ g_q^λ, and a cubature fitted at two ratios λ/μ
-    integrates both parts, hence every ν between.  Fitted at one ν only it matched their sum: on the bar released
-    from rest against a truth converged in time, adapt's ν then went to 0.483 and E to 0.92 E_true over the first
-    12 frames (full space 0.437 and 0.98; accuracy_notes.md, twenty-first stop)."""
+    integrates both parts, hence every ν between (``--cubature-poisson range``).  Fitted at one ν only it matches
+    their sum: on the damped bar released from rest against a truth converged in time, adapt's ν then went to
+    0.483 and E to 0.92 E_true over the first 12 frames (full space 0.437 and 0.98; accuracy_notes.md,
+    twenty-first stop)."""
     poisson = np.asarray(poisson, np.float64)
     lo, hi = poisson.min(axis=0), poisson.max(axis=0)
     if prior_range is not None:
@@ -158,6 +169,8 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
         raise RslError(f"--kind {config.kind}: use autoencoder, pca or lbs.")
     if config.dim < 1:
         raise RslError(f"--dim {config.dim}: the latent dimension must be at least 1.")
+    if config.cubature_poisson not in ("median", "range"):
+        raise RslError(f"--cubature-poisson {config.cubature_poisson}: use median or range.")
     prepare_workspace(ws)  # writable? (before the training) and no stale temp files of a killed run
     mesh = MeshArtefact.load(mesh_path)
     snap = SnapshotsArtefact.load(snap_path)
@@ -214,13 +227,14 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
                      "lbs_span_train_error_m": span_tr, "lbs_span_val_error_m": span_va,
                      "lbs_span_train_error_rel": span_tr / diag, "lbs_span_val_error_rel": span_va / diag}
 
-    # cubature at the snapshots' median E per region, at both ends of ν's range (cubature_materials)
+    # cubature at the snapshots' median E per region, at their median ν or both ends of ν's range (--cubature-poisson)
     n_reg = len(mesh.region_names)
     per_region = snap.young.shape[1] == n_reg
     young = np.median(snap.young, axis=0) if per_region else np.full(n_reg, np.median(snap.young))
     poisson = np.median(snap.poisson, axis=0) if per_region else np.full(n_reg, np.median(snap.poisson))
-    nu_span = cubature_materials(snap.poisson if per_region else np.tile(snap.poisson.reshape(-1, 1), n_reg),
-                                 cap_material.poisson_range if cap_material is not None else None)
+    nu_span = [poisson] if config.cubature_poisson == "median" else cubature_materials(
+        snap.poisson if per_region else np.tile(snap.poisson.reshape(-1, 1), n_reg),
+        cap_material.poisson_range if cap_material is not None else None)
     order = element_order(mesh.tets)
     try:
         quad = mesh_quadrature(mesh.vertices, mesh.tets, mesh.dm_inv, mesh.rest_volumes)
