@@ -228,9 +228,9 @@ CUBATURE_POSES = 40  # train-subspace's default --cubature-poses
 
 def refit_cubature(ws: Path, tol: float, nu_span: list | None = None):
     """WS/subspace.h5 with its cubature refitted at ``tol`` as `rsl train-subspace` fits it (its split, seed 0,
-    ``CUBATURE_POSES`` training poses, the stored median E at the ν it was fitted at — both ends of the snapshots'
-    ν, or their median for older files; ``nu_span``: these ν (R,) instead —, the viscous forces' rows where it had
-    them, ≤ ``CUBATURE_MAX_POINTS`` points)."""
+    ``CUBATURE_POSES`` training poses, the stored median E at the ν it was fitted at — extra
+    cubature_poisson_fitted, the median cubature_poisson for older files; ``nu_span``: these ν (R,) instead —, the
+    viscous forces' rows where it had them, ≤ ``CUBATURE_MAX_POINTS`` points)."""
     import jax.numpy as jnp
 
     from stages.artefacts import MeshArtefact, SnapshotsArtefact, SubspaceArtefact, read_provenance

@@ -227,7 +227,7 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
                      "lbs_span_train_error_m": span_tr, "lbs_span_val_error_m": span_va,
                      "lbs_span_train_error_rel": span_tr / diag, "lbs_span_val_error_rel": span_va / diag}
 
-    # cubature at the snapshots' median E per region, at their median ν or both ends of ν's range (--cubature-poisson)
+    # cubature at the snapshots' median E per region; at their median ν or at both ends of ν's range
     n_reg = len(mesh.region_names)
     per_region = snap.young.shape[1] == n_reg
     young = np.median(snap.young, axis=0) if per_region else np.full(n_reg, np.median(snap.young))
