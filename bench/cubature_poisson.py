@@ -118,6 +118,26 @@ def _per_region(r: dict, key: str, fmt) -> str:
     return ", ".join(fmt(x) if len(v) == 1 else f"{name} {fmt(x)}" for name, x in zip(r["regions"], v))
 
 
+def summary(rows: list[dict]) -> list[str]:
+    """Per variant, over the captures (label, truth, options; a capture measured twice: its last pair): the mean of
+    each row's largest median settled E error, and how many rows meet the accuracy issue's targets (every region
+    ≤ 5 % with one region, ≤ 10 % with several)."""
+    last: dict = {}
+    for r in rows:
+        if "adapt_error" not in r:
+            last[(r["label"], r.get("truth") or truth_of(r["capture"]), tuple(r.get("adapt_options", [])),
+                  r["variant"])] = r
+    out = []
+    for v in VARIANTS:
+        errs = [(max(r["median_error"]), len(r["median_error"])) for k, r in last.items() if k[3] == v]
+        if errs:
+            met = sum(e <= (0.05 if n == 1 else 0.10) for e, n in errs)
+            out.append(f"- {v}: mean of the rows' largest median settled E error {100 * np.mean([e for e, _ in errs]):.1f} "
+                       f"% over {len(errs)} captures; {met} of {len(errs)} within the targets (≤ 5 %, ≤ 10 % per "
+                       f"region with several).")
+    return out
+
+
 def markdown(res: dict) -> str:
     """The page, from the measured rows alone."""
     rows = res["rows"]
@@ -150,6 +170,7 @@ def markdown(res: dict) -> str:
         nu_true = ", ".join(f"{x:.2f}" for x in r["poisson_true"])
         lines.append(f"| {r['label']}{_options(r)} | {truth} | {r['variant']} | {nus} | {r['points']} | {err} | "
                      f"{nu} ({nu_true}) | {r['s_per_frame']:.2f} | {ratio:.2f} |")
+    lines += [""] + summary(rows)
     lines += ["", f"Ended {res['ended']} (load average {res['load_average']:.1f}), {res['machine']}.", ""]
     return "\n".join(lines)
 

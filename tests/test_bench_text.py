@@ -192,3 +192,7 @@ def test_cubature_poisson_page_follows_its_rows() -> None:
     assert "| 1.60 | 3.20 |" in page and "| 0.50 | 1.00 |" in page
     assert f"{rows[1]['regions'][0]} 1.2, {rows[1]['regions'][1]} 4.6" in page
     assert "adapt failed: the solve failed" in page
+    rows[0]["median_error"] = [0.03, 0.12]  # one ν: a region past 10 %; two ν: 1.2 and 4.6 %
+    page = m.markdown(dict(d, rows=rows + [failed]))
+    assert "mean of the rows' largest median settled E error 12.0 % over 1 captures; 0 of 1 within" in page
+    assert "error 4.6 % over 1 captures; 1 of 1 within" in page

@@ -75,7 +75,7 @@ class TrainSubspaceConfig:
     cubature_poisson.md): range is better on 6 of the 8 bar and beam rows with markers (the two-region beam's stiff
     half 15.0 → 6.7 %, the damped bar released from rest 7.6 → 3.9 %), worse on the dinosaur (6.6 → 11.9 %,
     4.9 → 13.7 %) and on both bar rows with images (1.0 → 3.8 %, 3.8 → 7.1 %): ν then wanders where the data
-    inform it weakly and E follows.  Mean median settled E error 5.2 % median against 5.7 % range: the default
+    inform it weakly and E follows.  Mean median settled E error 5.2 % median against 5.6 % range: the default
     stays median; use range for markers on bars and beams."""
     material: str = ""
     """Material model for the cubature (default: the capture's)."""
