@@ -132,8 +132,9 @@ def summary(rows: list[dict]) -> list[str]:
         errs = [(max(r["median_error"]), len(r["median_error"])) for k, r in last.items() if k[3] == v]
         if errs:
             met = sum(e <= (0.05 if n == 1 else 0.10) for e, n in errs)
-            out.append(f"- {v}: mean of the rows' largest median settled E error {100 * np.mean([e for e, _ in errs]):.1f} "
-                       f"% over {len(errs)} captures; {met} of {len(errs)} within the targets (≤ 5 %, ≤ 10 % per "
+            mean = 100 * np.mean([e for e, _ in errs])
+            out.append(f"- {v}: mean of the rows' largest median settled E error {mean:.1f} % over {len(errs)} "
+                       f"captures; {met} of {len(errs)} within the targets (≤ 5 %, ≤ 10 % per "
                        f"region with several).")
     return out
 

@@ -231,11 +231,9 @@ def refit_cubature(ws: Path, tol: float, nu_span: list | None = None):
     ``CUBATURE_POSES`` training poses, the stored median E at the ν it was fitted at — extra
     cubature_poisson_fitted, the median cubature_poisson for older files; ``nu_span``: these ν (R,) instead —, the
     viscous forces' rows where it had them, ≤ ``CUBATURE_MAX_POINTS`` points)."""
-    import jax.numpy as jnp
-
     from stages.artefacts import MeshArtefact, SnapshotsArtefact, SubspaceArtefact, read_provenance
-    from stages.steps.train_subspace import _pose_pairs, _split, elastic_samplers
-    from stages.subspace.cubature import StackedSampler, ViscousForceSampler, fit_cubature, mesh_quadrature
+    from stages.steps.train_subspace import _split, cubature_sampler
+    from stages.subspace.cubature import fit_cubature, mesh_quadrature
     from stages.subspace.networks import SubspaceMap
 
     art = SubspaceArtefact.load(ws / "subspace.h5")
@@ -248,17 +246,11 @@ def refit_cubature(ws: Path, tol: float, nu_span: list | None = None):
     region_q = np.asarray(mesh.tet_region)[quad.element]
     rng = np.random.default_rng(seed)
     pick = rng.choice(len(tr), size=min(CUBATURE_POSES, len(tr)), replace=False)
-    z = np.asarray(sub.encode(jnp.asarray(snap.positions[tr][pick])))
     if nu_span is None:
         nu_span = art.extra.get("cubature_poisson_fitted", [art.extra["cubature_poisson"]])
     nu_span = [np.asarray(nu, np.float64) for nu in nu_span]
-    samplers = elastic_samplers(sub, z, quad, np.asarray(art.extra["cubature_young"]), nu_span, region_q,
-                                art.extra["material"])
-    if art.extra.get("cubature_viscous"):  # the viscous rows too, as train-subspace adds them
-        now, before = _pose_pairs(snap, np.asarray(tr)[pick])
-        z_now = np.asarray(sub.encode(jnp.asarray(snap.positions[now])))
-        samplers += [ViscousForceSampler(sub, z_now, snap.positions[before], quad, e.mu, e.lam) for e in samplers]
-    sampler = StackedSampler(*samplers)
+    sampler, _ = cubature_sampler(sub, snap, np.asarray(tr)[pick], quad, np.asarray(art.extra["cubature_young"]),
+                                  nu_span, region_q, art.extra["material"], bool(art.extra.get("cubature_viscous")))
     ids, w, info = fit_cubature(sampler, region_q, len(mesh.region_names), CUBATURE_MAX_POINTS, tol, seed=seed)
     extra = dict(art.extra, cubature_points=ids.tolist(), cubature_weights=w.tolist(),
                  cubature_error_rel=info["error_rel"], cubature_poisson_fitted=[nu.tolist() for nu in nu_span])

@@ -214,8 +214,8 @@ class AdaptConfig:
     linearisation renders that estimate, and when its data cost exceeds the prediction by more than 1 (a 1-σ step
     lowers the cost by ½) that frame's step is tested again; larger steps are always tested (Levenberg–Marquardt).
     0: every step is tested.  Default (resolve_gn_trust; adapt.h5's extra gn_trust records the value that ran): 5
-    with images, 0 with markers and silhouettes.  Images, Bar-like case, at the default 2 iterations per frame, against 0: E moves by
-    ≤ 0.24 σ_E, gn's wall time per frame 0.93 times adam's instead of 1.03 (docs/results/adapt_speed.md; 10 and 20
+    with images, 0 with markers and silhouettes.  Images, Bar-like case, at the default 2 iterations per frame,
+    against 0: E moves by ≤ 0.24 σ_E, gn's wall time per frame 0.93 times adam's instead of 1.03 (docs/results/adapt_speed.md; 10 and 20
     took the very same steps at 2 iterations, by hand); markers, bar with E
     steps (3 substeps per frame, by hand on bench/accuracy.py's capture): up to 3.1 σ_E right after a change,
     ≤ 0.2 σ_E elsewhere, and docs/results/estimator.md's accuracy was measured with 0."""

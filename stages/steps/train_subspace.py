@@ -145,6 +145,26 @@ def elastic_samplers(sub, z: np.ndarray, quad, young: np.ndarray, nu_span: list,
     return out
 
 
+def cubature_sampler(sub, snap, ids: np.ndarray, quad, young: np.ndarray, nu_span: list, region_q: np.ndarray,
+                     model: str, viscous: bool):
+    """(the stacked reduced forces the cubature is fitted to, whether they hold viscous rows) at the snapshots
+    ``ids``: the elastic forces per ν of ``nu_span`` (:func:`elastic_samplers`) and, with ``viscous``, the viscous
+    forces at those snapshots whose frame before is a snapshot too (:func:`_pose_pairs`), per ν as well."""
+    import jax.numpy as jnp
+
+    from stages.subspace.cubature import StackedSampler, ViscousForceSampler
+
+    z = np.asarray(sub.encode(jnp.asarray(snap.positions[ids])))
+    elastic = elastic_samplers(sub, z, quad, young, nu_span, region_q, model)
+    rows = []
+    if viscous:
+        now, before = _pose_pairs(snap, ids)
+        if len(now):
+            z_now = np.asarray(sub.encode(jnp.asarray(snap.positions[now])))
+            rows = [ViscousForceSampler(sub, z_now, snap.positions[before], quad, e.mu, e.lam) for e in elastic]
+    return StackedSampler(*elastic, *rows), bool(rows)
+
+
 def _pose_pairs(snap, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(ids whose frame before is in the snapshots, the index of that frame), per the snapshots' sequence and
     frame numbers: the pose pairs of the viscous term's cubature rows."""
@@ -158,8 +178,7 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
     import jax.numpy as jnp  # JAX, equinox and optax load in run: rsl train-subspace --help stays light
 
     from stages.sim.materials import MODELS
-    from stages.subspace.cubature import (StackedSampler, ViscousForceSampler, cubature_error, fit_cubature,
-                                          mesh_quadrature)
+    from stages.subspace.cubature import StackedSampler, cubature_error, fit_cubature, mesh_quadrature
     from stages.subspace.train import fit_subspace, reconstruction_error
 
     ws = Path(config.workspace)
@@ -247,18 +266,12 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
     extra_cub: dict = {}
     if config.cubature_tets > 0 and config.cubature_tets < m:
         pick = rng.choice(len(tr), size=min(config.cubature_poses, len(tr)), replace=False)
-        z_fit = np.asarray(sub.encode(jnp.asarray(x_tr[pick])))
         damping = cap_material.damping if cap_material is not None else 0.0
         with reporter.task(f"Cubature (≤ {config.cubature_tets} of {m} {what})", None):
-            samplers = elastic_samplers(sub, z_fit, quad, young, nu_span, region_q, model)
+            # the viscous forces too (at training poses and the frame before each): declared damping, or asked for
             viscous = config.viscous_cubature == "on" or (config.viscous_cubature == "auto" and damping > 0)
-            if viscous:  # the viscous forces too, at training poses and the frame before each
-                now, before = _pose_pairs(snap, np.asarray(tr)[pick])
-                if len(now):
-                    z_now = np.asarray(sub.encode(jnp.asarray(snap.positions[now])))
-                    samplers += [ViscousForceSampler(sub, z_now, snap.positions[before], quad, e.mu, e.lam)
-                                 for e in samplers]
-            sampler = StackedSampler(*samplers)
+            sampler, with_viscous = cubature_sampler(sub, snap, np.asarray(tr)[pick], quad, young, nu_span,
+                                                     region_q, model, viscous)
             ids, w, cinfo = fit_cubature(sampler, region_q, n_reg, config.cubature_tets,
                                          config.cubature_tol, seed=config.seed)
             val_cub = float("nan")
@@ -270,7 +283,7 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
         # quadrature point ids (for linear tets: tet ids) and weights; the order they index
         extra_cub = {"cubature_points": ids.tolist(), "cubature_weights": w.tolist(), "cubature_order": order,
                      "cubature_error_rel": cinfo["error_rel"], "cubature_error_val_rel": val_cub,
-                     "cubature_viscous": viscous and len(samplers) > len(nu_span),
+                     "cubature_viscous": with_viscous,
                      "cubature_poisson_fitted": [nu.tolist() for nu in nu_span]}
     r, p = sub.dim, sub.p
     extra = {
