@@ -61,6 +61,7 @@ MAX_TETS = 1500  # adapt mesh size (fTetWild): 964 P2 tets, 4914 DOFs on the bar
 # adapt uses.
 SCALES = {"table": (3, 96, MAX_TETS, 0), "paper": (4, 128, 2450, 1)}
 SCALE = "table"
+SEQUENCES = 4  # generate-data --sequences of the reduced rows (docs/results/training_data.md)
 SUBSPACE_DIM = 30  # r, the paper's Bar (docs/results/reduced_accuracy.md: r = 12 biases E by 1.5–3.5 %)
 # rsl train-subspace --cubature-tol per case (default 0.01): 0.002 measured better on the released bar
 # (18.8 → 7.7 %), the two-region beam's stiff region (12.3 → 2.8 %) and the dinosaur (22.9 → 8.8 %, helper S;
@@ -121,18 +122,26 @@ def workspace(work: Path, cap: Path, case: str, start: str, order: int, loss: st
     if loss == "vision":
         pl.gaussians(cap, ws, frame=0)
     if space == "reduced":
-        subspace(cap, ws, frames, SUBSPACE_DIM, CUBATURE_TOL[case])
+        subspace(cap, ws, frames, SUBSPACE_DIM, CUBATURE_TOL[case], SEQUENCES)
     return ws
 
 
-def subspace(cap: Path, ws: Path, frames: int, dim: int, tol: float) -> None:
+def subspace(cap: Path, ws: Path, frames: int, dim: int, tol: float, sequences: int = SEQUENCES) -> None:
     """generate-data (skipped per pl.skip on snapshots.h5) + train-subspace --dim r --cubature-tol tol (skipped
     per pl.skip on subspace.h5 when its provenance has the same r and tolerance)."""
-    if pl.skip(ws / "subspace.h5") and _subspace_settings(ws) == (dim, tol):
+    same_data = pl.skip(ws / "snapshots.h5") and _sequences(ws) == sequences
+    if same_data and pl.skip(ws / "subspace.h5") and _subspace_settings(ws) == (dim, tol):
         return
-    if not pl.skip(ws / "snapshots.h5"):
-        pl.rsl("generate-data", cap, "-w", ws, "--sequences", 4, "--frames", frames, "--workers", 1)
+    if not same_data:
+        pl.rsl("generate-data", cap, "-w", ws, "--sequences", sequences, "--frames", frames, "--workers", 1)
     pl.rsl("train-subspace", "-w", ws, "--dim", dim, "--cubature-tol", tol)
+
+
+def _sequences(ws: Path) -> int:
+    """generate-data --sequences that WS/snapshots.h5 was made with (its provenance; -1 if not there)."""
+    from stages.artefacts import read_provenance
+
+    return int(read_provenance(ws / "snapshots.h5").get("config", {}).get("sequences", -1))
 
 
 def _subspace_settings(ws: Path) -> tuple:
@@ -194,6 +203,7 @@ def run_row(work: Path, row: tuple, frames: int, refine: int) -> dict:
 
         sub = SubspaceArtefact.load(ws / "subspace.h5")
         out["dim"], out["cubature_tol"] = _subspace_settings(ws)
+        out["sequences"] = _sequences(ws)
         out["cubature_points"] = (len(sub.extra["cubature_points"]) if "cubature_points" in sub.extra else None)
     return {**out, "adapt_options": list(map(str, EXTRA)), "exported": EXPORT, "code": code_state(), "ended": datetime.datetime.now(datetime.timezone.utc).isoformat(
                 timespec="seconds"), "load_average": os.getloadavg()[0], "estimator": prov.get("config", {}).get("estimator", "?"),
@@ -243,6 +253,7 @@ def _row(r: dict) -> str:
                     for j, e in enumerate(r["median_error_per_region"]))
     cub = (f"{r['cubature_points'] if r.get('cubature_points') is not None else 'all'} ({r['cubature_tol']:g})"
            + (f", r = {r['dim']}" if r.get("dim") is not None and r["dim"] != SUBSPACE_DIM else "")
+           + (f", {r.get('sequences', 4)} sequences" if r.get("sequences", 4) != SEQUENCES else "")
            if r.get("cubature_tol") is not None else "—")
     load = f"{r['load_average']:.1f}" if isinstance(r.get("load_average"), (int, float)) else "—"
     opts = [str(o) for o in r.get("adapt_options", [])]
@@ -275,7 +286,7 @@ def row_key(r) -> tuple:
 
 
 def main() -> None:
-    global EXTRA, EXPORT, TRUTH_SUBSTEPS, TRUTH_DAMPING, SUBSPACE_DIM, SCALE
+    global EXTRA, EXPORT, TRUTH_SUBSTEPS, TRUTH_DAMPING, SUBSPACE_DIM, SCALE, SEQUENCES
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
@@ -298,6 +309,7 @@ def main() -> None:
     ap.add_argument("--adapt-option", action="append", default=[],
                     help="one more rsl adapt option (repeat for each word, e.g. --adapt-option=--lead-in --adapt-option=3)")
     ap.add_argument("--dim", type=int, default=SUBSPACE_DIM, help="train-subspace --dim, r of the reduced rows")
+    ap.add_argument("--sequences", type=int, default=SEQUENCES, help="generate-data --sequences of the reduced rows")
     ap.add_argument("--truth-damping", type=float, default=TRUTH_DAMPING,
                     help="β s of the truths' viscous damping (rsl synth --damping; a --work of its own)")
     ap.add_argument("--truth-substeps", type=int, default=TRUTH_SUBSTEPS,
@@ -327,6 +339,7 @@ def main() -> None:
         TRUTH_SUBSTEPS = int(runs[0]["plan"].get("truth_substeps", TRUTH_SUBSTEPS))
         TRUTH_DAMPING = float(runs[0]["plan"].get("truth_damping", 0.0))
         SUBSPACE_DIM = int(runs[0]["plan"].get("dim", SUBSPACE_DIM))  # the header's r (a row with another: its own)
+        SEQUENCES = int(runs[0]["plan"].get("sequences", 4))  # (runs before it was recorded: 4)
         if a.previous:
             old = json.loads(a.previous.read_text())
             done = {row_key(r) for r in rows}
@@ -347,7 +360,7 @@ def main() -> None:
         if unknown:
             ap.error(f"--rows: {unknown} not in the plan")
         plan = want
-    TRUTH_SUBSTEPS, TRUTH_DAMPING, SUBSPACE_DIM = a.truth_substeps, a.truth_damping, a.dim
+    TRUTH_SUBSTEPS, TRUTH_DAMPING, SUBSPACE_DIM, SEQUENCES = a.truth_substeps, a.truth_damping, a.dim, a.sequences
     EXPORT = not a.no_export
     EXTRA = ((["--estimator", a.estimator] if a.estimator else []) + (["--substeps", a.substeps] if a.substeps else [])
              + a.adapt_option)
@@ -355,7 +368,7 @@ def main() -> None:
     rows = []
     meta = {"frames": frames, "refine": refine, "rows": plan, "scale": SCALE, "adapt_options": EXTRA, "truth_substeps": TRUTH_SUBSTEPS,
             "truth_damping": TRUTH_DAMPING,
-            "dim": SUBSPACE_DIM}
+            "dim": SUBSPACE_DIM, "sequences": SEQUENCES}
     for row in plan:
         rows.append(run_row(a.work, row, frames, refine))
         print(_row(rows[-1]), flush=True)
@@ -426,7 +439,7 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
           f"{f'viscous damping β = {TRUTH_DAMPING:g} s declared in capture.toml, ' if TRUTH_DAMPING else ''}"
           f"{plan['frames']} frames, ν = {POISSON}, "
           f"{cams} cameras at {side}², 40 markers. rsl: fTetWild mesh (`--max-tets {max_tets}`), reduced space r = {SUBSPACE_DIM} "
-          f"(generate-data 4 sequences; `train-subspace --cubature-tol` "
+          f"(generate-data {SEQUENCES} sequences; `train-subspace --cubature-tol` "
           f"{', '.join(f'{c} {t:g}' for c, t in CUBATURE_TOL.items())}), adapt online, window "
           f"{WINDOW}, E initialised at 0.5 E0{options}; "
           f"mode {data['mode']}.{paper_note} Settled frames: ≥ w + 5 after the start and after each step of E_true. "

@@ -196,3 +196,22 @@ def test_cubature_poisson_page_follows_its_rows() -> None:
     page = m.markdown(dict(d, rows=rows + [failed]))
     assert "mean of the rows' largest median settled E error 12.0 % over 1 captures; 0 of 1 within" in page
     assert "error 4.6 % over 1 captures; 1 of 1 within" in page
+
+
+def test_training_data_page_follows_its_rows() -> None:
+    """bench/training_data.py: the coverage table and each run's errors as measured, the summary per (variant,
+    sequences, r) computed from the runs, a failed run said as such."""
+    m = load_bench("training_data")
+    d = json.loads((RESULTS / "training_data.json").read_text())
+    two = copy.deepcopy([r for r in d["rows"] if len(r.get("median_error", [])) == 2][0])
+    one = copy.deepcopy([r for r in d["rows"] if len(r.get("median_error", [])) == 1][0])
+    two.update(variant="v", sequences=7, dim=40, median_error=[0.0123, 0.0956], generate_s=None)
+    one.update(variant="v", sequences=7, dim=40, median_error=[0.061])
+    failed = dict(copy.deepcopy(one), error="generate-data: the solve failed")
+    cov = [dict(d["coverage"][0], nu_p10=0.4321)]
+    page = m.markdown(dict(d, rows=[two, one, failed], coverage=cov))
+    assert f"{two['regions'][0]} 1.2, {two['regions'][1]} 9.6" in page and "| 0.43 |" in page
+    assert "failed: generate-data: the solve failed" in page and "| — |" in page
+    assert ("- v, 7 sequences, r = 40: mean of the runs' largest median settled E error 7.8 %, largest 9.6 %, over 2 "
+            "runs; 1 of 2 within the targets") in page
+    assert m.summary(d["rows"]) == [line for line in m.markdown(d).splitlines() if line.startswith("- ")]

@@ -2,6 +2,7 @@
 frame inside the prior range, identical snapshots from the pool and from one process."""
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -9,9 +10,9 @@ import meshio
 import numpy as np
 import pytest
 
-from stages.artefacts import Provenance, SnapshotsArtefact
-from stages.capture import load_capture, quat_to_matrix, select_handles
-from stages.steps.generate_data import (GenerateDataConfig, plan_sequences, random_controls, run,
+from stages.artefacts import MeshArtefact, Provenance, SnapshotsArtefact
+from stages.capture import load_capture, parse_controls, quat_to_matrix, select_handles
+from stages.steps.generate_data import (GenerateDataConfig, material_ends, plan_sequences, random_controls, run,
                                   sample_material)
 from stages.artefacts import mesh_artefact
 from stages.sim.meshgen import box_tets
@@ -89,16 +90,52 @@ def test_random_controls_stay_in_the_envelope_and_start_at_frame_zero(workspace)
 
 
 def test_material_is_sampled_per_frame_inside_the_range():
-    rng = np.random.default_rng(0)
-    young, poisson = sample_material((5e4, 2e5), (0.35, 0.45), 2, 30, "ramp", rng)
+    log_e, nu = material_ends((5e4, 2e5), (0.35, 0.45), 3, 2, np.random.default_rng(0))
+    assert log_e.shape == nu.shape == (3, 2, 2)
+    young, poisson = sample_material(log_e[0], nu[0], (5e4, 2e5), 30, "ramp")
     assert young.shape == poisson.shape == (30, 2)
     assert young.min() >= 5e4 and young.max() <= 2e5
     assert poisson.min() >= 0.35 and poisson.max() <= 0.45
-    # linear in log E over the sequence
+    # linear in log E over the sequence, from one end to the other
     assert np.allclose(np.diff(np.log(young), 2, axis=0), 0, atol=1e-12)
+    assert np.allclose(np.log(young[[0, -1]]), log_e[0]) and np.allclose(poisson[[0, -1]], nu[0])
     assert np.ptp(young[:, 0]) > 0
-    const, _ = sample_material((5e4, 2e5), (0.35, 0.45), 1, 10, "constant", rng)
+    const, _ = sample_material(log_e[1], nu[1], (5e4, 2e5), 10, "constant")
     assert np.all(const == const[0])
+
+
+@pytest.mark.parametrize("n_sequences", [1, 4, 9])
+def test_latin_design_puts_one_end_in_each_stratum_of_both_ranges(n_sequences):
+    """latin: the 2n ends of log E and of ν, per region, fall one in each 2n-th of the range (constant: n ends, one
+    in each n-th, the last end equal to the first); independent draws stay in the range without that."""
+    young_range, poisson_range = (2e4, 5e5), (0.30, 0.49)
+    for mode, n_ends in (("ramp", 2 * n_sequences), ("constant", n_sequences)):
+        log_e, nu = material_ends(young_range, poisson_range, n_sequences, 2, np.random.default_rng(3), "latin",
+                                  mode)
+        if mode == "constant":
+            assert np.array_equal(log_e[:, 0], log_e[:, 1]) and np.array_equal(nu[:, 0], nu[:, 1])
+            log_e, nu = log_e[:, :1], nu[:, :1]
+        u_e = (log_e - np.log(young_range[0])) / np.log(young_range[1] / young_range[0])
+        u_nu = (nu - poisson_range[0]) / (poisson_range[1] - poisson_range[0])
+        for u in (u_e, u_nu):
+            for region in range(2):
+                strata = np.floor(u[..., region].ravel() * n_ends).astype(int)
+                assert sorted(strata) == list(range(n_ends))
+    log_e, nu = material_ends(young_range, poisson_range, n_sequences, 2, np.random.default_rng(3), "independent")
+    assert nu.min() >= 0.30 and nu.max() <= 0.49
+    assert log_e.min() >= np.log(2e4) and log_e.max() <= np.log(5e5)
+
+
+def test_latin_design_spans_more_of_the_range_than_independent_draws():
+    """Over 200 seeds, four sequences: the snapshots' ν span is at least 3/4 of the range with the Latin hypercube
+    (one end in each eighth), which independent draws miss on a good part of the seeds."""
+    spans = {}
+    for design in ("latin", "independent"):
+        spans[design] = np.array([np.ptp(material_ends((2e4, 5e5), (0.30, 0.49), 4, 1,
+                                                       np.random.default_rng([seed, 4, 1]), design)[1])
+                                  for seed in range(200)]) / 0.19
+    assert spans["latin"].min() >= 0.75 - 1e-12
+    assert np.mean(spans["independent"] < 0.75) > 0.2
 
 
 def test_generate_data_writes_snapshots_with_requested_counts(workspace, rsl):
@@ -124,6 +161,52 @@ def test_generate_data_writes_snapshots_with_requested_counts(workspace, rsl):
     plans = plan_sequences(config, load_capture(cap_dir).controls(),
                            (5e4, 2e5), (0.35, 0.45), 1)
     assert np.array_equal(snap.young[6:12], plans[1].young)
+
+
+def test_sequences_start_from_the_chosen_state_and_take_the_substeps(workspace):
+    """simulate_sequence: start rest, released from the rest shape one frame before frame 0 (its twin at one step
+    per frame: scene.simulate, which steps frame 0 from the rest shape); start equilibrium, frame 0 the static
+    equilibrium under the frame-0 controls with the sequence's own material; with S substeps the frames are every
+    S-th state of steps Δt/S, the controls at the fractional frames (stepped one by one here)."""
+    from stages.sim import scene as sc
+    from stages.sim.static import start_state
+    from stages.steps.generate_data import SequencePlan, simulate_sequence
+
+    cap_dir, ws = workspace
+    cap = load_capture(cap_dir)
+    mesh = MeshArtefact.load(ws / "mesh.h5")
+    ctl = cap.controls()
+    T = 4
+    young = np.geomspace(8e4, 1.2e5, T)[:, None]
+    plan = SequencePlan(0, ctl.to_json(), young, np.full((T, 1), 0.4))
+    args = (mesh, plan, "stable_neohookean", cap.dt, cap.gravity, 100, 0.0)
+    _, rest_run, err = simulate_sequence(*args, "rest", 1)
+    _, eq_run, err2 = simulate_sequence(*args, "equilibrium", 1)
+    _, sub_run, err3 = simulate_sequence(*args, "rest", 3)
+    assert err == err2 == err3 == ""
+    scene = sc.make_scene(mesh, parse_controls(plan.controls, Path("plan")), "stable_neohookean", cap.dt, cap.gravity)
+    inputs = [sc.frame_inputs(scene, ctl, t) for t in range(T)]
+    assert np.allclose(rest_run, sc.simulate(scene, inputs, plan.young, plan.poisson), atol=1e-9)
+    x0 = start_state(scene, inputs[0], plan.young[0], plan.poisson[0], "equilibrium")
+    assert np.allclose(eq_run[0], x0, atol=1e-9)
+    assert np.abs(x0 - mesh.vertices).max() > 1e-5  # (it sags under gravity)
+    # the substepped frames, stepped by hand from the rest shape one frame before frame 0
+    fine = dataclasses.replace(scene, dt=cap.dt / 3)
+    xp = xpp = np.array(mesh.vertices, np.float64)
+    for t in range(T):
+        for k in range(1, 4):
+            x, _ = sc.step(fine, sc.frame_inputs(scene, ctl, max(t - 1 + k / 3, 0.0)), plan.young[t],
+                           plan.poisson[t], xp, xpp, None, frame=t)
+            xpp, xp = xp, x
+        assert np.allclose(sub_run[t], x, atol=1e-8), t
+    assert not np.allclose(sub_run, rest_run, atol=1e-6)
+
+
+def test_generate_data_refuses_unknown_start_and_zero_substeps(workspace, rsl):
+    cap_dir, ws = workspace
+    for opts, words in ((["--substeps", "0"], "--substeps"), (["--start", "sideways"], "sideways")):
+        proc = rsl("generate-data", cap_dir, "-w", ws, "--sequences", "1", "--frames", "2", "--workers", "1", *opts)
+        assert proc.returncode != 0 and words in proc.stderr, proc.stderr
 
 
 def test_pool_and_serial_runs_give_identical_snapshots(workspace, tmp_path):

@@ -1,12 +1,13 @@
 """`rsl generate-data`: training snapshots for the subspace (paper §5.1) → snapshots.h5.
 
-Random interaction sequences stay within the envelope of the capture's own controls:
-each sequence is a keyframed track whose keyframe k takes every handle, load and obstacle
-to its value at a random frame s_k of controls.json (shared by all controls, or drawn for
-each), jittered by a fraction of that control's range; keyframe 0 is the capture's frame 0,
-so every sequence starts at rest.  Material is sampled per frame across the prior range of
-capture.toml: per sequence and region, end points log E_a, log E_b ~ U(log range) and
-ν_a, ν_b ~ U(range), linearly interpolated over the frames ("ramp"), or held ("constant").
+Random interaction sequences stay within the envelope of the capture's own controls: each sequence is a keyframed
+track whose keyframe k takes every handle, load and obstacle to its value at a random frame s_k of controls.json
+(shared by all controls, or drawn for each), jittered by a fraction of that control's range; keyframe 0 is the
+capture's frame 0.  Every sequence is released from the rest shape one frame before frame 0 (``--start rest``) or
+starts in the capture's own start convention (``--start capture``), and takes ``--substeps`` implicit steps per frame.  Material is sampled
+per frame across the prior range of capture.toml: per sequence and region, end points log E_a, log E_b in the log
+range and ν_a, ν_b in the range, from a Latin hypercube over all the sequences' ends (each 2n-th of each range holds
+one), linearly interpolated over the frames ("ramp"), or held ("constant").
 
 Sequences run in a local process pool ('spawn' context: JAX does not fork safely) or as Ray
 tasks on an existing cluster; the plan is drawn from the seed in this process, so the
@@ -25,6 +26,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+from scipy.stats import qmc
 
 from stages.artefacts import KIND_FILES, MeshArtefact, Provenance, SnapshotsArtefact, check_mesh_source
 from stages.capture import Controls, Track, check_obstacles_clear, load_capture, parse_controls
@@ -52,6 +54,10 @@ class GenerateDataConfig:
     material_sampling: Literal["ramp", "constant"] = "ramp"
     """Per-frame material: 'ramp' interpolates between two random end points of each sequence (log E, ν);
     'constant' holds one random value."""
+    material_design: Literal["latin", "independent"] = "latin"
+    """How the sequences' material end points are drawn: latin, a Latin hypercube over all the sequences' ends
+    (each 2n-th of the log E and ν ranges holds one end, so few sequences still span the range); independent, each
+    end uniform on its own (docs/results/training_data.md compares them)."""
     keyframe_gap: int = 0
     """Frames between random keyframes (drawn between gap and 2·gap); 0 = a quarter of the capture's control length, at
     least 5."""
@@ -60,6 +66,12 @@ class GenerateDataConfig:
     angle, force)."""
     newton_iterations: int = 300
     """Most Newton iterations per time step before a sequence is given up."""
+    substeps: int = 1
+    """Implicit-Euler steps per frame (time step 1/(fps·substeps)); snapshots record every substeps-th state."""
+    start: Literal["capture", "rest"] = "rest"
+    """The state each sequence starts from: rest, released from the rest shape one frame before frame 0; capture,
+    the capture's [capture] start convention (frame 0 the static equilibrium under the frame-0 controls and the
+    sequence's material for "equilibrium" and "moving", the rest shape for "rest")."""
     seed: int = 0
     """Seed of every random choice; equal seeds give identical snapshots."""
 
@@ -131,16 +143,36 @@ def random_controls(controls: Controls, frames: int, gap: int, jitter: float, rn
     return out
 
 
-def sample_material(young_range: tuple[float, float], poisson_range: tuple[float, float], n_regions: int,
-                    frames: int, mode: str, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame material (T, R) each: log E and ν drawn uniformly at both ends of the sequence and
-    interpolated linearly over the frames (``ramp``) or held (``constant``)."""
+def material_ends(young_range: tuple[float, float], poisson_range: tuple[float, float], n_sequences: int,
+                  n_regions: int, rng: np.random.Generator, design: str = "latin",
+                  mode: str = "ramp") -> tuple[np.ndarray, np.ndarray]:
+    """log E and ν at both ends of every sequence, (n_sequences, 2, R) each.  ``latin``: a Latin hypercube
+    (scipy.stats.qmc) over all 2n ends (``ramp``; the n first ends with ``constant``, the last equal to them), paired
+    at random into sequences, so that each 2n-th of the log E and ν ranges holds one end: few sequences then still
+    span the prior range.  ``independent``: each end uniform on its own; four sequences drawn so left the
+    dinosaur's snapshots at ν 0.30–0.41 of 0.30–0.49 (docs/results/training_data.md)."""
+    n_ends = 2 * n_sequences if mode == "ramp" else n_sequences
+    if design == "latin":
+        u = qmc.LatinHypercube(d=2 * n_regions, rng=rng).random(n_ends)  # rows in random order: random pairs
+    else:
+        u = rng.uniform(size=(n_ends, 2 * n_regions))
+    u = u.reshape(n_sequences, -1, 2, n_regions)  # [sequence, end, (log E, ν), region]
+    if mode != "ramp":
+        u = np.repeat(u, 2, axis=1)
     lo, hi = np.log(young_range[0]), np.log(young_range[1])
-    e_ends = rng.uniform(lo, hi, size=(2, n_regions))
-    nu_ends = rng.uniform(poisson_range[0], poisson_range[1], size=(2, n_regions))
-    if mode == "constant":
-        e_ends[1], nu_ends[1] = e_ends[0], nu_ends[0]
+    log_e = lo + (hi - lo) * u[:, :, 0]
+    nu = poisson_range[0] + (poisson_range[1] - poisson_range[0]) * u[:, :, 1]
+    return log_e, nu
+
+
+def sample_material(log_e_ends: np.ndarray, nu_ends: np.ndarray, young_range: tuple[float, float], frames: int,
+                    mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame material (T, R) each from one sequence's ends (2, R) of log E and ν (material_ends): interpolated
+    linearly over the frames (``ramp``) or held at the first end (``constant``)."""
+    e_ends, nu_ends = np.array(log_e_ends, float), np.array(nu_ends, float)
     a = (np.arange(frames) / max(frames - 1, 1))[:, None]
+    if mode == "constant":
+        a = np.zeros_like(a)
     young = np.exp((1 - a) * e_ends[0] + a * e_ends[1])
     young = np.clip(young, young_range[0], young_range[1])  # exp(log) round-off stays inside the range
     poisson = (1 - a) * nu_ends[0] + a * nu_ends[1]
@@ -149,31 +181,45 @@ def sample_material(young_range: tuple[float, float], poisson_range: tuple[float
 
 def plan_sequences(config: GenerateDataConfig, controls: Controls, young_range, poisson_range,
                    n_regions: int) -> list[SequencePlan]:
-    """The random plan of every sequence, drawn from the seed (sequence i uses the stream [seed, i])."""
+    """The random plan of every sequence, drawn from the seed (sequence i's controls use the stream [seed, i]; the
+    materials, one Latin hypercube over all sequences, the stream [seed, sequences, 1])."""
     n_ref = controls.n_frames or 1
     gap = config.keyframe_gap if config.keyframe_gap > 0 else max(5, n_ref // 4)
+    log_e, nu = material_ends(young_range, poisson_range, config.sequences, n_regions,
+                              np.random.default_rng([config.seed, config.sequences, 1]), config.material_design,
+                              config.material_sampling)
     plans = []
     for i in range(config.sequences):
         rng = np.random.default_rng([config.seed, i])
         ctl = random_controls(controls, config.frames, gap, config.jitter, rng)
-        young, poisson = sample_material(young_range, poisson_range, n_regions, config.frames,
-                                         config.material_sampling, rng)
+        young, poisson = sample_material(log_e[i], nu[i], young_range, config.frames, config.material_sampling)
         plans.append(SequencePlan(i, ctl.to_json(), young, poisson))
     return plans
 
 
 # =========================================================================== one sequence (runs in a worker)
 def simulate_sequence(mesh: MeshArtefact, plan: SequencePlan, model: str, dt: float, gravity: np.ndarray,
-                      newton_iterations: int, damping: float = 0.0) -> tuple[int, np.ndarray | None, str]:
-    """(index, positions (T, n, 3) or None, error message) of one planned sequence; ``damping`` β s (the capture's
-    [material] damping)."""
-    from stages.sim.scene import SimulationError, frame_inputs, make_scene, simulate  # JAX + numba: loaded on use
+                      newton_iterations: int, damping: float = 0.0, start: str = "rest",
+                      substeps: int = 1) -> tuple[int, np.ndarray | None, str]:
+    """(index, positions (T, n, 3) or None, error message) of one planned sequence, ``substeps`` implicit steps per
+    frame (stages.sim.static.simulate_from_start).  ``start`` "rest": released from the rest shape one frame before
+    frame 0 (frame 0 is one frame of steps from it, under the frame-0 controls and material); "equilibrium": frame 0
+    is the static equilibrium under the frame-0 controls and material.  ``damping`` β s (the capture's [material]
+    damping)."""
+    from stages.sim.scene import SimulationError, frame_inputs, make_scene  # JAX + numba: loaded on use
+    from stages.sim.static import simulate_from_start
 
     try:
         ctl = parse_controls(plan.controls, Path(f"sequence {plan.index}"))
         scene = make_scene(mesh, ctl, model, dt, gravity, damping=damping)
-        inputs = [frame_inputs(scene, ctl, f) for f in range(plan.young.shape[0])]
-        x = simulate(scene, inputs, plan.young, plan.poisson, max_iterations=newton_iterations)
+        T = plan.young.shape[0]
+        if start == "rest":  # one frame more, before frame 0, holding frame 0's controls and material
+            young, poisson = (np.concatenate([a[:1], a]) for a in (plan.young, plan.poisson))
+            x = simulate_from_start(scene, lambda f: frame_inputs(scene, ctl, max(f - 1.0, 0.0)), young, poisson,
+                                    T + 1, "rest", substeps, max_iterations=newton_iterations)[1:]
+        else:
+            x = simulate_from_start(scene, lambda f: frame_inputs(scene, ctl, f), plan.young, plan.poisson, T, start,
+                                    substeps, max_iterations=newton_iterations)
     except SimulationError as e:
         return plan.index, None, str(e)
     if not np.all(np.isfinite(x)):
@@ -268,8 +314,10 @@ def _run_ray(tasks: list, address: str, reporter: Reporter, task) -> list:
 def run(config: GenerateDataConfig, reporter: Reporter = SilentReporter()) -> Path:
     """Simulate the random sequences and write WS/snapshots.h5; returns its path."""
     c = config
-    if c.sequences < 1 or c.frames < 1 or c.workers < 1:
-        raise RslError("--sequences, --frames and --workers should each be at least 1.")
+    if c.sequences < 1 or c.frames < 1 or c.workers < 1 or c.substeps < 1:
+        raise RslError("--sequences, --frames, --workers and --substeps should each be at least 1.")
+    if c.start not in ("capture", "rest"):
+        raise RslError(f"--start {c.start!r} is unknown; use capture or rest.")
     if c.material_sampling not in ("ramp", "constant"):
         raise RslError(f"--material-sampling {c.material_sampling!r} is unknown; use ramp or constant.")
     if c.jitter < 0:
@@ -285,7 +333,9 @@ def run(config: GenerateDataConfig, reporter: Reporter = SilentReporter()) -> Pa
     check_obstacles_clear(controls, mesh.vertices, cap.controls_path, start=cap.start)
     mat = cap.material
     plans = plan_sequences(c, controls, mat.young_range, mat.poisson_range, len(mesh.region_names))
-    tasks = [(mesh, p, mat.model, cap.dt, cap.gravity, c.newton_iterations, mat.damping) for p in plans]
+    start = "rest" if c.start == "rest" or cap.start == "rest" else "equilibrium"  # (a moving capture's: its sag)
+    tasks = [(mesh, p, mat.model, cap.dt, cap.gravity, c.newton_iterations, mat.damping, start, c.substeps)
+             for p in plans]
 
     t0 = time.perf_counter()
     where = f"Ray ({c.ray})" if c.ray else (f"{c.workers} workers" if c.workers > 1 else "this process")
