@@ -64,6 +64,22 @@ def test_stage_writes_a_usable_subspace(tmp_path):
     assert Z.shape == (3, 3) and np.all(np.isfinite(Z))
 
 
+def test_few_training_sequences_are_warned_about(tmp_path):
+    """Fewer than FEW_SEQUENCES sequences in snapshots.h5: one warning naming the file and the remedy; as many:
+    none (the E identified in a reduced space trained on 4 sequences moved with the draw,
+    docs/results/training_data.md)."""
+    from stages.steps.train_subspace import FEW_SEQUENCES
+
+    for n_seq, warned in ((4, True), (FEW_SEQUENCES, False)):
+        ws, _ = _workspace(tmp_path / str(n_seq), n_seq=n_seq, per_seq=4)
+        rep = SilentReporter()
+        run(TrainSubspaceConfig(workspace=ws, dim=3, epochs=2, cubature_tets=0), rep)
+        warnings = [m for m in rep.messages if m.startswith("warning: ")]
+        assert len(warnings) == int(warned), warnings
+        if warned:
+            assert "snapshots.h5: only 4 sequences" in warnings[0] and "--sequences" in warnings[0]
+
+
 def test_cli_pca(tmp_path, rsl):
     ws, _ = _workspace(tmp_path)
     proc = rsl("train-subspace", "-w", ws, "--dim", "4", "--kind", "pca", "--cubature-tets", "0")

@@ -30,6 +30,9 @@ from stages.progress import Reporter, SilentReporter
 from stages.sim.quadrature import element_order
 
 
+FEW_SEQUENCES = 12  # fewer training sequences than this: a warning (docs/results/training_data.md)
+
+
 @dataclass(frozen=True)
 class TrainSubspaceConfig:
     workspace: Path
@@ -209,6 +212,12 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
         raise RslError(f"{snap_path}: {len(tr)} training snapshots cannot span a {config.dim}-dimensional "
                        "subspace; generate more data or lower --dim.")
     reporter.info(f"{len(tr)} training and {len(va)} validation snapshots ({split_note}); {n} vertices.")
+    n_seq = len(np.unique(snap.sequence))
+    if config.kind != "lbs" and n_seq < FEW_SEQUENCES:
+        reporter.warn(f"{snap_path}: only {n_seq} sequences; the E that rsl adapt identifies in a reduced space "
+                      f"trained on so few depends on the draw (the dinosaur's: 6–15 % off over three draws of 4, "
+                      f"docs/results/training_data.md); generate at least {FEW_SEQUENCES} with `rsl generate-data "
+                      f"--sequences`.")
     rest, masses = mesh.vertices, mesh.vertex_masses
 
     if config.kind == "autoencoder":
