@@ -164,9 +164,9 @@ def test_generate_data_writes_snapshots_with_requested_counts(workspace, rsl):
 
 
 def test_sequences_start_from_the_chosen_state_and_take_the_substeps(workspace):
-    """simulate_sequence: start rest, released from the rest shape one frame before frame 0 (its twin at one step
-    per frame: scene.simulate, which steps frame 0 from the rest shape); start equilibrium, frame 0 the static
-    equilibrium under the frame-0 controls with the sequence's own material; with S substeps the frames are every
+    """simulate_sequence: start released, from the rest shape one frame before frame 0 (its twin at one step per
+    frame: scene.simulate, which steps frame 0 from the rest shape); start rest, frame 0 the rest shape; start
+    equilibrium, frame 0 the static equilibrium under the frame-0 controls with the sequence's own material; with S substeps the frames are every
     S-th state of steps Δt/S, the controls at the fractional frames (stepped one by one here)."""
     from stages.sim import scene as sc
     from stages.sim.static import start_state
@@ -180,10 +180,12 @@ def test_sequences_start_from_the_chosen_state_and_take_the_substeps(workspace):
     young = np.geomspace(8e4, 1.2e5, T)[:, None]
     plan = SequencePlan(0, ctl.to_json(), young, np.full((T, 1), 0.4))
     args = (mesh, plan, "stable_neohookean", cap.dt, cap.gravity, 100, 0.0)
-    _, rest_run, err = simulate_sequence(*args, "rest", 1)
+    _, rest_run, err = simulate_sequence(*args, "released", 1)
     _, eq_run, err2 = simulate_sequence(*args, "equilibrium", 1)
-    _, sub_run, err3 = simulate_sequence(*args, "rest", 3)
-    assert err == err2 == err3 == ""
+    _, sub_run, err3 = simulate_sequence(*args, "released", 3)
+    _, at_rest, err4 = simulate_sequence(*args, "rest", 1)
+    assert err == err2 == err3 == err4 == ""
+    assert np.allclose(at_rest[0], mesh.vertices) and not np.allclose(rest_run[0], mesh.vertices)
     scene = sc.make_scene(mesh, parse_controls(plan.controls, Path("plan")), "stable_neohookean", cap.dt, cap.gravity)
     inputs = [sc.frame_inputs(scene, ctl, t) for t in range(T)]
     assert np.allclose(rest_run, sc.simulate(scene, inputs, plan.young, plan.poisson), atol=1e-9)

@@ -3,9 +3,9 @@
 Random interaction sequences stay within the envelope of the capture's own controls: each sequence is a keyframed
 track whose keyframe k takes every handle, load and obstacle to its value at a random frame s_k of controls.json
 (shared by all controls, or drawn for each), jittered by a fraction of that control's range; keyframe 0 is the
-capture's frame 0.  Every sequence is released from the rest shape one frame before frame 0 (``--start rest``) or
-starts in the capture's own start convention (``--start capture``), and takes ``--substeps`` implicit steps per frame.  Material is sampled
-per frame across the prior range of capture.toml: per sequence and region, end points log E_a, log E_b in the log
+capture's frame 0.  Every sequence is released from the rest shape one frame before frame 0 (``--start
+released``) or starts in the capture's own start convention (``--start capture``), and takes ``--substeps``
+implicit steps per frame.  Material is sampled per frame across the prior range of capture.toml: per sequence and region, end points log E_a, log E_b in the log
 range and ν_a, ν_b in the range, from a Latin hypercube over all the sequences' ends (each 2n-th of each range holds
 one), linearly interpolated over the frames ("ramp"), or held ("constant").
 
@@ -68,10 +68,11 @@ class GenerateDataConfig:
     """Most Newton iterations per time step before a sequence is given up."""
     substeps: int = 1
     """Implicit-Euler steps per frame (time step 1/(fps·substeps)); snapshots record every substeps-th state."""
-    start: Literal["capture", "rest"] = "rest"
-    """The state each sequence starts from: rest, released from the rest shape one frame before frame 0; capture,
-    the capture's [capture] start convention (frame 0 the static equilibrium under the frame-0 controls and the
-    sequence's material for "equilibrium" and "moving", the rest shape for "rest")."""
+    start: Literal["released", "capture"] = "released"
+    """The state each sequence starts from: released, released from the rest shape one frame before frame 0 (frame 0
+    one frame of steps from it); capture, the capture's [capture] start convention (frame 0 the static equilibrium
+    under the frame-0 controls and the sequence's material for "equilibrium" and "moving", the rest shape at rest for
+    "rest")."""
     seed: int = 0
     """Seed of every random choice; equal seeds give identical snapshots."""
 
@@ -199,12 +200,12 @@ def plan_sequences(config: GenerateDataConfig, controls: Controls, young_range, 
 
 # =========================================================================== one sequence (runs in a worker)
 def simulate_sequence(mesh: MeshArtefact, plan: SequencePlan, model: str, dt: float, gravity: np.ndarray,
-                      newton_iterations: int, damping: float = 0.0, start: str = "rest",
+                      newton_iterations: int, damping: float = 0.0, start: str = "released",
                       substeps: int = 1) -> tuple[int, np.ndarray | None, str]:
     """(index, positions (T, n, 3) or None, error message) of one planned sequence, ``substeps`` implicit steps per
-    frame (stages.sim.static.simulate_from_start).  ``start`` "rest": released from the rest shape one frame before
-    frame 0 (frame 0 is one frame of steps from it, under the frame-0 controls and material); "equilibrium": frame 0
-    is the static equilibrium under the frame-0 controls and material.  ``damping`` β s (the capture's [material]
+    frame (stages.sim.static.simulate_from_start).  ``start`` "released": released from the rest shape one frame
+    before frame 0 (frame 0 is one frame of steps from it, under the frame-0 controls and material); "rest" and
+    "equilibrium": frame 0 is that state (stages.sim.static.start_state, with the frame-0 controls and material).  ``damping`` β s (the capture's [material]
     damping)."""
     from stages.sim.scene import SimulationError, frame_inputs, make_scene  # JAX + numba: loaded on use
     from stages.sim.static import simulate_from_start
@@ -213,7 +214,7 @@ def simulate_sequence(mesh: MeshArtefact, plan: SequencePlan, model: str, dt: fl
         ctl = parse_controls(plan.controls, Path(f"sequence {plan.index}"))
         scene = make_scene(mesh, ctl, model, dt, gravity, damping=damping)
         T = plan.young.shape[0]
-        if start == "rest":  # one frame more, before frame 0, holding frame 0's controls and material
+        if start == "released":  # one frame more, before frame 0, holding frame 0's controls and material
             young, poisson = (np.concatenate([a[:1], a]) for a in (plan.young, plan.poisson))
             x = simulate_from_start(scene, lambda f: frame_inputs(scene, ctl, max(f - 1.0, 0.0)), young, poisson,
                                     T + 1, "rest", substeps, max_iterations=newton_iterations)[1:]
@@ -316,8 +317,8 @@ def run(config: GenerateDataConfig, reporter: Reporter = SilentReporter()) -> Pa
     c = config
     if c.sequences < 1 or c.frames < 1 or c.workers < 1 or c.substeps < 1:
         raise RslError("--sequences, --frames, --workers and --substeps should each be at least 1.")
-    if c.start not in ("capture", "rest"):
-        raise RslError(f"--start {c.start!r} is unknown; use capture or rest.")
+    if c.start not in ("released", "capture"):
+        raise RslError(f"--start {c.start!r} is unknown; use released or capture.")
     if c.material_sampling not in ("ramp", "constant"):
         raise RslError(f"--material-sampling {c.material_sampling!r} is unknown; use ramp or constant.")
     if c.jitter < 0:
@@ -333,7 +334,8 @@ def run(config: GenerateDataConfig, reporter: Reporter = SilentReporter()) -> Pa
     check_obstacles_clear(controls, mesh.vertices, cap.controls_path, start=cap.start)
     mat = cap.material
     plans = plan_sequences(c, controls, mat.young_range, mat.poisson_range, len(mesh.region_names))
-    start = "rest" if c.start == "rest" or cap.start == "rest" else "equilibrium"  # (a moving capture's: its sag)
+    start = ("released" if c.start == "released" else  # the capture's convention (a moving capture: its sag)
+             "rest" if cap.start == "rest" else "equilibrium")
     tasks = [(mesh, p, mat.model, cap.dt, cap.gravity, c.newton_iterations, mat.damping, start, c.substeps)
              for p in plans]
 
