@@ -63,11 +63,11 @@ SCALES = {"table": (3, 96, MAX_TETS, 0), "paper": (4, 128, 2450, 1)}
 SCALE = "table"
 SEQUENCES = 4  # generate-data --sequences of the reduced rows (docs/results/training_data.md)
 SUBSPACE_DIM = 30  # r, the paper's Bar (docs/results/reduced_accuracy.md: r = 12 biases E by 1.5–3.5 %)
-# rsl train-subspace --cubature-tol per case (default 0.01): 0.002 measured better on the released bar
-# (18.8 → 7.7 %), the two-region beam's stiff region (12.3 → 2.8 %) and the dinosaur (22.9 → 8.8 %, helper S;
-# with the Newton fixes of 2026-11-24 it no longer stalls at contact), not on the bar from equilibrium
-# (3.3 → 4.8 %, both ≤ 5 %): accuracy_notes.md, 2026-11-24 afternoon.
-CUBATURE_TOL = {"bar": 0.002, "beam": 0.002, "dino": 0.002}
+# rsl train-subspace --cubature-tol per case: its default, 0.0005 (docs/results/cubature_tol.md: the same networks at
+# 0.002 → 0.0005, mean largest settled E error 8.8 → 5.6 % over seven workspaces).  Pages before 2026-11-30 used
+# 0.002 (measured better than 0.01 on three of four captures: accuracy_notes.md, 2026-11-24 afternoon); each row
+# records its tolerance.
+CUBATURE_TOL = {"bar": 0.0005, "beam": 0.0005, "dino": 0.0005}
 EXTRA: list = []  # extra rsl adapt options (--estimator, --substeps, --adapt-option)
 EXPORT = True  # also run `rsl export --forces` (evaluate computes the same replayed forces: stages/forces.py)
 
@@ -127,8 +127,9 @@ def workspace(work: Path, cap: Path, case: str, start: str, order: int, loss: st
 
 
 def subspace(cap: Path, ws: Path, frames: int, dim: int, tol: float, sequences: int = SEQUENCES) -> None:
-    """generate-data (skipped per pl.skip on snapshots.h5) + train-subspace --dim r --cubature-tol tol (skipped
-    per pl.skip on subspace.h5 when its provenance has the same r and tolerance)."""
+    """generate-data --sequences N (skipped per pl.skip on snapshots.h5 when it holds N sequences) + train-subspace
+    --dim r --cubature-tol tol (skipped per pl.skip on subspace.h5 when the snapshots stayed and its provenance has
+    the same r and tolerance)."""
     same_data = pl.skip(ws / "snapshots.h5") and _sequences(ws) == sequences
     if same_data and pl.skip(ws / "subspace.h5") and _subspace_settings(ws) == (dim, tol):
         return

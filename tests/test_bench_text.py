@@ -215,3 +215,22 @@ def test_training_data_page_follows_its_rows() -> None:
     assert ("- v, 7 sequences, r = 40: mean of the runs' largest median settled E error 7.8 %, largest 9.6 %, over 2 "
             "runs; 1 of 2 within the targets") in page
     assert m.summary(d["rows"]) == [line for line in m.markdown(d).splitlines() if line.startswith("- ")]
+
+
+def test_cubature_tol_page_follows_its_rows() -> None:
+    """bench/cubature_tol.py: each row's errors as measured, s / frame against its workspace's first tolerance, a
+    failed adapt said as such, the summary per tolerance computed from the rows."""
+    m = load_bench("cubature_tol")
+    base = {"label": "beam", "capture": "c", "workspace": "w", "sequences": 4, "dim": 30, "max_points": 600,
+            "regions": ["body", "stiff"], "median_poisson": [0.45, 0.45]}
+    rows = [dict(base, tol=0.002, points=100, fit_error_rel=0.0019, median_error=[0.088, 0.156], s_per_frame=0.5),
+            dict(base, tol=0.0005, points=200, fit_error_rel=0.0004, median_error=[0.017, 0.014], s_per_frame=0.8),
+            dict(base, workspace="w2", regions=["body"], tol=0.002, points=50, fit_error_rel=0.002,
+                 median_error=[0.04], s_per_frame=1.0),
+            dict(base, workspace="w2", tol=0.0005, points=90, fit_error_rel=0.0005, adapt_error="the solve failed")]
+    page = m.markdown({"rows": rows, "ended": "t", "load_average": 1.0, "machine": "m"})
+    assert "| body 8.8, stiff 15.6 | 0.50 | 1.00 |" in page and "| body 1.7, stiff 1.4 | 0.80 | 1.60 |" in page
+    assert "adapt failed: the solve failed" in page
+    assert ("- tol 0.002: mean of the rows' largest median settled E error 9.8 %, largest 15.6 %, over 2 workspaces; "
+            "1 of 2 within the targets") in page
+    assert "- tol 0.0005: mean of the rows' largest median settled E error 1.7 %" in page and "1.60 × the first" in page
