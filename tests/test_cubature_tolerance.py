@@ -1,6 +1,7 @@
 """train-subspace's --cubature-tol: a tight cubature keeps a reduced trajectory on the same subspace integrated over
 every quadrature point (a 1 % reduced-force error moved a released bar's trajectory by ~7 % of its motion and biased
-E by 25 % in the reduced space; docs/demo.sh trains with 0.002; docs/results/reduced_accuracy.md)."""
+E by 25 % in the reduced space, docs/results/reduced_accuracy.md; the default is 0.0005,
+docs/results/cubature_tol.md)."""
 from __future__ import annotations
 
 import numpy as np

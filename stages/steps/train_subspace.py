@@ -30,7 +30,7 @@ from stages.progress import Reporter, SilentReporter
 from stages.sim.quadrature import element_order
 
 
-FEW_SEQUENCES = 12  # fewer training sequences than this: a warning (docs/results/training_data.md)
+FEW_SEQUENCES = 12  # fewer training sequences: a warning (docs/results/training_data.md)
 
 
 @dataclass(frozen=True)
@@ -215,9 +215,9 @@ def run(config: TrainSubspaceConfig, reporter: Reporter = SilentReporter()) -> P
     n_seq = len(np.unique(snap.sequence))
     if config.kind != "lbs" and n_seq < FEW_SEQUENCES:
         reporter.warn(f"{snap_path}: only {n_seq} sequences; the E that rsl adapt identifies in a reduced space "
-                      f"trained on so few depends on the draw (the dinosaur's: 6–15 % off over three draws of 4, "
-                      f"docs/results/training_data.md); generate at least {FEW_SEQUENCES} with `rsl generate-data "
-                      f"--sequences`.")
+                      f"trained on so few moves with the draw (the dinosaur's: 6–15 % off over three draws of 4, "
+                      f"2–7 % over three of 12, docs/results/training_data.md); generate at least {FEW_SEQUENCES} "
+                      f"with `rsl generate-data --sequences` (its default is 20).")
     rest, masses = mesh.vertices, mesh.vertex_masses
 
     if config.kind == "autoencoder":
