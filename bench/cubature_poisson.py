@@ -24,10 +24,7 @@ import datetime
 import json
 import os
 import platform
-import shutil
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -38,14 +35,16 @@ sys.path.insert(0, str(ROOT / "bench"))
 os.environ.setdefault("JAX_ENABLE_X64", "1")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
+from reduced_accuracy import per_region  # noqa: E402
+
 VARIANTS = ("one ν (median)", "both ends of ν")
 
 
 def run_row(label: str, capture: Path, ws: Path, tol: float, options: list[str]) -> list[dict]:
     """The two variants' rows for one capture and workspace."""
-    from reduced_accuracy import refit_cubature, settled
+    from reduced_accuracy import ADAPT_FILES, adapt_in_copy, last_line, refit_cubature, settled_result
 
-    from stages.artefacts import AdaptArtefact, SnapshotsArtefact
+    from stages.artefacts import SnapshotsArtefact
     from stages.capture import load_capture, read_truth
     from stages.steps.train_subspace import cubature_materials
 
@@ -61,36 +60,9 @@ def run_row(label: str, capture: Path, ws: Path, tol: float, options: list[str])
                "adapt_options": options,
                "nu_fitted": [np.asarray(s).tolist() for s in span], "points": len(art.extra["cubature_points"]),
                "fit_error_rel": art.extra["cubature_error_rel"]}
-        with tempfile.TemporaryDirectory() as tmp:
-            wt = Path(tmp) / "ws"
-            wt.mkdir()
-            for f in ("mesh.h5", "cameras.h5", "snapshots.h5", "masks.h5", "gaussians.h5"):
-                if (ws / f).is_file():
-                    shutil.copy(ws / f, wt / f)
-            art.save(wt / "subspace.h5")
-            T = truth.young.shape[0]
-            E0 = float(np.asarray(truth.young)[0, 0])
-            env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
-            p = subprocess.run([sys.executable, "-m", "rsl_cli.app", "adapt", str(capture), "-w", str(wt),
-                                "--space", "reduced", "--loss", "markers", "--window", "3",
-                                "--young-init", f"{0.5 * E0:g}", *options], capture_output=True, text=True, env=env,
-                               cwd=ROOT)
-            if p.returncode != 0:
-                row["adapt_error"] = p.stderr.strip().splitlines()[-1][:300] if p.stderr.strip() else "failed"
-            else:
-                ad = AdaptArtefact.load(wt / "adapt.h5")
-                fr = np.asarray(ad.frames)
-                cols = [list(truth.region_names).index(r) for r in ad.region_names]  # the truth's, in adapt's order
-                yt = np.asarray(truth.young, float)[:T][fr][:, cols]
-                nt = np.asarray(truth.poisson, float)[:T][fr][:, cols]
-                ok = settled(yt)
-                y, nu = np.asarray(ad.young, float), np.asarray(ad.poisson, float)
-                row.update({"regions": list(ad.region_names),
-                            "median_error": np.median(np.abs(y - yt)[ok] / yt[ok], axis=0).tolist(),
-                            "median_poisson": np.median(nu[ok], axis=0).tolist(),
-                            "poisson_true": np.median(nt[ok], axis=0).tolist(),
-                            "s_per_frame": float(np.median(np.asarray(ad.time_total_s)[1:])),
-                            "young_ratio": (y / yt).tolist()})
+        ad, stderr = adapt_in_copy(capture, ws, art, 0.5 * float(np.asarray(truth.young)[0, 0]), options,
+                                   ADAPT_FILES + ("masks.h5", "gaussians.h5"))
+        row.update(settled_result(ad, truth) if ad is not None else {"adapt_error": last_line(stderr)})
         rows.append(row)
         print(json.dumps({k: v for k, v in row.items() if k != "young_ratio"}), flush=True)
     return rows
@@ -110,12 +82,6 @@ def _options(r: dict) -> str:
     """The row's extra rsl adapt options, as they were passed ("" for none)."""
     opts = " ".join(r.get("adapt_options", []))
     return f" (`{opts}`)" if opts else ""
-
-
-def _per_region(r: dict, key: str, fmt) -> str:
-    """One value per region, named when there are several ("body 1.8, stiff 7.5")."""
-    v = r[key]
-    return ", ".join(fmt(x) if len(v) == 1 else f"{name} {fmt(x)}" for name, x in zip(r["regions"], v))
 
 
 def summary(rows: list[dict]) -> list[str]:
@@ -166,8 +132,8 @@ def markdown(res: dict) -> str:
         if r["variant"] == VARIANTS[0]:
             base[key] = r["s_per_frame"]
         ratio = r["s_per_frame"] / base[key] if key in base else float("nan")
-        err = _per_region(r, "median_error", lambda x: f"{100 * x:.1f}")
-        nu = _per_region(r, "median_poisson", lambda x: f"{x:.3f}")
+        err = per_region(r, "median_error", lambda x: f"{100 * x:.1f}")
+        nu = per_region(r, "median_poisson", lambda x: f"{x:.3f}")
         nu_true = ", ".join(f"{x:.2f}" for x in r["poisson_true"])
         lines.append(f"| {r['label']}{_options(r)} | {truth} | {r['variant']} | {nus} | {r['points']} | {err} | "
                      f"{nu} ({nu_true}) | {r['s_per_frame']:.2f} | {ratio:.2f} |")

@@ -23,10 +23,7 @@ import datetime
 import json
 import os
 import platform
-import shutil
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -37,16 +34,17 @@ sys.path.insert(0, str(ROOT / "bench"))
 os.environ.setdefault("JAX_ENABLE_X64", "1")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
+from reduced_accuracy import per_region  # noqa: E402
+
 
 def run_row(label: str, capture: Path, ws: Path, tols: list[float], max_points: int) -> list[dict]:
     """One row per tolerance for one capture and workspace."""
     import reduced_accuracy as ra
 
-    from stages.artefacts import AdaptArtefact, read_provenance
+    from stages.artefacts import read_provenance
     from stages.capture import load_capture, read_truth
 
     truth = read_truth(load_capture(capture))
-    T = truth.young.shape[0]
     E0 = float(np.asarray(truth.young)[0, 0])
     sequences = int(read_provenance(ws / "snapshots.h5").get("config", {}).get("sequences", -1))
     ra.CUBATURE_MAX_POINTS = max_points
@@ -56,39 +54,11 @@ def run_row(label: str, capture: Path, ws: Path, tols: list[float], max_points: 
         row = {"label": label, "capture": str(capture), "workspace": str(ws), "sequences": sequences,
                "dim": int(art.dim), "tol": tol, "max_points": max_points,
                "points": len(art.extra["cubature_points"]), "fit_error_rel": float(art.extra["cubature_error_rel"])}
-        with tempfile.TemporaryDirectory() as tmp:
-            wt = Path(tmp) / "ws"
-            wt.mkdir()
-            for f in ("mesh.h5", "cameras.h5", "snapshots.h5"):
-                if (ws / f).is_file():
-                    shutil.copy(ws / f, wt / f)
-            art.save(wt / "subspace.h5")
-            env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
-            p = subprocess.run([sys.executable, "-m", "rsl_cli.app", "adapt", str(capture), "-w", str(wt),
-                                "--space", "reduced", "--loss", "markers", "--window", "3",
-                                "--young-init", f"{0.5 * E0:g}"], capture_output=True, text=True, env=env, cwd=ROOT)
-            if p.returncode != 0:
-                row["adapt_error"] = p.stderr.strip().splitlines()[-1][:300] if p.stderr.strip() else "failed"
-            else:
-                ad = AdaptArtefact.load(wt / "adapt.h5")
-                fr = np.asarray(ad.frames)
-                cols = [list(truth.region_names).index(r) for r in ad.region_names]
-                yt = np.asarray(truth.young, float)[:T][fr][:, cols]
-                ok = ra.settled(yt)
-                y = np.asarray(ad.young, float)
-                row.update({"regions": list(ad.region_names),
-                            "median_error": np.median(np.abs(y - yt)[ok] / yt[ok], axis=0).tolist(),
-                            "median_poisson": np.median(np.asarray(ad.poisson, float)[ok], axis=0).tolist(),
-                            "s_per_frame": float(np.median(np.asarray(ad.time_total_s)[1:]))})
+        ad, stderr = ra.adapt_in_copy(capture, ws, art, 0.5 * E0)
+        row.update(ra.settled_result(ad, truth) if ad is not None else {"adapt_error": ra.last_line(stderr)})
         rows.append(row)
-        print(json.dumps(row), flush=True)
+        print(json.dumps({k: v for k, v in row.items() if k != "young_ratio"}), flush=True)
     return rows
-
-
-def _per_region(r: dict, key: str, fmt) -> str:
-    """One value per region, named when there are several ("body 1.8, stiff 7.5")."""
-    v = r[key]
-    return ", ".join(fmt(x) if len(v) == 1 else f"{name} {fmt(x)}" for name, x in zip(r["regions"], v))
 
 
 def summary(rows: list[dict]) -> list[str]:
@@ -122,8 +92,9 @@ def markdown(res: dict) -> str:
              "window 3, E from 0.5 E_true, once with each, back to back. Truth: P2 tets, hard handles, N substeps per "
              "frame (capture.toml [synth]). Settled frames: ≥ w + 5 after the start and after each step of E_true. "
              "Produced by `bench/cubature_tol.py`.", "",
-             "| capture | training sequences | r | tol | points | fit error (%) | median settled E error per region (%) "
-             "| s / frame | ÷ first tol |", "| --- | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: |"]
+             "| capture | training sequences | r | tol | points | fit error (%) | "
+             "median settled E error per region (%) | s / frame | ÷ first tol |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: |"]
     first: dict = {}
     for r in res["rows"]:
         head = (f"| {r['label']} | {r['sequences']} | {r['dim']} | {r['tol']:g} | {r['points']} | "
@@ -132,7 +103,7 @@ def markdown(res: dict) -> str:
             lines.append(head + f"adapt failed: {r['adapt_error']} | — | — |")
             continue
         base = first.setdefault(r["workspace"], r["s_per_frame"])
-        lines.append(head + f"{_per_region(r, 'median_error', lambda x: f'{100 * x:.1f}')} | "
+        lines.append(head + f"{per_region(r, 'median_error', lambda x: f'{100 * x:.1f}')} | "
                      f"{r['s_per_frame']:.2f} | {r['s_per_frame'] / base:.2f} |")
     lines += [""] + summary(res["rows"])
     lines += ["", f"Ended {res['ended']} (load average {res['load_average']:.1f}), {res['machine']}."

@@ -275,13 +275,67 @@ def settled(young_true: np.ndarray, window: int = 3) -> np.ndarray:
     return ok
 
 
-def cubature_study(a) -> None:
-    """Per workspace × tolerance: refit, trajectories vs full / all points, optionally rsl adapt."""
+ADAPT_FILES = ("mesh.h5", "cameras.h5", "snapshots.h5")  # what a reduced markers run of adapt reads
+
+
+def adapt_in_copy(capture: Path, ws: Path, subspace, young_init: float, options=(), files=ADAPT_FILES):
+    """`rsl adapt CAPTURE` online, markers, reduced, window 3, E from ``young_init`` Pa (then ``options``) in a
+    temporary copy of WS's ``files`` with ``subspace`` (a SubspaceArtefact) as its subspace.h5: (adapt.h5, None),
+    or (None, the failed run's stderr)."""
     import shutil
     import subprocess
     import tempfile
 
-    from stages.artefacts import AdaptArtefact, MeshArtefact, SubspaceArtefact
+    from stages.artefacts import AdaptArtefact
+
+    with tempfile.TemporaryDirectory() as tmp:
+        wt = Path(tmp) / "ws"
+        wt.mkdir()
+        for f in files:
+            if (ws / f).is_file():
+                shutil.copy(ws / f, wt / f)
+        subspace.save(wt / "subspace.h5")
+        env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
+        p = subprocess.run([sys.executable, "-m", "rsl_cli.app", "adapt", str(capture), "-w", str(wt), "--space",
+                            "reduced", "--loss", "markers", "--window", "3", "--young-init", f"{young_init:g}",
+                            *options], capture_output=True, text=True, env=env, cwd=ROOT)
+        if p.returncode != 0:
+            return None, p.stderr
+        return AdaptArtefact.load(wt / "adapt.h5"), None
+
+
+def last_line(stderr: str) -> str:
+    """A failed run's last stderr line (≤ 300 characters), "failed" when it printed nothing."""
+    return stderr.strip().splitlines()[-1][:300] if stderr.strip() else "failed"
+
+
+def settled_result(adapt, truth) -> dict:
+    """adapt.h5 against the capture's truth, per region of adapt.h5 (the truth's columns in its order), over the
+    settled frames (:func:`settled`): the median relative E error, the median ν and the truth's; the median s / frame
+    after frame 0; E / E_true per frame."""
+    fr = np.asarray(adapt.frames)
+    cols = [list(truth.region_names).index(r) for r in adapt.region_names]
+    yt = np.asarray(truth.young, float)[fr][:, cols]
+    nt = np.asarray(truth.poisson, float)[fr][:, cols]
+    ok = settled(yt)
+    y, nu = np.asarray(adapt.young, float), np.asarray(adapt.poisson, float)
+    return {"regions": list(adapt.region_names),
+            "median_error": np.median(np.abs(y - yt)[ok] / yt[ok], axis=0).tolist(),
+            "median_poisson": np.median(nu[ok], axis=0).tolist(),
+            "poisson_true": np.median(nt[ok], axis=0).tolist(),
+            "s_per_frame": float(np.median(np.asarray(adapt.time_total_s)[1:])),
+            "young_ratio": (y / yt).tolist()}
+
+
+def per_region(r: dict, key: str, fmt) -> str:
+    """One value per region of a row, named when there are several ("body 1.8, stiff 7.5")."""
+    v = r[key]
+    return ", ".join(fmt(x) if len(v) == 1 else f"{name} {fmt(x)}" for name, x in zip(r["regions"], v))
+
+
+def cubature_study(a) -> None:
+    """Per workspace × tolerance: refit, trajectories vs full / all points, optionally rsl adapt."""
+    from stages.artefacts import MeshArtefact, SubspaceArtefact
     from stages.capture import load_capture, read_truth
     from stages.sim.scene import frame_inputs, make_scene
     from stages.subspace import ReducedModel
@@ -315,27 +369,15 @@ def cubature_study(a) -> None:
                    "rms_vs_all_points_mm": rms(X, X_all), "rms_vs_full_mm": rms(X, X_full),
                    "all_points_rms_vs_full_mm": rms(X_all, X_full)}
             if a.run_adapt:
-                with tempfile.TemporaryDirectory() as tmp:
-                    wt = Path(tmp) / "ws"
-                    wt.mkdir()
-                    for f in ("mesh.h5", "cameras.h5", "snapshots.h5"):
-                        if (ws / f).is_file():
-                            shutil.copy(ws / f, wt / f)
-                    art.save(wt / "subspace.h5")
-                    env = dict(os.environ, JAX_ENABLE_X64="1", JAX_PLATFORMS="cpu")
-                    p = subprocess.run([sys.executable, "-m", "rsl_cli.app", "adapt", str(a.capture), "-w", str(wt),
-                                        "--space", "reduced", "--loss", "markers", "--window", "3",
-                                        "--young-init", f"{0.5 * E0:g}"], capture_output=True, text=True, env=env,
-                                       cwd=ROOT)
-                    if p.returncode != 0:
-                        row["adapt_error"] = p.stderr[-500:]
-                    else:
-                        ad = AdaptArtefact.load(wt / "adapt.h5")
-                        yt = Y[np.asarray(ad.frames)]
-                        err = np.abs(np.asarray(ad.young) - yt) / yt
-                        ok = settled(yt)
-                        row["adapt_median_error"] = float(np.max(np.median(err[ok], axis=0)))
-                        row["adapt_young_ratio"] = (np.asarray(ad.young) / yt).tolist()
+                ad, stderr = adapt_in_copy(a.capture, ws, art, 0.5 * E0)
+                if ad is None:
+                    row["adapt_error"] = stderr[-500:]
+                else:
+                    yt = Y[np.asarray(ad.frames)]
+                    err = np.abs(np.asarray(ad.young) - yt) / yt
+                    ok = settled(yt)
+                    row["adapt_median_error"] = float(np.max(np.median(err[ok], axis=0)))
+                    row["adapt_young_ratio"] = (np.asarray(ad.young) / yt).tolist()
             rows.append(row)
             print(_cub_row(row), flush=True)
     out = Path(a.out)

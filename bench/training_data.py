@@ -39,6 +39,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 os.environ.setdefault("JAX_ENABLE_X64", "1")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
+from reduced_accuracy import per_region  # noqa: E402
+
 DESIGNS = ("independent", "latin")
 SEQUENCES = 4
 DIM = 30
@@ -74,7 +76,7 @@ def run_case(label: str, capture: Path, ws: Path, variant: str, options: list[st
              sequences: int = SEQUENCES, dim: int = DIM) -> dict:
     """One variant of generate-data's options, seed and number of sequences on one capture: generate-data,
     train-subspace, adapt in a copy of WS."""
-    from reduced_accuracy import settled
+    from reduced_accuracy import last_line, settled_result
 
     from stages.artefacts import AdaptArtefact, SnapshotsArtefact, read_provenance
     from stages.capture import load_capture, read_truth
@@ -99,23 +101,11 @@ def run_case(label: str, capture: Path, ws: Path, variant: str, options: list[st
         for step in steps:
             p = rsl(*step, env=env)
             if p.returncode != 0:
-                err = p.stderr.strip().splitlines()[-1][:300] if p.stderr.strip() else "failed"
-                return {**row, "error": f"{step[0]}: {err}"}
+                return {**row, "error": f"{step[0]}: {last_line(p.stderr)}"}
         snap = SnapshotsArtefact.load(wt / "snapshots.h5")
-        ad = AdaptArtefact.load(wt / "adapt.h5")
-        fr = np.asarray(ad.frames)
-        cols = [list(truth.region_names).index(r) for r in ad.region_names]
-        yt = np.asarray(truth.young, float)[:T][fr][:, cols]
-        nt = np.asarray(truth.poisson, float)[:T][fr][:, cols]
-        ok = settled(yt)
-        y, nu = np.asarray(ad.young, float), np.asarray(ad.poisson, float)
         row.update({"snapshot_poisson": [float(snap.poisson.min()), float(snap.poisson.max())],
                     "snapshot_young": [float(snap.young.min()), float(snap.young.max())],
-                    "regions": list(ad.region_names),
-                    "median_error": np.median(np.abs(y - yt)[ok] / yt[ok], axis=0).tolist(),
-                    "median_poisson": np.median(nu[ok], axis=0).tolist(),
-                    "poisson_true": np.median(nt[ok], axis=0).tolist(),
-                    "s_per_frame": float(np.median(np.asarray(ad.time_total_s)[1:])),
+                    **settled_result(AdaptArtefact.load(wt / "adapt.h5"), truth),
                     "generate_s": float(read_provenance(wt / "snapshots.h5").get("wall_s", float("nan")))})
     return row
 
@@ -123,12 +113,6 @@ def run_case(label: str, capture: Path, ws: Path, variant: str, options: list[st
 def _fmt(x) -> str:
     """Seconds, or — where the run did not record them."""
     return "—" if x is None or not np.isfinite(x) else f"{x:.0f}"
-
-
-def _per_region(r: dict, key: str, fmt) -> str:
-    """One value per region, named when there are several ("body 1.8, stiff 7.5")."""
-    v = r[key]
-    return ", ".join(fmt(x) if len(v) == 1 else f"{name} {fmt(x)}" for name, x in zip(r["regions"], v))
 
 
 def setting(r: dict) -> tuple[str, int, int]:
@@ -173,8 +157,9 @@ def markdown(res: dict) -> str:
         lines.append(f"| {c['sequences']} | {c['design']} | {c['nu_median']:.2f} | {c['nu_p10']:.2f} | "
                      f"{c['logE_median']:.2f} | {c['logE_p10']:.2f} |")
     lines += ["", "## Identification with the reduced space trained on each", "",
-              "Per capture, variant (generate-data's options), number of sequences N, latent dimension r and seed: `rsl generate-data "
-              "--sequences N` (the capture's frames, `--seed`, the variant's options), `rsl train-subspace --dim r "
+              "Per capture, variant (generate-data's options), number of sequences n, latent dimension r and seed: "
+              "`rsl generate-data --sequences n` (the capture's frames, `--seed`, the variant's options), "
+              "`rsl train-subspace --dim r "
               "--cubature-tol 0.002`, `rsl adapt` online, markers, reduced, window 3, E from 0.5 E_true, in a copy of "
               "the workspace (its mesh.h5 and cameras.h5). Truth: P2 tets, hard handles, N substeps per frame "
               "(capture.toml [synth]). Settled frames: ≥ w + 5 after the start and after each step of E_true.", "",
@@ -184,12 +169,13 @@ def markdown(res: dict) -> str:
               "median settled ν (truth) | s / frame | generate-data (s) |",
               "| --- | --- | ---: | ---: | ---: | --- | --- | --- | ---: | ---: |"]
     for r in res["rows"]:
-        head = f"| {r['label']} | {r['variant']} | {r.get('sequences', SEQUENCES)} | {r.get('dim', DIM)} | {r['seed']} | "
+        head = (f"| {r['label']} | {r['variant']} | {r.get('sequences', SEQUENCES)} | {r.get('dim', DIM)} | "
+                f"{r['seed']} | ")
         if "error" in r:
             lines.append(head + f"— | failed: {r['error']} | — | — | — |")
             continue
-        err = _per_region(r, "median_error", lambda x: f"{100 * x:.1f}")
-        nu = _per_region(r, "median_poisson", lambda x: f"{x:.3f}")
+        err = per_region(r, "median_error", lambda x: f"{100 * x:.1f}")
+        nu = per_region(r, "median_poisson", lambda x: f"{x:.3f}")
         nu_true = ", ".join(f"{x:.2f}" for x in r["poisson_true"])
         lo, hi = r["snapshot_poisson"]
         lines.append(head + f"{lo:.3f}–{hi:.3f} | {err} | {nu} ({nu_true}) | {r['s_per_frame']:.2f} | "
@@ -226,7 +212,7 @@ def main() -> None:
             for seed in a.seeds:
                 for name, options in variants:
                     rows.append(run_case(label, Path(capture), Path(ws), name, options, seed, a.sequences, a.dim))
-                    print(json.dumps(rows[-1]), flush=True)
+                    print(json.dumps({k: v for k, v in rows[-1].items() if k != "young_ratio"}), flush=True)
         cov = [coverage(n, d, a.coverage_seeds) for n in (4, 8, 20) for d in DESIGNS]
         res = {"coverage": cov, "rows": rows,
                "ended": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),

@@ -5,9 +5,10 @@ track whose keyframe k takes every handle, load and obstacle to its value at a r
 (shared by all controls, or drawn for each), jittered by a fraction of that control's range; keyframe 0 is the
 capture's frame 0.  Every sequence is released from the rest shape one frame before frame 0 (``--start
 released``) or starts in the capture's own start convention (``--start capture``), and takes ``--substeps``
-implicit steps per frame.  Material is sampled per frame across the prior range of capture.toml: per sequence and region, end points log E_a, log E_b in the log
-range and ν_a, ν_b in the range, from a Latin hypercube over all the sequences' ends (each 2n-th of each range holds
-one), linearly interpolated over the frames ("ramp"), or held ("constant").
+implicit steps per frame.  Material is sampled per frame across the prior range of capture.toml: per sequence and
+region, end points log E_a, log E_b in the log range and ν_a, ν_b in the range, from a Latin hypercube over all the
+sequences' ends (each 2n-th of each range holds one), linearly interpolated over the frames ("ramp"), or held
+("constant").
 
 Sequences run in a local process pool ('spawn' context: JAX does not fork safely) or as Ray
 tasks on an existing cluster; the plan is drawn from the seed in this process, so the
@@ -205,8 +206,8 @@ def simulate_sequence(mesh: MeshArtefact, plan: SequencePlan, model: str, dt: fl
     """(index, positions (T, n, 3) or None, error message) of one planned sequence, ``substeps`` implicit steps per
     frame (stages.sim.static.simulate_from_start).  ``start`` "released": released from the rest shape one frame
     before frame 0 (frame 0 is one frame of steps from it, under the frame-0 controls and material); "rest" and
-    "equilibrium": frame 0 is that state (stages.sim.static.start_state, with the frame-0 controls and material).  ``damping`` β s (the capture's [material]
-    damping)."""
+    "equilibrium": frame 0 is that state (stages.sim.static.start_state, with the frame-0 controls and material).
+    ``damping`` β s (the capture's [material] damping)."""
     from stages.sim.scene import SimulationError, frame_inputs, make_scene  # JAX + numba: loaded on use
     from stages.sim.static import simulate_from_start
 
