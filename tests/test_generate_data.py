@@ -211,6 +211,18 @@ def test_generate_data_refuses_unknown_start_and_zero_substeps(workspace, rsl):
         assert proc.returncode != 0 and words in proc.stderr, proc.stderr
 
 
+def test_run_refuses_an_unknown_material_design_or_sampling(workspace):
+    """A Python caller's unknown value is refused as the CLI's choices refuse it (not drawn some other way)."""
+    from stages.errors import RslError
+    from stages.steps.generate_data import GenerateDataConfig, run
+
+    cap_dir, ws = workspace
+    for kw, words in (({"material_design": "sobol"}, "--material-design 'sobol' is unknown"),
+                      ({"material_sampling": "steps"}, "--material-sampling 'steps' is unknown")):
+        with pytest.raises(RslError, match=words):
+            run(GenerateDataConfig(capture=cap_dir, workspace=ws, sequences=1, frames=2, workers=1, **kw))
+
+
 def test_pool_and_serial_runs_give_identical_snapshots(workspace, tmp_path):
     cap_dir, ws = workspace
     import shutil

@@ -322,6 +322,8 @@ def run(config: GenerateDataConfig, reporter: Reporter = SilentReporter()) -> Pa
         raise RslError(f"--start {c.start!r} is unknown; use released or capture.")
     if c.material_sampling not in ("ramp", "constant"):
         raise RslError(f"--material-sampling {c.material_sampling!r} is unknown; use ramp or constant.")
+    if c.material_design not in ("latin", "independent"):
+        raise RslError(f"--material-design {c.material_design!r} is unknown; use latin or independent.")
     if c.jitter < 0:
         raise RslError(f"--jitter should not be negative, found {c.jitter}.")
     cap = load_capture(c.capture)
