@@ -2,7 +2,8 @@
 
 Captures by `rsl synth` whose truth is P2 tets on the shipped structured mesh (fTetWild meshes the object for adapt), 3 substeps
 per frame and hard (Dirichlet) handles, for each start state (equilibrium, rest; the bar also filmed mid-motion,
-moving: `--start moving`, 8 lead-in frames from its equilibrium, markers only):
+moving: `--start moving`, 8 lead-in frames from its equilibrium; with images, fit-gaussians poses frame 0 from its
+masks):
 
     bar      sample_data/bar pulled by a cable, E steps E0 → 2E0 → 4E0 at T/3 and 2T/3
     dino     sample_data/dino pushed by a sphere, constant E
@@ -79,7 +80,8 @@ FULL_PLAN = (
        ("bar", "rest", 2, "markers", "full"), ("beam", "equilibrium", 2, "markers", "full"),
        ("bar", "equilibrium", 2, "vision", "full"), ("bar", "rest", 2, "vision", "reduced"),
        ("dino", "equilibrium", 2, "vision", "reduced"),
-       ("bar", "moving", 2, "markers", "reduced"), ("bar", "moving", 2, "markers", "full")]
+       ("bar", "moving", 2, "markers", "reduced"), ("bar", "moving", 2, "markers", "full"),
+       ("bar", "moving", 2, "vision", "reduced")]
     + [("bar", s, 1, "markers", sp) for s in ("equilibrium", "rest") for sp in ("reduced", "full")]
     + [("beam", "equilibrium", 1, "markers", "reduced"), ("dino", "equilibrium", 1, "markers", "reduced"),
        ("dino", "equilibrium", 2, "markers", "full")]

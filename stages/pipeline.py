@@ -50,26 +50,31 @@ class Step:
     reason: str
 
 
-def _capture_kind(capture: Path | None) -> tuple[bool, bool]:
-    """(whether capture.toml lists cameras, whether it says start = "moving") from one reading; an unreadable
-    capture counts as one with cameras that starts at rest or equilibrium: the stages will say what is wrong."""
+def _capture_kind(capture: Path | None, overrides: dict[str, dict[str, Any]] | None = None) -> tuple[bool, bool]:
+    """(whether capture.toml lists cameras, whether it is adapted from its markers because it was filmed
+    mid-motion) from one reading: start = "moving" with markers.csv or markers.c3d, and adapt.loss not set to
+    vision in ``overrides`` (without markers such a capture goes through segment, fit-gaussians and the images).
+    An unreadable capture counts as one with cameras that starts at rest or equilibrium: the stages will say
+    what is wrong."""
     if capture is None:
         return False, False
     try:
         cap = load_capture(capture)
     except RslError:
         return True, False
-    return bool(cap.camera_names), cap.start == "moving"
+    loss = (overrides or {}).get("adapt", {}).get("loss", "markers")
+    return bool(cap.camera_names), cap.start == "moving" and cap.markers_path.exists() and loss == "markers"
 
 
 MOVING_SKIPS = ("segment", "fit-gaussians")
-"""The stages that do not apply to a capture filmed mid-motion ([capture] start = "moving"): the Gaussians are fitted
-to a frame-0 pose that such a capture does not give; rsl adapt identifies it from markers (docs/capture.md)."""
+"""The stages a capture filmed mid-motion ([capture] start = "moving") that has markers leaves out: rsl adapt
+estimates its frame 0 from the markers (docs/capture.md); its images would need the Gaussians, fitted with frame 0
+posed from its masks."""
 
 
 def not_applicable(s: Stage, cams: bool, moving: bool) -> str | None:
-    """Why stage ``s`` does not apply to the capture (it lists cameras: ``cams``; it starts mid-motion: ``moving``),
-    or None when it does."""
+    """Why stage ``s`` does not apply to the capture (it lists cameras: ``cams``; it starts mid-motion and is adapted
+    from its markers: ``moving``), or None when it does."""
     if s.needs_cameras and not cams:
         return "not applicable: the capture lists no camera"
     if moving and s.name in MOVING_SKIPS:
@@ -78,7 +83,8 @@ def not_applicable(s: Stage, cams: bool, moving: bool) -> str | None:
 
 
 def with_capture_defaults(overrides: dict[str, dict[str, Any]] | None, moving: bool) -> dict[str, dict[str, Any]]:
-    """``overrides`` with what the capture implies: a moving start adapts from markers (adapt.loss) unless set."""
+    """``overrides`` with what the capture implies: a moving start with markers adapts from them (adapt.loss)
+    unless set."""
     out = {k: dict(v) for k, v in (overrides or {}).items()}
     if moving:
         out.setdefault("adapt", {}).setdefault("loss", "markers")
@@ -121,7 +127,7 @@ def plan(capture: Path | None, workspace: Path, *, until: str | None = None, onl
     steps: list[Step] = []
     remade: set[str] = set()
     hashes: dict[str, str] = {}
-    cams, moving = _capture_kind(capture)
+    cams, moving = _capture_kind(capture, overrides)
     overrides = with_capture_defaults(overrides, moving)
     for s in selected(until, only):
         why_not = not_applicable(s, cams, moving)
@@ -141,14 +147,14 @@ def run_pipeline(capture: Path | None, workspace: Path, reporter: Reporter = Sil
                  overrides: dict[str, dict[str, Any]] | None = None) -> list[Step]:
     """Run the selected stages in order; stop at the first failure (an RslError naming the stage)."""
     workspace = Path(workspace)
-    cams, moving = _capture_kind(capture)
+    cams, moving = _capture_kind(capture, overrides)
     stages = [s for s in selected(until, only) if not not_applicable(s, cams, moving)]
     if not stages:
         raise RslError(f"{capture}: nothing to run; the selected stages need cameras and capture.toml lists none.")
     if len(stages) < len(selected(until, only)):
         reporter.info("the capture lists no camera: calibrate, segment and fit-gaussians do not apply" if not cams
                       else "the capture was filmed mid-motion (start = \"moving\"): segment and fit-gaussians do "
-                           "not apply, adapt uses the markers")
+                           "not apply, adapt uses the markers (--set adapt.loss=vision: the images)")
     overrides = with_capture_defaults(overrides, moving)
     mods = {s.name: s.load() for s in stages}  # every selected stage importable before any runs
     steps: list[Step] = []

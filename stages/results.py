@@ -85,8 +85,11 @@ def previous_states(frames: np.ndarray, positions: np.ndarray, rest: np.ndarray,
 def gaussian_anchor(renderer, adapt: AdaptArtefact, gaussians_path: Path) -> np.ndarray | float:
     """Make the Gaussians of ``renderer`` (an ImageLoss) follow the mesh as ``rsl adapt`` made them follow it
     (adapt.h5 extra "gaussian_anchor"; the one rule of evaluate, report and export): "rebind" — re-bound to the tets of the adapted fit-frame shape
-    (returns 0); "offset" (older files) — render at x_t − anchor with anchor = x_fit − fit_positions (n, 3).
+    (returns 0); "fitted" (a capture filmed mid-motion) — bound as fitted, at the pose frame 0's masks gave (returns
+    0); "offset" (older files) — render at x_t − anchor with anchor = x_fit − fit_positions (n, 3).
     0 when adapt.h5 does not hold the frame the Gaussians were fitted at."""
+    if (adapt.extra or {}).get("gaussian_anchor") == "fitted":
+        return 0.0
     fit_frame = int(read_provenance(gaussians_path).get("config", {}).get("frame", 0) or 0)
     at = np.flatnonzero(adapt.frames == fit_frame)
     if not len(at):

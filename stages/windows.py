@@ -25,7 +25,8 @@ class StartWindow:
     ``moving`` (a capture filmed mid-motion, stages/moving_start.py): frame 0 and the state before it are the
     static equilibrium x_e(θ) under the frame-0 controls plus estimated offsets, x_0 = x_e + Δ_0, x_{−1} = x_e +
     Δ_{−1}: a window that holds frame 0 takes ``before`` = (Δ_{−1}, Δ_0) (None: zero, the equilibrium at rest),
-    which the Gauss–Newton state correction estimates; frame t ≥ 1 is a step as above.
+    which the Gauss–Newton state correction estimates; frame t ≥ 1 is a step as above.  With :attr:`reference`
+    set (images: the state the Gaussians were fitted at), x_e is that fixed state instead of x_e(θ).
     θ = (E (R,), ν (R,)) is shared by the window frames."""
 
     KINDS = ("rest", "equilibrium", "moving")
@@ -42,6 +43,8 @@ class StartWindow:
         # that simulated its frames (Substepped._stitch)
         self.memo = False
         self._traj: tuple[np.ndarray, np.ndarray, dict] | None = None  # (E, ν, {frame: state})
+        # a moving start: the state its offsets are added to, fixed (independent of θ), or None for x_e(θ)
+        self.reference: np.ndarray | None = None
 
     @staticmethod
     def _tile(a, k):
@@ -105,8 +108,11 @@ class StartWindow:
     def _moving_start(self, E, nu, before) -> tuple[np.ndarray, np.ndarray]:
         """(x_{−1}, x_0) of a moving start: x_e(θ) (the static equilibrium, kept in ``_x0``: the next solve's warm
         start) plus the offsets ``before`` = (Δ_{−1}, Δ_0) (None: zero)."""
-        xe = self.backend.start(E, nu, "equilibrium", self._x0)
-        self._x0 = xe
+        if self.reference is not None:
+            xe = np.asarray(self.reference, float)
+        else:
+            xe = self.backend.start(E, nu, "equilibrium", self._x0)
+            self._x0 = xe
         if before is None:
             return xe, xe
         return xe + np.asarray(before[0]), xe + np.asarray(before[1])
@@ -131,6 +137,8 @@ class StartWindow:
                 dE, dn, gb = b.backward_before(list(frames[1:]), self._tile(E, w - 1), self._tile(nu, w - 1),
                                                states[1:], np.stack([xm1, x0]), dL_dX[1:])
                 gE, gN, g = dE.sum(0), dn.sum(0), g + gb[0] + gb[1]
+            if self.reference is not None:  # (a fixed x_e: no path from θ)
+                return gE, gN
             a, c = b.start_adjoint(E, nu, "equilibrium", xe, g)
             return gE + a, gN + c
         if frames[0] != 0:
@@ -151,7 +159,10 @@ class StartWindow:
         b, w = self.backend, len(frames)
         if frames[0] == 0 and self.kind == "moving":  # x_e(θ)'s sensitivity, plus d_before on the offsets
             xe, xm1, x0 = self._moving_states(states, before)
-            Se = b.start_sensitivity(E, nu, "equilibrium", xe, d_young, d_poisson)[:, None]  # (k, 1, state)
+            if self.reference is not None:  # a fixed x_e
+                Se = np.zeros((len(d_young), 1) + np.shape(xe))
+            else:
+                Se = b.start_sensitivity(E, nu, "equilibrium", xe, d_young, d_poisson)[:, None]  # (k, 1, state)
             Sb = np.concatenate([Se, Se], axis=1) + (0.0 if d_before is None else np.asarray(d_before, float))
             S = Sb[:, 1:]
             if w > 1:

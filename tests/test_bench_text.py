@@ -234,3 +234,23 @@ def test_cubature_tol_page_follows_its_rows() -> None:
     assert ("- tol 0.002: mean of the rows' largest median settled E error 9.8 %, largest 15.6 %, over 2 workspaces; "
             "1 of 2 within the targets") in page
     assert "- tol 0.0005: mean of the rows' largest median settled E error 1.7 %" in page and "1.60 × the first" in page
+
+
+def test_moving_images_page_follows_its_rows(tmp_path) -> None:
+    """bench/moving_images.py: the committed page is what its JSON's rows write (but the time it was written), and a
+    row's error shows in the table and in the per-capture summary."""
+    m = load_bench("moving_images")
+    d = json.loads((RESULTS / "moving_images.json").read_text())
+
+    def body(text: str) -> list[str]:
+        return [line for line in text.splitlines() if not line.startswith("Ended ")]
+
+    m.write(d["rows"], tmp_path, d["plan"])
+    assert body((tmp_path / "moving_images.md").read_text()) == body((RESULTS / "moving_images.md").read_text())
+    rows = copy.deepcopy(d["rows"])
+    first = rows[0]
+    first["median_E_error_pct"] = 12.345
+    m.write(rows, tmp_path, d["plan"])
+    page = (tmp_path / "moving_images.md").read_text()
+    assert "| 12.3 |" in page
+    assert f"{first['cameras']} camera(s), k = {first['guess']:g}: 12.3 % against" in page

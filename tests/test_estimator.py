@@ -734,6 +734,19 @@ def test_auto_estimator_is_gn_for_markers_and_adam_for_images():
     assert resolve_estimator(AdaptConfig(**base, loss="vision")) == "adam"
     assert resolve_estimator(AdaptConfig(**base, loss="vision", estimator="gn")) == "gn"
     assert resolve_estimator(AdaptConfig(**base, loss="markers", estimator="adam")) == "adam"
+    assert resolve_estimator(AdaptConfig(**base, loss="vision"), "moving") == "gn"  # only gn estimates the start
+
+
+def test_iterations_default_to_more_for_gn_on_images_of_a_moving_start():
+    """resolve_iterations: the option as given, else 6 for gn with images on a moving start and 2 otherwise."""
+    from stages.steps.adapt import AdaptConfig, resolve_iterations
+
+    base = {"capture": "c", "workspace": "w"}
+    assert resolve_iterations(AdaptConfig(**base), "gn", "vision", "moving") == 6
+    for args in (("gn", "vision", ""), ("gn", "markers", "moving"), ("adam", "vision", "moving"),
+                 ("gn", "silhouette", "")):
+        assert resolve_iterations(AdaptConfig(**base), *args) == 2, args
+    assert resolve_iterations(AdaptConfig(**base, iters_per_frame=3), "gn", "vision", "moving") == 3
 
 
 def test_cluster_scale2_sums_by_cluster_whatever_the_labels_are():

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from stages.errors import RslError
-from stages.moving_start import START_MOTION_SCALE, StartBasis, start_directions, start_prior
+from stages.moving_start import (START_MOTION_SCALE, StartBasis, image_motion, marker_motion, start_directions,
+                                 start_prior)
 from stages.sim.static import simulate_from_start
 from stages.windows import StartWindow
 from stages.window_backends import ReducedSpace, substepped
@@ -38,11 +39,12 @@ def test_zero_offsets_are_the_equilibrium_start(held):
     assert np.allclose(mv, eq, rtol=0, atol=1e-10)
 
 
-@pytest.mark.parametrize("space", ["full", "reduced"])
-def test_moving_window_gradient_and_sensitivity_match_finite_differences(held, reduced, space):
+@pytest.mark.parametrize("space, fixed", [("full", False), ("reduced", False), ("full", True)])
+def test_moving_window_gradient_and_sensitivity_match_finite_differences(held, reduced, space, fixed):
     """dX/dp along E, ν (through x_e(θ), which moves x_0 and x_{−1} alike) and along the offsets, and dL/dθ by the
     adjoint, against central differences, 2 substeps per frame; offsets of about a millimetre (a start in motion;
-    in the reduced space a PCA subspace of r = 6, offsets of z)."""
+    in the reduced space a PCA subspace of r = 6, offsets of z).  ``fixed``: the offsets added to a fixed state
+    (StartWindow.reference, images: the Gaussians' fit pose) instead of x_e(θ)."""
     if space == "full":
         scene, at = held
         b = _full_backend(scene, at, 2, rtol=1e-12)
@@ -55,10 +57,17 @@ def test_moving_window_gradient_and_sensitivity_match_finite_differences(held, r
     frames = [0, 1, 2]
     rng = np.random.default_rng(7)
     before = 1e-3 * rng.normal(size=(2,) + shape)
-    win = StartWindow(b, "moving")
+    x_e = StartWindow(b, "equilibrium").forward([0], YOUNG, POISSON, None)[0]
+    reference = 0.5 * (x_e + b.rest_state) if fixed else None  # (a state between the rest and the sag)
+
+    def window():
+        win_ = StartWindow(b, "moving")
+        win_.reference = reference
+        return win_
+
+    win = window()
     states = win.forward(frames, YOUNG, POISSON, before)
-    assert np.allclose(states[0], StartWindow(b, "equilibrium").forward([0], YOUNG, POISSON, None)[0] + before[1],
-                       atol=1e-9)
+    assert np.allclose(states[0], (reference if fixed else x_e) + before[1], atol=1e-9)
     v = rng.normal(size=b.decode(states).shape)  # dL/dX of positions
     gE, gN = win.backward(frames, YOUNG, POISSON, states, before, v)
     de, dn, db = _directions(shape, rng)
@@ -66,8 +75,8 @@ def test_moving_window_gradient_and_sensitivity_match_finite_differences(held, r
     h = 1e-4
     for j in range(len(de)):
         def at_h(s):
-            return b.decode(StartWindow(b, "moving").forward(frames, YOUNG + s * h * de[j], POISSON + s * h * dn[j],
-                                                             before + s * h * db[j]))
+            return b.decode(window().forward(frames, YOUNG + s * h * de[j], POISSON + s * h * dn[j],
+                                             before + s * h * db[j]))
         fd = (at_h(1) - at_h(-1)) / (2 * h)
         assert np.linalg.norm(fd) > 0
         assert np.linalg.norm(Sens[j] - fd) <= 1e-5 * np.linalg.norm(fd), j
@@ -98,16 +107,38 @@ def test_start_prior_spreads_the_motion_of_one_frame_over_the_directions():
     sb = StartBasis(np.eye(m), np.array([1.0, 2.0, 4.0, 0.5]))
     markers = np.zeros((3, 5, 3))
     markers[1, :, 0] = 0.003  # every marker moves 3 mm from frame 0 to frame 1
-    sig = start_prior(sb, markers, size=0.2)
+    assert marker_motion(markers) == pytest.approx(0.003)
+    sig = start_prior(sb, marker_motion(markers), size=0.2)
     assert sig.shape == (2 * m,)
     assert np.allclose(sig[:m] * sb.gain * np.sqrt(m), START_MOTION_SCALE * 0.003)
     assert np.allclose(sig[m:], sig[:m])
-    one_frame = start_prior(sb, markers[:1], size=0.2)  # frame 1 not there yet: 1 % of the size
+    assert marker_motion(markers[:1]) is None
+    one_frame = start_prior(sb, None, size=0.2)  # frame 1 not there yet: 1 % of the size
     assert np.allclose(one_frame[:m] * sb.gain * np.sqrt(m), START_MOTION_SCALE * 0.002)
     D = start_directions(sb)
     assert D.shape == (2 * m, 2, m)
     assert np.array_equal(D[:m, 0], np.eye(m)) and np.array_equal(D[:m, 1], np.eye(m))
     assert np.array_equal(D[m:, 0], np.eye(m)) and not np.any(D[m:, 1])
+
+
+def test_image_motion_is_the_outline_s_mean_normal_displacement_at_the_object_s_depth():
+    """A 20-pixel square moved 3 pixels along x from frame 0 to frame 1, seen 2 m away at f = 100 px: the pixels
+    that change, 2·20·3, over the outline's 4·20 − 4 pixels, times 2 m / 100 px — half the motion (the sides
+    along it do not see it), the RMS over the cameras; no masks or no frame 1: None."""
+    from stages.domain.cameras import Camera
+
+    m = np.zeros((2, 40, 40), bool)
+    m[0, 10:30, 10:30] = True
+    m[1, 10:30, 13:33] = True
+    cam = Camera("c0", np.array([[100.0, 0, 20], [0, 100.0, 20], [0, 0, 1]]), np.zeros(5), np.eye(3), np.zeros(3),
+                 40, 40)
+    got = image_motion({"c0": m}, [cam], np.array([0.0, 0.0, 2.0]))
+    assert got == pytest.approx(2 * 20 * 3 / (4 * 20 - 4) * 2.0 / 100.0, rel=1e-12)
+    cam2 = Camera("c1", cam.K, cam.dist, cam.R, np.array([0.0, 0.0, 2.0]), 40, 40)  # twice as far: twice the metres
+    both = image_motion({"c0": m, "c1": m}, [cam, cam2], np.array([0.0, 0.0, 2.0]))
+    assert both == pytest.approx(got * np.sqrt((1 + 4) / 2), rel=1e-12)
+    assert image_motion(None, [cam], np.zeros(3)) is None
+    assert image_motion({"c0": m[:1]}, [cam], np.array([0.0, 0.0, 2.0])) is None
 
 
 # =========================================================================== rsl adapt on a moving capture
@@ -172,7 +203,6 @@ def test_adapt_follows_a_capture_filmed_mid_motion(moving_beam):
 
 
 @pytest.mark.parametrize("kw, message", [
-    ({"loss": "vision"}, r"start = \"moving\".*markers only"),
     ({"loss": "markers", "estimator": "adam"}, r"start = \"moving\" needs --estimator gn --mode online"),
     ({"loss": "markers", "frames": "2:8"}, r"start = \"moving\" needs the frame range to start at frame 0"),
 ])
@@ -188,16 +218,27 @@ def test_adapt_refuses_what_a_moving_start_cannot_run(moving_beam, tmp_path, kw,
     assert not (ws2 / "adapt.h5").exists()
 
 
-def test_fit_gaussians_and_the_loss_sweep_refuse_a_moving_start(moving_beam):
+def test_fit_gaussians_poses_a_moving_start_at_its_equilibrium_and_the_loss_sweep_refuses_it(moving_beam):
+    """fit_pose without masks.h5: frame 0 of a moving start is posed at the static equilibrium under its controls
+    (with masks, from them: tests/test_moving_start_images.py); a later frame cannot be posed (its velocity is
+    unknown)."""
     from stages.artefacts import MeshArtefact
     from stages.capture import load_capture
+    from stages.sim.scene import frame_inputs, make_scene
+    from stages.sim.static import start_state
     from stages.steps.fit_gaussians import fit_pose
     from stages.sweep import sweep
 
     cap, ws, e_true = moving_beam
     c, mesh = load_capture(cap), MeshArtefact.load(ws / "mesh.h5")
-    with pytest.raises(RslError, match=r"capture.toml: start = \"moving\".*--pose rest"):
-        fit_pose(c, mesh, 0)
+    x, state = fit_pose(c, mesh, 0)
+    scene = make_scene(mesh, c.controls(), c.material.model, c.dt, c.gravity)
+    xe = start_state(scene, frame_inputs(scene, c.controls(), 0), [c.material.region_young(r) for r in
+                     scene.region_names], [c.material.region_poisson(r) for r in scene.region_names], "equilibrium")
+    assert (state["start"], state["declared_start"]) == ("equilibrium", "moving")
+    assert np.allclose(x, xe, atol=1e-9) and np.abs(x - mesh.vertices).max() > 1e-4  # (it sags)
+    with pytest.raises(RslError, match=r"capture.toml: start = \"moving\".*--frame 0"):
+        fit_pose(c, mesh, 1)
     with pytest.raises(RslError, match=r"the loss sweep simulates every E from the start state"):
         sweep(c, mesh, [e_true])
 
@@ -215,8 +256,8 @@ def test_capture_toml_names_the_three_starts(moving_beam, tmp_path):
 
 
 def test_rsl_run_adapts_a_moving_capture_from_its_markers(moving_beam, tmp_path):
-    """`rsl run` on a capture filmed mid-motion: segment and fit-gaussians do not apply (said so in the plan), and
-    adapt takes the markers unless --set adapt.loss says otherwise."""
+    """`rsl run` on a capture filmed mid-motion: with markers, segment and fit-gaussians do not apply (said so in
+    the plan) and adapt takes the markers, unless --set adapt.loss=vision; without markers the images."""
     from stages.pipeline import plan, with_capture_defaults
 
     cap, _, _ = moving_beam
@@ -224,9 +265,16 @@ def test_rsl_run_adapts_a_moving_capture_from_its_markers(moving_beam, tmp_path)
     for name in ("segment", "fit-gaussians"):
         assert steps[name].action == "skip" and "filmed mid-motion" in steps[name].reason
     assert steps["adapt"].action == "run" and steps["tetrahedralize"].action == "run"
+    vision = {st.stage.name: st for st in plan(cap, tmp_path / "ws", overrides={"adapt": {"loss": "vision"}})}
+    assert all(vision[name].action == "run" for name in ("segment", "fit-gaussians"))  # images: Gaussians needed
     assert with_capture_defaults(None, True) == {"adapt": {"loss": "markers"}}
     assert with_capture_defaults({"adapt": {"loss": "vision"}}, True) == {"adapt": {"loss": "vision"}}
     assert with_capture_defaults({"export": {"forces": "true"}}, False) == {"export": {"forces": "true"}}
+    bare = tmp_path / "cap"
+    shutil.copytree(cap, bare)
+    (bare / "markers.csv").unlink()
+    steps = {st.stage.name: st for st in plan(bare, tmp_path / "ws")}
+    assert all(steps[name].action == "run" for name in ("segment", "fit-gaussians"))
 
 
 def test_a_moving_start_may_show_an_obstacle_already_pressing():

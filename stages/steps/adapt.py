@@ -69,7 +69,7 @@ from stages.window_model import Observation, WindowBackend
 from stages.workspace import prepare_workspace
 from stages.window_backends import (FullSpace, Guarded, ReducedSpace, SolveCollapsed, SolveGuard, StoredStates,
                                     substepped)
-from stages.moving_start import start_basis, start_directions, start_prior
+from stages.moving_start import image_motion, marker_motion, start_basis, start_directions, start_prior
 from stages.observations import MarkerObservation, VisionObservation
 from stages.windows import (STATE_PRIOR_SCALE, GNWindow, StartWindow, StaticWindow, WindowObjective, controls_static,
                             model_error_floors, past_directions, sigma_from_cov, state_directions)
@@ -96,8 +96,11 @@ class AdaptConfig:
     """Cameras used by the vision loss: indices or names, comma separated (empty: all)."""
     frames: str = ""
     """Frame range A:B (B exclusive; empty: every frame)."""
-    iters_per_frame: int = 2
-    """Adam steps per new frame (online) — each one a forward, a loss and an adjoint over the window."""
+    iters_per_frame: int | None = None
+    """Adam steps per new frame (online) — each one a forward, a loss and an adjoint over the window; gn: the
+    Gauss–Newton iterations per new frame (each one a forward and the window's sensitivities).  Default 2; gn with
+    images on a capture filmed mid-motion 6 (bar of bench/accuracy.py, E ×2 ×4: median settled E error 43 % at 2,
+    5.8 % at 6, at 2.7 × the time per frame; docs/results/accuracy_notes.md)."""
     lead_in: int = 0
     """adam, online: frames before the window that are simulated with the window's θ (from the stored states
     before them) and differentiated through, but not observed — so the observed frames do not start from a past
@@ -142,7 +145,8 @@ class AdaptConfig:
     """adam: a few Adam steps on the window loss per frame; gn: Gauss–Newton / Levenberg–Marquardt on the window
     residuals with an arrival-cost prior and process noise (a moving-horizon filter), reporting E ± σ; auto: gn
     with markers (docs/results/estimator.md: steps followed within w + 5 frames, E ± 2σ calibrated), adam with
-    images (measured closer to the truth than gn on images from a far start, docs/results/vision_bias.md)."""
+    images (measured closer to the truth than gn on images from a far start, docs/results/vision_bias.md), gn on a
+    capture filmed mid-motion ([capture] start = "moving": only gn estimates its start)."""
     process_noise: float = 0.005
     """gn: σ of the random walk of log E (and of the ν parameter) per frame — how fast the material may change —
     while no change of material has been detected in the last w + 5 frames.  Small, so the estimate averages over
@@ -273,12 +277,29 @@ class AdaptConfig:
     is the sliding window's Adam estimate at every frame.  Measured: accuracy_notes.md, thirteenth stop."""
 
 
-def resolve_estimator(config: AdaptConfig) -> str:
+def resolve_estimator(config: AdaptConfig, start: str = "") -> str:
     """The estimator an "auto" config runs: gn with markers (docs/results/estimator.md), adam with images
-    (docs/results/vision_bias.md)."""
+    (docs/results/vision_bias.md) — except on a capture filmed mid-motion (``start`` "moving"), whose start
+    offsets only gn estimates."""
     if config.estimator != "auto":
         return config.estimator
-    return "gn" if config.loss == "markers" else "adam"
+    return "gn" if config.loss == "markers" or start == "moving" else "adam"
+
+
+ITERATIONS = 2
+"""--iters-per-frame's default (AdaptConfig.iters_per_frame)."""
+MOVING_IMAGE_ITERATIONS = 6
+"""--iters-per-frame's default for gn with images on a capture filmed mid-motion: from a far start gn on images
+moves E a little per iteration (auto takes adam for images otherwise), and a moving start leaves gn the only
+estimator (AdaptConfig.iters_per_frame)."""
+
+
+def resolve_iterations(config: AdaptConfig, estimator: str, loss: str, start: str) -> int:
+    """The --iters-per-frame a run takes: the config's when given, else MOVING_IMAGE_ITERATIONS for gn with images
+    on a moving start and ITERATIONS otherwise."""
+    if config.iters_per_frame is not None:
+        return int(config.iters_per_frame)
+    return MOVING_IMAGE_ITERATIONS if (estimator == "gn" and loss == "vision" and start == "moving") else ITERATIONS
 
 
 GN_TRUST_IMAGES = 5.0
@@ -509,7 +530,7 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
         raise RslError(f"{capture.toml_path}: --window must be at least 1, found {config.window}.")
     if config.estimator not in ("auto", "adam", "gn"):
         raise RslError(f"{capture.toml_path}: --estimator should be auto, adam or gn, found '{config.estimator}'.")
-    estimator = resolve_estimator(config)
+    estimator = resolve_estimator(config, capture.start)
     if not (config.process_noise >= 0 and config.process_noise_change >= 0):
         raise RslError(f"{capture.toml_path}: --process-noise and --process-noise-change must be 0 or more, found "
                        f"{config.process_noise} and {config.process_noise_change}.")
@@ -521,12 +542,8 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
         raise RslError(f"{capture.toml_path}: --lead-in applies to --estimator adam online (gn corrects the "
                        f"window's starting states itself, --state-correction); this run is {estimator} "
                        f"{config.mode}.")
-    if config.iters_per_frame < 1 or config.offline_iters < 1:
+    if (config.iters_per_frame is not None and config.iters_per_frame < 1) or config.offline_iters < 1:
         raise RslError(f"{capture.toml_path}: --iters-per-frame and --offline-iters must be at least 1.")
-    if capture.start == "moving" and config.loss != "markers":
-        raise RslError(f"{capture.toml_path}: start = \"moving\" (frame 0 filmed mid-motion) is supported with "
-                       f"markers only (--loss markers): rsl estimates the frame-0 shape and velocity from them, and "
-                       f"the Gaussians would need that shape to be fitted.")
     if capture.start == "moving" and (estimator != "gn" or config.mode != "online"):
         raise RslError(f"{capture.toml_path}: start = \"moving\" needs --estimator gn --mode online (its windows "
                        f"estimate the states before frame 0 together with E and ν); this run is {estimator} "
@@ -600,6 +617,13 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
         inputs_used += [ws / KIND_FILES[k] for k in ("cameras", "gaussians", "masks")]
         inputs_used += [capture.root / "frames" / c if src.files is not None else src.video
                         for c, src in obs.sources.items()]  # the frames read (a hash per camera)
+        if capture.start == "moving":
+            if obs.fit_frame != 0:
+                raise RslError(f"{ws / KIND_FILES['gaussians']}: the Gaussians were fitted to frame {obs.fit_frame}, "
+                               f"but with start = \"moving\" rsl estimates frame 0 alone; fit them to frame 0 "
+                               f"(rsl fit-gaussians --frame 0).")
+            moving_reference = _fit_pose_state(backend, obs)
+            moving = start_basis(backend, moving_reference, young0, poisson0)
 
     prange = mat.poisson_range
     if not config.fit_poisson:  # ν held at its initial value, per region
@@ -641,6 +665,13 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
     params = np.concatenate([log_e, s_nu])
 
     objective = WindowObjective(backend, obs, R, prange, capture.start)
+    if moving is not None and config.loss != "markers":
+        # a moving start with images: frame 0 = x_f + Δ_0, x_{−1} = x_f + Δ_{−1} with x_f the state the Gaussians
+        # were fitted at (which frame 0's images confirmed), not x_e(θ); the Gaussians stay bound as fitted, so
+        # frame 0's render informs Δ_0 as frame 0's markers do (docs/capture.md)
+        objective.win.reference = moving_reference
+        objective.rebind = False
+        obs.rebind(obs.rest)
     if config.vision_anchor not in ("estimated", "simulated"):
         raise RslError(f"{capture.toml_path}: --vision-anchor should be estimated or simulated, found "
                        f"'{config.vision_anchor}'.")
@@ -807,7 +838,7 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                 sim = [0] + sim  # the states before it at rest: x_{s−2} = x_{s−1} = x_0(θ)
             lead = len(sim) - len(frames)
             resting = False
-            for it in range(config.iters_per_frame):
+            for it in range(resolve_iterations(config, "adam", config.loss, "")):
                 states, losses, g, t3 = obj(sim, params, loop.before(sim[0]), True, lead=lead)
                 times += t3
                 if it == 0 and (rest_rule or calibrating) and sim[0] == 0 and f <= T:  # frames 0..T simulated
@@ -1100,6 +1131,25 @@ taken as converged, as a fraction of the object's size (2 µm on a 0.2 m object:
 noise the estimator assumes, MarkerObservation.noise_floor)."""
 
 
+def _fit_pose_state(backend, obs, iterations: int = 20) -> np.ndarray:
+    """The backend's state of the pose the Gaussians were fitted at (gaussians.h5 fit_positions, rsl fit-gaussians'
+    fit_pose; a moving start: posed from frame 0's masks): the positions themselves in the full space; in the
+    reduced space the z whose decoding is nearest, argmin |φ(z) − x_f|² by Gauss–Newton from the encoder's ψ(x_f).
+    A moving start with images adds its estimated offsets to it."""
+    x_fit = np.asarray(obs.rest, float)
+    if backend.space == "full":
+        return x_fit.copy()
+    model = backend.model
+    z = np.asarray(model.encode(x_fit), float)
+    for _ in range(iterations):
+        J = model.jacobian(z).reshape(-1, len(z))
+        dz = np.linalg.lstsq(J, (x_fit - model.decode(z)).ravel(), rcond=None)[0]
+        z = z + dz
+        if np.linalg.norm(dz) <= 1e-10 * max(np.linalg.norm(z), 1.0):
+            break
+    return z
+
+
 def _rebind_moving_start(gn: GNWindow, objective: WindowObjective, res, lin, frames, prior, before, D, sigma,
                          obs, scale: float, rec):
     """A moving start's window holding frame 0 (:data:`MOVING_REBINDS`): block coordinate descent on the window's
@@ -1176,6 +1226,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     gn = GNWindow(objective, config.fit_poisson, s_nu)
     gn.young_range = loop.young_range
     gn.trust = resolve_gn_trust(config, obs.kind)
+    iterations = resolve_iterations(config, "gn", obs.kind, "moving" if loop.moving is not None else "")
     k_th = gn.k_theta
     p_th = np.concatenate([log_e, s_nu]) if config.fit_poisson else log_e.copy()
     filt = WindowFilter(_gn_prior(p_th), np.full(k_th, float(config.process_noise)))
@@ -1206,7 +1257,13 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     moving_checked = False  # a moving start: the markers' frame-0 check made (against frame 0 as estimated)
     if loop.moving is not None:
         size = float(np.linalg.norm(np.ptp(backend.decode(backend.rest_state[None])[0], axis=0)))
-        start_sigma = start_prior(loop.moving, obs.P, size)
+        if obs.kind == "markers":
+            motion = marker_motion(obs.P)
+        else:  # images: the outline's motion in masks.h5 at the object's frame-0 position
+            x0 = backend.decode(objective.win.forward([0], *gn.theta(p_th)[:2], None))[0]
+            motion = image_motion(obs.masks, obs._cams, x0.mean(axis=0))
+        start_sigma = start_prior(loop.moving, motion, size)
+        loop.rec.start_motion = motion
 
     def window_setup(t0: int):
         """(D, prior, p0, past_dirs) of a window starting at t0: the correction of its starting states
@@ -1287,7 +1344,8 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                 # a moving start, the windows past frame 0: the markers stay bound where the frame-0 windows fitted
                 # them (_rebind_moving_start); the frame-0 check, against frame 0 as estimated
                 moving_checked = True
-                _warn_far_markers(loop.reporter, obs, "estimated")
+                if obs.kind == "markers":
+                    _warn_far_markers(loop.reporter, obs, "estimated")
             if primed is None:
                 D, prior, p0, past_dirs = window_setup(t0)
             if sigma is None:  # the first window: the noise level seen at the initial θ (conservative)
@@ -1298,8 +1356,8 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             for j in np.flatnonzero(hold_nu):  # ν held: the prior conditioned on s_j at its current estimate
                 solve_prior = condition(solve_prior, R + j, p0[R + j])
             res, (r_lin, J_lin) = _gn_solve(gn, frames, p0, solve_prior, before, D, sigma, obs,
-                                            config.iters_per_frame, scale, primed)
-            if loop.moving is not None and t0 == 0:  # the markers' material points fitted with the window
+                                            iterations, scale, primed)
+            if loop.moving is not None and t0 == 0 and obs.kind == "markers":  # the markers' material points
                 res, (r_lin, J_lin) = _rebind_moving_start(gn, objective, res, (r_lin, J_lin), frames, solve_prior,
                                                            before, D, sigma, obs, scale, rec)
             if hold_nu.any():  # σ (and the information test) with ν's own prior: held, ν is not known better
@@ -1489,19 +1547,23 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
     frames = np.asarray(rec.frames, np.int64)
     states = np.stack([loop.stored[t] for t in rec.frames])
     X = backend.decode(states)[:, :mesh.n_vertices]
+    start = "moving" if loop.moving is not None else ""
+    # how the Gaussians followed the mesh (stages.results.gaussian_anchor); a moving start's: bound as fitted
+    gaussian_anchor = "fitted" if loop.moving is not None and obs.kind == "vision" else getattr(obs, "anchor_kind",
+                                                                                                None)
     extra = {
         "capture": str(Path(config.capture).resolve()),
         "frame_loss": rec.frame_loss,
-        "iters_per_frame": config.iters_per_frame,
+        "iters_per_frame": resolve_iterations(config, resolve_estimator(config, start), obs.kind, start),
         "cameras": getattr(obs, "cameras", []),
-        "gaussian_anchor": getattr(obs, "anchor_kind", None),
+        "gaussian_anchor": gaussian_anchor,
         "refine": config.refine,
         "substeps": config.substeps,
         "damping": loop.damping,  # β s of the simulation (capture.toml [material] damping, or --damping)
         # --damping auto: {"beta", "tried": [[β, cost], ...], "flat"} (stages/damping_profile.py); else None
         "damping_profile": None if rec.damping_profile is None else rec.damping_profile.as_record(),
         "status": status,  # complete | interrupted | failed
-        "estimator": resolve_estimator(config),
+        "estimator": resolve_estimator(config, start),
         # gn: the --gn-trust that ran (its default resolved from the loss); the provenance keeps the option as given,
         # so that `rsl run` finds an adapt.h5 made with the default up to date
         "gn_trust": resolve_gn_trust(config, obs.kind),
@@ -1539,6 +1601,8 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         start_positions = backend.decode(np.stack([loop.stored[-1], loop.stored[0]]))[:, :mesh.n_vertices]  # replay's)
         # per window holding frame 0, the fits of the markers' material points to their tracks (MOVING_REBINDS)
         extra["moving_start_rebinds"] = list(getattr(loop.rec, "moving_rebinds", []))
+        # the observed motion of one frame the offsets' prior was scaled by (m; None: 1 % of the object's size)
+        extra["moving_start_motion_m"] = getattr(loop.rec, "start_motion", None)
     art = AdaptArtefact(
         frames=frames, young=np.asarray(rec.young), poisson=np.asarray(rec.poisson), z=backend.z(states),
         positions=X, loss=np.asarray(rec.loss), time_forward_s=np.asarray(rec.t_fwd),

@@ -20,8 +20,10 @@ The mesh is posed as the object is in the fit frame (``--pose capture``, docs/ca
 x_0 = the rest shape or, with ``[capture] start = "equilibrium"``, the static equilibrium under gravity and
 the frame-0 controls (stages.sim.static.start_state) with capture.toml's E and ν per region; a later frame
 is simulated from x_0 (stages.sim.static.simulate_from_start, one implicit-Euler step per frame, as rsl adapt
-simulates).  The Gaussians are bound in the rest frame (host element, barycentric coordinates, rest
-covariance Σ₀) and rendered at those positions x_f: centre Σ_a N_a x_a, covariance F Σ₀ Fᵀ.  gaussians.h5
+simulates).  A capture filmed mid-motion (start = "moving") has frame 0 posed from its masks: that equilibrium
+corrected along its lowest vibration modes to the silhouettes (stages.moving_start.silhouette_pose).  The
+Gaussians are bound in the rest frame (host element, barycentric coordinates, rest covariance Σ₀) and rendered
+at those positions x_f: centre Σ_a N_a x_a, covariance F Σ₀ Fᵀ.  gaussians.h5
 records x_f (``fit_positions``) and how it was made (``fit_state``), so rsl adapt's re-binding starts from the
 configuration the Gaussians were really fitted at.
 """
@@ -39,6 +41,7 @@ from stages.artefacts import KIND_FILES, CamerasArtefact, GaussiansArtefact, Mas
 from stages.capture import load_capture, write_image
 from stages.workspace import prepare_workspace
 from stages.errors import RslError
+from stages.moving_start import silhouette_pose
 from stages.occluders import has_occluders, ignore_mask
 from stages.progress import Reporter, SilentReporter
 from stages.sim.quadrature import point_map
@@ -53,7 +56,7 @@ class FitGaussiansConfig:
     frame: int = 0
     """Frame the Gaussians are fitted to."""
     pose: Literal["capture", "rest"] = "capture"
-    """Mesh configuration the Gaussians are fitted at: capture — the fit frame's state under the capture's [capture] start (rest, or the static equilibrium under gravity and the frame-0 controls with capture.toml's E and ν; later frames simulated from it); rest — the rest shape, whatever the frame shows."""
+    """Mesh configuration the Gaussians are fitted at: capture — the fit frame's state under the capture's [capture] start (rest, or the static equilibrium under gravity and the frame-0 controls with capture.toml's E and ν; later frames simulated from it; start = "moving": frame 0 only, that equilibrium corrected to the masks' silhouettes); rest — the rest shape, whatever the frame shows."""
     iterations: int = 300
     """Adam iterations (each renders every camera once)."""
     gaussians: int = 10000
@@ -125,12 +128,14 @@ def rest_centres(mesh: MeshArtefact, host: np.ndarray, bary: np.ndarray, positio
     return np.einsum("gk,gkd->gd", N, x[mesh.tets[host]])
 
 
-def fit_pose(cap, mesh: MeshArtefact, frame: int) -> tuple[np.ndarray, dict]:
+def fit_pose(cap, mesh: MeshArtefact, frame: int, ws: Path | None = None) -> tuple[np.ndarray, dict]:
     """(x_f (n, 3) m, description): the mesh as the object is in frame ``frame`` under the capture's start
     convention with capture.toml's E and ν per region — frame 0: stages.sim.static.start_state (the rest shape,
-    or the static equilibrium under gravity and the frame-0 controls); frame f > 0: simulated from it, one
-    implicit-Euler step per frame (stages.sim.static.simulate_from_start), as rsl adapt simulates.  An object
-    that nothing holds (no handle, no obstacle) has no static equilibrium: it is posed from its rest shape
+    or the static equilibrium under gravity and the frame-0 controls; a moving start: that equilibrium corrected
+    to the masks of ``ws``/masks.h5, stages.moving_start.silhouette_pose — "start" = "silhouette" —, or without
+    masks the equilibrium itself); frame f > 0: simulated from it, one implicit-Euler step per frame
+    (stages.sim.static.simulate_from_start), as rsl adapt simulates (a moving start: refused).  An object that
+    nothing holds (no handle, no obstacle) has no static equilibrium: it is posed from its rest shape
     (description "start" = "rest", "declared_start" = "equilibrium")."""
     from stages.sim.scene import SimulationError, frame_inputs, make_scene  # jax + numba: loaded on use
     from stages.sim.static import simulate_from_start, start_state
@@ -141,11 +146,19 @@ def fit_pose(cap, mesh: MeshArtefact, frame: int) -> tuple[np.ndarray, dict]:
     names = list(scene.region_names)
     young = np.array([cap.material.region_young(r) for r in names], float)
     poisson = np.array([cap.material.region_poisson(r) for r in names], float)
-    if cap.start == "moving":
+    if cap.start == "moving" and frame != 0:
         raise RslError(f"{cap.toml_path}: start = \"moving\" (frame 0 filmed mid-motion): rsl cannot pose the mesh "
-                       f"as frame {frame} shows it (its shape and velocity are estimated from markers by rsl adapt "
-                       f"--loss markers); fit at the rest shape with --pose rest, or use markers.")
-    start = cap.start if (scene.handles or scene.obstacles) else "rest"
+                       f"as frame {frame} shows it (frame 0's shape and velocity are estimated by rsl adapt); fit the "
+                       f"Gaussians to frame 0 (--frame 0), or at the rest shape with --pose rest.")
+    held = bool(scene.handles or scene.obstacles)
+    if cap.start == "moving" and held and ws is not None and (Path(ws) / KIND_FILES["masks"]).exists():
+        try:
+            return silhouette_pose(cap, ws, mesh, young, poisson, frame)
+        except SimulationError as e:
+            raise RslError(f"{cap.toml_path}: cannot pose the mesh as frame 0 shows it (start = 'moving', E = "
+                           f"{young.tolist()} Pa): {e} Fix the capture, or fit at rest with --pose rest.") from None
+    # a moving start without masks: the static equilibrium under the frame-0 controls (the caller warns)
+    start = ("equilibrium" if cap.start == "moving" else cap.start) if held else "rest"
     state = {"pose": "capture", "start": start, "declared_start": cap.start, "frame": int(frame), "regions": names,
              "young": young.tolist(), "poisson": poisson.tolist()}
     try:
@@ -281,9 +294,17 @@ def _run(config: FitGaussiansConfig, reporter: Reporter) -> Path:
 
     # ---------------------------------------------------------------- the fit frame's configuration
     if config.pose == "capture":
-        x_fit, fit_state = fit_pose(cap, mesh, config.frame)
+        x_fit, fit_state = fit_pose(cap, mesh, config.frame, ws)
         inputs += [cap.toml_path] + ([cap.controls_path] if cap.controls_path.exists() else [])
-        if fit_state["start"] != fit_state["declared_start"]:
+        if fit_state["start"] == "silhouette":
+            reporter.info(f"{masks_path}: frame 0 (filmed mid-motion) posed from its masks, "
+                          f"{1e3 * fit_state['moved_m']:.1f} mm RMS from the equilibrium of capture.toml's E "
+                          f"(silhouette residual RMS {fit_state['silhouette_rms'][0]:.3f} → "
+                          f"{fit_state['silhouette_rms'][1]:.3f}).")
+        elif cap.start == "moving" and fit_state["start"] == "equilibrium":
+            reporter.warn(f"{masks_path}: not found, so frame 0 (filmed mid-motion) is posed at the equilibrium of "
+                          f"capture.toml's E, which may not be the shape it shows; run `rsl segment` first.")
+        elif fit_state["start"] != fit_state["declared_start"]:
             reporter.warn(f"{cap.toml_path}: start = '{cap.start}' but nothing holds the object (no handle or "
                           f"obstacle in controls.json): fitting with the mesh at rest.")
     elif config.pose == "rest":
