@@ -131,22 +131,23 @@ POSE_SAG_PRIOR = float(np.log(3.0))
 3 — the sag, one direction the masks see from almost any side, is where a wrong E puts frame 0."""
 
 
-def silhouette_pose(capture, ws, mesh, young, poisson, frame: int = 0, iterations: int = 15
-                    ) -> tuple[np.ndarray, dict]:
-    """(x (n, 3) m, description): frame ``frame`` of a moving start posed from its masks —
+@dataclass
+class PoseProblem:
+    """The silhouette pose fit of :func:`silhouette_pose`: unknowns p = (q, a_1..a_m), the pose x(p), the silhouette
+    residuals r(p) and ∂r/∂p (``evaluate(p, need_jacobian)``, as stages.estimator.gauss_newton takes it), the
+    prior, and what they are made of."""
 
-        x = x_e(E_s) + Σ_j a_j φ_j,   E_s = ``young`` · e^q (one factor for every region),
+    evaluate: object  # (p, need_jacobian) -> (r (pixels,), J (pixels, 1 + m) or None)
+    pose: object  # p -> (x_e(E_s) (n, 3), x (n, 3)) m
+    prior: object  # stages.estimator.Prior over p
+    x_e: np.ndarray  # (n, 3) m, the equilibrium of capture.toml's E (p = 0)
+    obs: object  # stages.silhouette.SilhouetteObservation
+    motion: float | None  # m, the masks' motion from frame 0 to frame 1 (image_motion)
+    regions: list  # the mesh's material regions
 
-    x_e(E_s) the static equilibrium under that frame's controls with E_s and ``poisson`` (the sag: where a wrong E
-    in capture.toml puts frame 0), φ_j the POSE_MODES lowest vibration modes at x_e(``young``) (the motion: frame 0
-    is mid-motion), fitted by Gauss–Newton (stages.estimator.gauss_newton) to the silhouette residuals of masks.h5
-    (stages.silhouette: the soft coverage of the posed surface against the masks, geometry alone) under zero-mean
-    priors: σ_q = POSE_SAG_PRIOR, and a_j the start offsets' prior scaled to POSE_MOTION_FRAMES frames of the
-    masks' motion from frame 0 to frame 1 (:func:`start_prior`, :func:`image_motion`) — what one camera's
-    silhouette does not fix stays near the equilibrium; solved twice, the second time with the data's variance
-    scaled by the first solve's cluster-robust s² (estimator.cluster_scale2).  The Gaussians are fitted at x (rsl
-    fit-gaussians), and rsl adapt adds its estimated offsets to it: the pose a moving start's images show, not the
-    one capture.toml's E would sag to."""
+
+def pose_problem(capture, ws, mesh, young, poisson, frame: int = 0) -> PoseProblem:
+    """:func:`silhouette_pose`'s unknowns, residuals, Jacobian and prior (its docstring gives the model)."""
     from stages.silhouette import SilhouetteObservation  # jax: loaded on use
     from stages.sim.scene import frame_inputs, make_scene
     from stages.sim.static import equilibrium_sensitivity, start_state
@@ -165,7 +166,6 @@ def silhouette_pose(capture, ws, mesh, young, poisson, frame: int = 0, iteration
     motion = image_motion(obs.masks, obs._cams, x_e.mean(axis=0))
     sd = np.concatenate([[POSE_SAG_PRIOR], start_prior(sb, motion, size)[:len(modes)] * POSE_MOTION_FRAMES
                          / START_MOTION_SCALE])
-    prior = Prior(np.zeros(len(sd)), np.diag(sd ** 2))
     sag: dict[float, np.ndarray] = {0.0: x_e}  # q -> x_e(E_s)
 
     def pose(p):
@@ -185,7 +185,29 @@ def silhouette_pose(capture, ws, mesh, young, poisson, frame: int = 0, iteration
         d_sag = np.tensordot(young * np.exp(p[0]), S[:len(young)], axes=1)  # dx_e/dq = Σ_r E_r dx_e/dE_r
         return r, obs.jacobian([frame], x[None], np.concatenate([d_sag[None], modes])[:, None])[0]
 
-    p0 = np.zeros(len(sd))
+    return PoseProblem(evaluate, pose, Prior(np.zeros(len(sd)), np.diag(sd ** 2)), x_e, obs, motion,
+                       list(scene.region_names))
+
+
+def silhouette_pose(capture, ws, mesh, young, poisson, frame: int = 0, iterations: int = 15
+                    ) -> tuple[np.ndarray, dict]:
+    """(x (n, 3) m, description): frame ``frame`` of a moving start posed from its masks —
+
+        x = x_e(E_s) + Σ_j a_j φ_j,   E_s = ``young`` · e^q (one factor for every region),
+
+    x_e(E_s) the static equilibrium under that frame's controls with E_s and ``poisson`` (the sag: where a wrong E
+    in capture.toml puts frame 0), φ_j the POSE_MODES lowest vibration modes at x_e(``young``) (the motion: frame 0
+    is mid-motion), fitted by Gauss–Newton (stages.estimator.gauss_newton) to the silhouette residuals of masks.h5
+    (stages.silhouette: the soft coverage of the posed surface against the masks, geometry alone) under zero-mean
+    priors: σ_q = POSE_SAG_PRIOR, and a_j the start offsets' prior scaled to POSE_MOTION_FRAMES frames of the
+    masks' motion from frame 0 to frame 1 (:func:`start_prior`, :func:`image_motion`) — what one camera's
+    silhouette does not fix stays near the equilibrium; solved twice, the second time with the data's variance
+    scaled by the first solve's cluster-robust s² (estimator.cluster_scale2).  The Gaussians are fitted at x (rsl
+    fit-gaussians), and rsl adapt adds its estimated offsets to it: the pose a moving start's images show, not the
+    one capture.toml's E would sag to."""
+    pp = pose_problem(capture, ws, mesh, young, poisson, frame)
+    evaluate, prior, obs, x_e = pp.evaluate, pp.prior, pp.obs, pp.x_e
+    p0 = np.zeros(len(prior.mean))
     r0 = evaluate(p0, False)[0]
     sigma = max(obs.noise_scale(r0), obs.noise_floor)
     # the pixels along the outline share their errors (8 × 8 blocks, stages.silhouette): solved once more with the
@@ -196,11 +218,11 @@ def silhouette_pose(capture, ws, mesh, young, poisson, frame: int = 0, iteration
     scale2 = max(first.scale2, 1.0)
     res = gauss_newton(evaluate, p0, prior, sigma, max_iterations=iterations, tol=1e-3, clusters=clusters,
                        scale=scale2) if scale2 > 1.0 else first
-    x = pose(res.p)[1]
+    x = pp.pose(res.p)[1]
     r1 = evaluate(res.p, False)[0]
     moved = float(np.sqrt(np.mean(np.sum((x - x_e) ** 2, axis=-1))))
     return x, {"pose": "capture", "start": "silhouette", "declared_start": "moving", "frame": int(frame),
-               "regions": list(scene.region_names), "young": young.tolist(), "poisson": poisson.tolist(),
-               "sag_young_factor": float(np.exp(res.p[0])), "modes": int(len(modes)), "moved_m": moved,
-               "motion_m": motion, "data_scale2": scale2, "silhouette_rms": [float(np.sqrt(np.mean(r0 * r0))),
-                                                       float(np.sqrt(np.mean(r1 * r1)))]}
+               "regions": pp.regions, "young": np.asarray(young, float).tolist(),
+               "poisson": np.asarray(poisson, float).tolist(), "sag_young_factor": float(np.exp(res.p[0])),
+               "modes": int(len(prior.mean) - 1), "moved_m": moved, "motion_m": pp.motion, "data_scale2": scale2,
+               "silhouette_rms": [float(np.sqrt(np.mean(r0 * r0))), float(np.sqrt(np.mean(r1 * r1)))]}

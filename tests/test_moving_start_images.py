@@ -82,6 +82,31 @@ def test_silhouette_pose_finds_the_frame_0_the_masks_show(filmed):
     assert state0["start"] == "equilibrium" and np.allclose(x0, x_e, atol=1e-9)
 
 
+def test_pose_jacobian_matches_finite_differences(filmed):
+    """The pose fit's ∂r/∂p — the sag's column through the static sensitivity dx_e/dE, the modes' columns, both
+    through the silhouette's forward mode and its outline offset — against central differences of r(p), at a pose
+    away from the equilibrium (q = 0.3, the modes at half their prior σ)."""
+    from stages.artefacts import MeshArtefact
+    from stages.capture import load_capture
+    from stages.moving_start import pose_problem
+
+    cap, ws, _ = filmed
+    c = load_capture(cap)
+    pp = pose_problem(c, ws, MeshArtefact.load(ws / "mesh.h5"), [c.material.young], [c.material.poisson])
+    sd = np.sqrt(np.diag(pp.prior.cov))
+    p = np.concatenate([[0.3], 0.5 * sd[1:] * np.cos(np.arange(len(sd) - 1))])
+    r, J = pp.evaluate(p, True)
+    assert J.shape == (len(r), len(p))
+    # (the sag's column: its differences converge at first order in h on this 64² capture — 1.2 / 0.54 / 0.12 % at
+    # 10⁻² / 10⁻³ / 10⁻⁴ σ_q — while dx_e/dq itself matches its differences to 10⁻⁹ and the modes' columns to 10⁻⁷)
+    for j, rel, tol in ((0, 1e-4, 1e-2), (1, 1e-3, 1e-4), (2, 1e-3, 1e-4), (len(p) - 1, 1e-3, 1e-4)):
+        h = rel * sd[j] * np.eye(len(p))[j]
+        fd = (pp.evaluate(p + h, False)[0] - pp.evaluate(p - h, False)[0]) / (2 * h[j])
+        assert np.linalg.norm(fd) > 0
+        assert np.linalg.norm(J[:, j] - fd) <= tol * np.linalg.norm(fd), (j, np.linalg.norm(J[:, j] - fd)
+                                                                           / np.linalg.norm(fd))
+
+
 def test_adapt_identifies_young_from_the_images_of_a_capture_filmed_mid_motion(filmed):
     """gn (auto's choice here, 6 iterations per frame), images, full space, from 0.5 E_true: every frame's surface
     within 2 mm of the truth's (0.12–1.2 mm when this test was written) and the settled E (frames ≥ 8) within 10 %
