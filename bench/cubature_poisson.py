@@ -20,10 +20,8 @@ median s / frame of each run with its ratio to the one-ν run (measured back to 
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import sys
 from pathlib import Path
 
@@ -35,7 +33,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 os.environ.setdefault("JAX_ENABLE_X64", "1")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
-from reduced_accuracy import per_region  # noqa: E402
+from reduced_accuracy import earlier_rows, per_region, row_specs, run_stamp  # noqa: E402
 
 VARIANTS = ("one ν (median)", "both ends of ν")
 
@@ -156,15 +154,10 @@ def main() -> None:
     if a.from_json is not None:
         res = json.loads(a.from_json.read_text())
     else:
-        old = a.out / "cubature_poisson.json"
-        rows = json.loads(old.read_text())["rows"] if a.append and old.is_file() else []
-        for spec in a.rows:
-            label, rest = spec.rsplit("=", 1)  # (a label may hold "=": "N = 3")
-            capture, ws = rest.split(":", 1)
-            rows += run_row(label, Path(capture), Path(ws), a.tol, a.adapt_option)
-        res = {"tol": a.tol, "rows": rows, "ended": datetime.datetime.now(datetime.timezone.utc).isoformat(
-            timespec="seconds"), "load_average": os.getloadavg()[0],
-            "machine": f"{platform.machine()} {os.cpu_count()} CPUs, Python {platform.python_version()}"}
+        rows = earlier_rows(a.out / "cubature_poisson.json", a.append)
+        for label, capture, ws in row_specs(a.rows):
+            rows += run_row(label, capture, ws, a.tol, a.adapt_option)
+        res = {"tol": a.tol, "rows": rows, **run_stamp()}
         a.out.mkdir(parents=True, exist_ok=True)
         (a.out / "cubature_poisson.json").write_text(json.dumps(res, indent=1))
     page = markdown(res)

@@ -333,6 +333,29 @@ def per_region(r: dict, key: str, fmt) -> str:
     return ", ".join(fmt(x) if len(v) == 1 else f"{name} {fmt(x)}" for name, x in zip(r["regions"], v))
 
 
+def row_specs(specs) -> list[tuple[str, Path, Path]]:
+    """The benches' LABEL=CAPTURE:WS arguments as (label, capture, workspace): split at the last = (a label may hold
+    "=": "N = 3"), then at the first :."""
+    out = []
+    for spec in specs:
+        label, rest = spec.rsplit("=", 1)
+        capture, ws = rest.split(":", 1)
+        out.append((label, Path(capture), Path(ws)))
+    return out
+
+
+def earlier_rows(path: Path, append: bool) -> list:
+    """The rows of a page's existing JSON ``path`` when a run --append s to it, else none."""
+    return json.loads(path.read_text())["rows"] if append and path.is_file() else []
+
+
+def run_stamp() -> dict:
+    """When and where a bench run ended: {"ended": UTC time, "load_average": the 1-minute load, "machine"}."""
+    return {"ended": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "load_average": os.getloadavg()[0],
+            "machine": f"{platform.machine()} {os.cpu_count()} CPUs, Python {platform.python_version()}"}
+
+
 def cubature_study(a) -> None:
     """Per workspace × tolerance: refit, trajectories vs full / all points, optionally rsl adapt."""
     from stages.artefacts import MeshArtefact, SubspaceArtefact

@@ -21,10 +21,8 @@ generate-data's wall time.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -39,7 +37,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 os.environ.setdefault("JAX_ENABLE_X64", "1")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
-from reduced_accuracy import per_region  # noqa: E402
+from reduced_accuracy import earlier_rows, per_region, row_specs, run_stamp  # noqa: E402
 
 DESIGNS = ("independent", "latin")
 SEQUENCES = 4
@@ -203,21 +201,15 @@ def main() -> None:
     if a.from_json is not None:
         res = json.loads(a.from_json.read_text())
     else:
-        old = a.out / "training_data.json"
-        rows = json.loads(old.read_text())["rows"] if a.append and old.is_file() else []
+        rows = earlier_rows(a.out / "training_data.json", a.append)
         variants = [(v.split("=", 1)[0].strip(), v.split("=", 1)[1].split()) for v in a.variant] or [("defaults", [])]
-        for spec in a.rows:
-            label, rest = spec.rsplit("=", 1)  # (a label may hold "=": "N = 3")
-            capture, ws = rest.split(":", 1)
+        for label, capture, ws in row_specs(a.rows):
             for seed in a.seeds:
                 for name, options in variants:
-                    rows.append(run_case(label, Path(capture), Path(ws), name, options, seed, a.sequences, a.dim))
+                    rows.append(run_case(label, capture, ws, name, options, seed, a.sequences, a.dim))
                     print(json.dumps({k: v for k, v in rows[-1].items() if k != "young_ratio"}), flush=True)
         cov = [coverage(n, d, a.coverage_seeds) for n in (4, 8, 20) for d in DESIGNS]
-        res = {"coverage": cov, "rows": rows,
-               "ended": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-               "load_average": os.getloadavg()[0],
-               "machine": f"{platform.machine()} {os.cpu_count()} CPUs, Python {platform.python_version()}"}
+        res = {"coverage": cov, "rows": rows, **run_stamp()}
         a.out.mkdir(parents=True, exist_ok=True)
         (a.out / "training_data.json").write_text(json.dumps(res, indent=1))
     page = markdown(res)
