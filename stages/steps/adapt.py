@@ -1259,8 +1259,8 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
         size = float(np.linalg.norm(np.ptp(backend.decode(backend.rest_state[None])[0], axis=0)))
         if obs.kind == "markers":
             motion = marker_motion(obs.P)
-        else:  # images: the outline's motion in masks.h5 at the object's frame-0 position
-            x0 = backend.decode(objective.win.forward([0], *gn.theta(p_th)[:2], None))[0]
+        else:  # images: the outline's motion in masks.h5 at the object's frame-0 pose (the Gaussians' fit pose)
+            x0 = backend.decode(np.asarray(objective.win.reference)[None])[0]
             motion = image_motion(obs.masks, obs._cams, x0.mean(axis=0))
         start_sigma = start_prior(loop.moving, motion, size)
         loop.rec.start_motion = motion
