@@ -23,6 +23,8 @@ DOFs and the median per-frame time of adapt (adapt.h5 time_total_s).
         [--rows 'bar/rest/2/markers/reduced;beam/equilibrium/2/markers/full'] [--work DIR]
     .venv/bin/python bench/accuracy.py --merge A/accuracy.json B/accuracy.json [--previous OLD.json]
 
+--cameras N films the captures with N cameras instead of the scale's (a lab's capture: one).
+
 Runs side by side need their own --work (each workspace's adapt.h5/evaluation.json belong to its last row);
 --merge writes one table from them, --previous lists an older run's rows that were not re-run apart, labelled.
 
@@ -62,6 +64,7 @@ MAX_TETS = 1500  # adapt mesh size (fTetWild): 964 P2 tets, 4914 DOFs on the bar
 # adapt uses.
 SCALES = {"table": (3, 96, MAX_TETS, 0), "paper": (4, 128, 2450, 1)}
 SCALE = "table"
+CAMERAS = 0  # --cameras: the captures' camera count instead of the scale's (0: the scale's); a --work of its own
 SEQUENCES = 4  # generate-data --sequences of the reduced rows (docs/results/training_data.md)
 SUBSPACE_DIM = 30  # r, the paper's Bar (docs/results/reduced_accuracy.md: r = 12 biases E by 1.5–3.5 %)
 # rsl train-subspace --cubature-tol per case: its default, 0.0005 (docs/results/cubature_tol.md: the same networks at
@@ -113,6 +116,7 @@ def settled_mask(young_true: np.ndarray, first: int = 0) -> np.ndarray:
 
 def capture(work: Path, case: str, start: str, frames: int, refine: int) -> Path:
     cameras, side, _, scale_refine = SCALES[SCALE]
+    cameras = CAMERAS or cameras
     return pl.foreign_capture(work / f"{case}_{start}", scene_args(case, frames), start=start, frames=frames,
                               cameras=cameras, resolution=side, refine=max(refine, scale_refine),
                               substeps=TRUTH_SUBSTEPS, poisson=POISSON,
@@ -289,7 +293,7 @@ def row_key(r) -> tuple:
 
 
 def main() -> None:
-    global EXTRA, EXPORT, TRUTH_SUBSTEPS, TRUTH_DAMPING, SUBSPACE_DIM, SCALE, SEQUENCES
+    global EXTRA, EXPORT, TRUTH_SUBSTEPS, TRUTH_DAMPING, SUBSPACE_DIM, SCALE, SEQUENCES, CAMERAS
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
@@ -320,6 +324,9 @@ def main() -> None:
     ap.add_argument("--scale", choices=sorted(SCALES), default="table",
                     help="table: 3 cameras at 96², adapt mesh --max-tets 1500 (≈5K DOFs on the bar); paper: the "
                          "paper's Bar, 4 cameras at 128², --max-tets 2450 (≈10K DOFs), truth refined once")
+    ap.add_argument("--cameras", type=int, default=0,
+                    help="the captures' camera count instead of the scale's (a --work of its own; one camera: a "
+                         "lab's usual capture)")
     a = ap.parse_args()
     SCALE = a.scale
     if a.merge:
@@ -343,6 +350,7 @@ def main() -> None:
         TRUTH_DAMPING = float(runs[0]["plan"].get("truth_damping", 0.0))
         SUBSPACE_DIM = int(runs[0]["plan"].get("dim", SUBSPACE_DIM))  # the header's r (a row with another: its own)
         SEQUENCES = int(runs[0]["plan"].get("sequences", 4))  # (runs before it was recorded: 4)
+        CAMERAS = int(runs[0]["plan"].get("cameras", 0))
         if a.previous:
             old = json.loads(a.previous.read_text())
             done = {row_key(r) for r in rows}
@@ -364,6 +372,7 @@ def main() -> None:
             ap.error(f"--rows: {unknown} not in the plan")
         plan = want
     TRUTH_SUBSTEPS, TRUTH_DAMPING, SUBSPACE_DIM, SEQUENCES = a.truth_substeps, a.truth_damping, a.dim, a.sequences
+    CAMERAS = a.cameras
     EXPORT = not a.no_export
     EXTRA = ((["--estimator", a.estimator] if a.estimator else []) + (["--substeps", a.substeps] if a.substeps else [])
              + a.adapt_option)
@@ -371,7 +380,7 @@ def main() -> None:
     rows = []
     meta = {"frames": frames, "refine": refine, "rows": plan, "scale": SCALE, "adapt_options": EXTRA, "truth_substeps": TRUTH_SUBSTEPS,
             "truth_damping": TRUTH_DAMPING,
-            "dim": SUBSPACE_DIM, "sequences": SEQUENCES}
+            "dim": SUBSPACE_DIM, "sequences": SEQUENCES, "cameras": CAMERAS}
     for row in plan:
         rows.append(run_row(a.work, row, frames, refine))
         print(_row(rows[-1]), flush=True)
@@ -429,6 +438,7 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
     failed = "".join(f"\n- {r['case']} {r['start']} P{r['order']} {r['loss']} {r['space']}: "
                      f"`{r['error'].strip().splitlines()[-1][:200]}`" for r in rows if "error" in r)
     cams, side, max_tets, _ = SCALES["table"]
+    cams = CAMERAS or cams
     paper = [r for r in rows + previous if r.get("scale", "table") == "paper"]
     paper_note = ("" if not paper else
                   f" Rows marked (paper scale), `bench/accuracy.py --scale paper`: the paper's Bar, "
