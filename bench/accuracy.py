@@ -451,7 +451,7 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
           f"{f' --damping {TRUTH_DAMPING:g}' if TRUTH_DAMPING else ''}`), "
           f"{f'viscous damping β = {TRUTH_DAMPING:g} s declared in capture.toml, ' if TRUTH_DAMPING else ''}"
           f"{plan['frames']} frames, ν = {POISSON}, "
-          f"{cams} cameras at {side}², 40 markers. rsl: fTetWild mesh (`--max-tets {max_tets}`), reduced space r = {SUBSPACE_DIM} "
+          f"{cams} camera{'s' if cams != 1 else ''} at {side}², 40 markers. rsl: fTetWild mesh (`--max-tets {max_tets}`), reduced space r = {SUBSPACE_DIM} "
           f"(generate-data {SEQUENCES} sequences; `train-subspace --cubature-tol` "
           f"{', '.join(f'{c} {t:g}' for c, t in CUBATURE_TOL.items())}), adapt online, window "
           f"{WINDOW}, E initialised at 0.5 E0{options}; "

@@ -52,7 +52,7 @@ def backends(capture, ws: Path, label: str, with_quad: bool):
     """[(name, backend factory)] for one workspace."""
     from stages.artefacts import MeshArtefact, SubspaceArtefact
     from stages.sim.scene import frame_inputs, make_scene
-    from stages.window_backends import FullSpace, ReducedSpace
+    from stages.window_backends import ReducedSpace
     from stages.subspace import ReducedModel
 
     mesh = MeshArtefact.load(ws / "mesh.h5")

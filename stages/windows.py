@@ -299,8 +299,6 @@ class WindowObjective:
         than from the stored past (AdaptConfig.lead_in)."""
         R, backend = self.R, self.backend
         E, nu = theta_from_params(p[:R], p[R:], self.prange)
-        w = len(frames)
-        Ew, nuw = np.tile(E, (w, 1)), np.tile(nu, (w, 1))
         t0 = time.perf_counter()
         rebind = self.rebind
         held = None  # θ of a held anchor (anchor_p)

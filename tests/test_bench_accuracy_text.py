@@ -79,3 +79,16 @@ def test_merging_runs_keeps_the_row_that_ended_last(tmp_path: Path, monkeypatch)
     m.main()
     data = json.loads((tmp_path / "out" / "accuracy.json").read_text())
     assert sorted((r["case"], r["median_error_worst"]) for r in data["cases"]) == [("bar", 0.02), ("dino", 0.07)]
+
+
+def test_a_run_with_cameras_names_its_camera_count(tmp_path: Path, monkeypatch) -> None:
+    """--cameras N (recorded in the plan): the merged page's header says how many cameras filmed the captures."""
+    m = _accuracy()
+    row = {**_row("bar", "reduced", [0.10], 0.2), "loss": "vision", "cameras": 1, "resolution": 96}
+    f = tmp_path / "run.json"
+    f.write_text(json.dumps({"date": "2026-02-02", "mode": "full", "load_average_end": 1.0, "cases": [row],
+                             "plan": {"frames": 4, "refine": 0, "rows": [], "adapt_options": [], "cameras": 1}}))
+    monkeypatch.setattr("sys.argv", ["accuracy.py", "--merge", str(f), "--out", str(tmp_path / "out")])
+    m.main()
+    md = (tmp_path / "out" / "accuracy.md").read_text()
+    assert "1 camera at 96², 40 markers" in md and "| 1 × 96² |" in md
