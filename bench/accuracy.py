@@ -394,6 +394,18 @@ HEAD = ("| case | start | adapt mesh | loss | space | estimator | DOFs | cameras
         "| --- | --- | --- | --- | --- | --- | ---: | --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
 
 
+def _tolerances(rows: list[dict]) -> str:
+    """The header's cubature tolerances: per case, those its reduced rows were fitted with (CUBATURE_TOL where no
+    row says), each row's own in its cubature column when a case has several."""
+    tols: dict = {c: set() for c in CUBATURE_TOL}
+    for r in rows:
+        if r.get("cubature_tol") is not None:
+            tols.setdefault(r["case"], set()).add(float(r["cubature_tol"]))
+    text = ", ".join(f"{c} {' / '.join(f'{t:g}' for t in sorted(ts or {CUBATURE_TOL.get(c, 0.0)}, reverse=True))}"
+                     for c, ts in tols.items())
+    return text + ("; each row's in its cubature column" if any(len(ts) > 1 for ts in tols.values()) else "")
+
+
 def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = False) -> None:
     import matplotlib
 
@@ -453,7 +465,7 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
           f"{plan['frames']} frames, ν = {POISSON}, "
           f"{cams} camera{'s' if cams != 1 else ''} at {side}², 40 markers. rsl: fTetWild mesh (`--max-tets {max_tets}`), reduced space r = {SUBSPACE_DIM} "
           f"(generate-data {SEQUENCES} sequences; `train-subspace --cubature-tol` "
-          f"{', '.join(f'{c} {t:g}' for c, t in CUBATURE_TOL.items())}), adapt online, window "
+          f"{_tolerances(rows)}), adapt online, window "
           f"{WINDOW}, E initialised at 0.5 E0{options}; "
           f"mode {data['mode']}.{paper_note} Settled frames: ≥ w + 5 after the start and after each step of E_true. "
           f"Force error: median relative error of the handle/obstacle forces of `rsl export --forces` against "

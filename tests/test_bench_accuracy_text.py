@@ -92,3 +92,16 @@ def test_a_run_with_cameras_names_its_camera_count(tmp_path: Path, monkeypatch) 
     m.main()
     md = (tmp_path / "out" / "accuracy.md").read_text()
     assert "1 camera at 96², 40 markers" in md and "| 1 × 96² |" in md
+
+
+def test_the_header_names_the_tolerances_the_rows_used(tmp_path: Path) -> None:
+    """Rows of one case fitted at two cubature tolerances (runs merged across a change of default): the header
+    names both and points at the rows' column, not the bench's current default alone."""
+    m = _accuracy()
+    old, new = _row("bar", "reduced", [0.04], 0.09), {**_row("bar", "reduced", [0.05], 0.09), "start": "rest"}
+    new["cubature_tol"] = 0.0005
+    m.write([old, new, _row("dino", "full", [0.03], 0.05)], tmp_path, False,
+            {"frames": 4, "refine": 0, "rows": [], "adapt_options": []}, quiet=True)
+    md = (tmp_path / "accuracy.md").read_text()
+    assert "`train-subspace --cubature-tol` bar 0.002 / 0.0005, beam 0.0005, dino 0.0005; each row's in its " \
+           "cubature column)" in md
