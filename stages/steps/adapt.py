@@ -302,6 +302,15 @@ def resolve_iterations(config: AdaptConfig, estimator: str, loss: str, start: st
     return MOVING_IMAGE_ITERATIONS if (estimator == "gn" and loss == "vision" and start == "moving") else ITERATIONS
 
 
+def single_camera_warning(cameras_path: Path, camera: str) -> str:
+    """The warning of a run on one camera's images: its E is measured less well than from several
+    (docs/results/accuracy_one_camera/: the accuracy bench's image rows filmed by one camera)."""
+    return (f"{cameras_path}: the images come from one camera ({camera}); on the accuracy bench one camera's images "
+            f"left E several times further from the truth than three cameras' on the same bar captures, most of all "
+            f"on one filmed mid-motion (docs/results/accuracy_one_camera/accuracy.md): a second camera or "
+            f"markers (--loss markers) measure E better.")
+
+
 GN_TRUST_IMAGES = 5.0
 """--gn-trust's default with images (docs/results/adapt_speed.md, rows "1-eval")."""
 
@@ -617,6 +626,8 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
         inputs_used += [ws / KIND_FILES[k] for k in ("cameras", "gaussians", "masks")]
         inputs_used += [capture.root / "frames" / c if src.files is not None else src.video
                         for c, src in obs.sources.items()]  # the frames read (a hash per camera)
+        if len(obs.cameras) == 1:
+            reporter.warn(single_camera_warning(ws / KIND_FILES["cameras"], obs.cameras[0]))
         if capture.start == "moving":
             if obs.fit_frame != 0:
                 raise RslError(f"{ws / KIND_FILES['gaussians']}: the Gaussians were fitted to frame {obs.fit_frame}, "
