@@ -90,10 +90,13 @@ class AdaptConfig:
     """online: sliding window, θ updated every frame; offline: one θ fitted to the whole sequence; static: one θ
     from the static equilibria of the frames alone (an object at rest under gravity and holds; chosen by itself
     when no control moves and [capture] start = "equilibrium")."""
-    loss: Literal["vision", "markers"] = "vision"
-    """Observation: rendered Gaussians vs images (needs gaussians.h5, cameras.h5) or markers.csv."""
+    loss: Literal["vision", "markers", "silhouette"] = "vision"
+    """Observation: rendered Gaussians vs images (needs gaussians.h5, cameras.h5), markers.csv, or silhouette: the
+    simulated surface's soft coverage vs masks.h5 (stages/silhouette.py; geometry alone, so frame 0's sag informs E
+    too — with one camera it measured E better than the Gaussians, at ~9× the time per frame:
+    docs/results/accuracy_notes.md, twenty-fourth stop)."""
     cameras: str = ""
-    """Cameras used by the vision loss: indices or names, comma separated (empty: all)."""
+    """Cameras used by the vision or silhouette loss: indices or names, comma separated (empty: all)."""
     frames: str = ""
     """Frame range A:B (B exclusive; empty: every frame)."""
     iters_per_frame: int | None = None
@@ -279,8 +282,9 @@ class AdaptConfig:
 
 def resolve_estimator(config: AdaptConfig, start: str = "") -> str:
     """The estimator an "auto" config runs: gn with markers (docs/results/estimator.md), adam with images
-    (docs/results/vision_bias.md) — except on a capture filmed mid-motion (``start`` "moving"), whose start
-    offsets only gn estimates."""
+    (docs/results/vision_bias.md) and with silhouettes (one camera, the accuracy bench's bar: 5.7 % against gn's
+    8.6 %, accuracy_notes.md, twenty-fourth stop) — except on a capture filmed mid-motion (``start`` "moving"), whose
+    start offsets only gn estimates."""
     if config.estimator != "auto":
         return config.estimator
     return "gn" if config.loss == "markers" or start == "moving" else "adam"
@@ -308,7 +312,7 @@ def single_camera_warning(cameras_path: Path, camera: str) -> str:
     return (f"{cameras_path}: the images come from one camera ({camera}); on the accuracy bench one camera's images "
             f"left E several times further from the truth than three cameras' on the same bar captures, most of all "
             f"on one filmed mid-motion (docs/results/accuracy_one_camera/accuracy.md): a second camera or "
-            f"markers (--loss markers) measure E better.")
+            f"markers (--loss markers) measure E better, and on that bar so did the masks alone (--loss silhouette).")
 
 
 GN_TRUST_IMAGES = 5.0
@@ -613,9 +617,15 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
             moving = start_basis(backend, s0, young0, poisson0)
         if capture.start != "moving":  # (a moving start: once frame 0 is estimated, _online_gn)
             _warn_far_markers(reporter, obs, "simulated with the initial E")
-    elif (not (ws / KIND_FILES["gaussians"]).exists() and config.mode in ("online", "static") and not config.follow
-          and capture.start == "equilibrium" and controls_static(inputs, list(range(max(capture.frame_count(), 1))))):
-        # a still capture with images is compared through its silhouettes alone (below): no Gaussians needed
+    elif config.loss == "silhouette" or (
+            not (ws / KIND_FILES["gaussians"]).exists() and config.mode in ("online", "static") and not config.follow
+            and capture.start == "equilibrium" and controls_static(inputs, list(range(max(capture.frame_count(), 1))))):
+        if capture.start == "moving":
+            raise RslError(f"{capture.toml_path}: --loss silhouette needs frame 0 simulated from the declared start, "
+                           f"which a capture filmed mid-motion (start = \"moving\") does not give; use --loss vision "
+                           f"or markers.")
+        # --loss silhouette, or a still capture with images (compared through its silhouettes alone, below): no
+        # Gaussians needed
         from stages.silhouette import SilhouetteObservation
 
         obs = SilhouetteObservation(capture, ws, config.cameras, mesh)
@@ -689,7 +699,9 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
     if not config.anchor_change >= 0:
         raise RslError(f"{capture.toml_path}: --anchor-change must be 0 or more, found {config.anchor_change}.")
     # the anchor's own material (online Adam with images; gn holds the anchor after a detected change instead)
-    objective.anchor_own = config.loss == "vision" and config.vision_anchor == "estimated" and estimator == "adam"
+    # (silhouettes: the same calibrations and held fits; nothing is bound, so the anchor's own gradient is zero)
+    objective.anchor_own = (config.loss in ("vision", "silhouette") and config.vision_anchor == "estimated"
+                            and estimator == "adam")
     if (config.mode == "online" and not config.follow and capture.start == "equilibrium" and last is not None
             and last - first >= 1 and controls_static(inputs, list(range(first, last)))):
         reporter.info(f"{capture.controls_path}: no control moves over frames {first}..{last - 1}: identifying the "
@@ -700,7 +712,7 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
             raise RslError(f"{capture.toml_path}: --mode static needs a finite frame range (not --follow without "
                            f"--frames).")
         objective.win = StaticWindow(backend)
-        if config.loss == "vision" and controls_static(inputs, list(range(first, last))):
+        if config.loss in ("vision", "silhouette") and controls_static(inputs, list(range(first, last))):
             # every frame is the fit frame's equilibrium, and the Gaussians re-bound to x_0(θ) render it alike
             # for every θ (docs/tutorial.md, "Static captures"): the images are compared through their masks
             # instead, with the soft coverage of the simulated surface (stages/silhouette.py), by Gauss–Newton
@@ -1687,7 +1699,7 @@ def _report(loop: _Loop, reporter: Reporter, names: list[str], dofs: int, mesh: 
             f"frames {c['frames'][0]}–{c['frames'][1]} E=" + " ".join(f"{e:.4g}" for e in c["young"]) + " Pa"
             for c in cals))
     reporter.summary(f"adapted {len(rec.frames)} frames{stop} {config.mode} in {backend.space} space from "
-                     f"{'markers' if config.loss == 'markers' else 'images'}: {mats} "
+                     f"{ {'markers': 'markers', 'silhouette': 'silhouettes'}.get(config.loss, 'images')}: {mats} "
                      f"({'E of the material, P2 tets' if mesh.order == 2 else 'effective E of this linear mesh'}); "
                      f"per frame forward {f:.3f} s, backward {b:.3f} s, "
                      f"render {r:.3f} s, total {t:.3f} s → {path}")
