@@ -1,6 +1,6 @@
-"""`rsl adapt --loss silhouette` on a moving capture: the simulated surface's soft coverage against masks.h5
-(stages/silhouette.py) as the window's observation — no Gaussians — with the images' online machinery (Adam, the
-anchor's calibrations, the held fits).  Its Jacobian and gradient are held to finite differences in
+"""`rsl adapt --loss silhouette` on a capture whose object moves: the simulated surface's soft coverage against
+masks.h5 (stages/silhouette.py) as the window's observation — no Gaussians — with the images' online machinery
+(Adam, the anchor's calibrations, the held fits).  Its Jacobian and gradient are held to finite differences in
 tests/test_silhouette.py; here the whole stage, and what it refuses."""
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ def test_adapt_from_silhouettes_reaches_the_modulus_without_gaussians(tmp_path, 
     """The cable-pulled beam filmed by one camera at 40² from its equilibrium (its own mesh), segmented, no
     fit-gaussians: rsl adapt --loss silhouette from 0.5 E_true picks adam, records the silhouette loss and ends
     within 10 % of E_true over frames 10–15 (1.079 E_true when written: at 40² the masks' outline biases the
-    silhouettes high, as on the accuracy bench's bar, +4 to +7 %); on the same capture declared filmed mid-motion it
+    silhouettes high, as on the accuracy bench's bar, +4 to +8 %); on the same capture declared filmed mid-motion it
     refuses in one sentence."""
     from stages.steps import segment
     from test_adapt_e2e import E_TRUE, _make_capture
