@@ -843,6 +843,7 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
     seen_later = 0  # the later changes (rule 5) already recalibrated for
     change_lo = loop.first + 1  # the earliest frame a later change may be located at (after the last calibration)
     holding = calibrating and _holds_fit(config)  # E(t) held at the last fit between changes
+    iterations = resolve_iterations(config, "adam", config.loss, "")
     with loop.reporter.task(f"adapt online ({loop.backend.space}, {loop.obs.kind}, w={w})", loop.total()) as task:
         for T in loop.online_frames():
             frames = list(range(max(loop.first, T - w + 1), T + 1))
@@ -861,7 +862,7 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                 sim = [0] + sim  # the states before it at rest: x_{s−2} = x_{s−1} = x_0(θ)
             lead = len(sim) - len(frames)
             resting = False
-            for it in range(resolve_iterations(config, "adam", config.loss, "")):
+            for it in range(iterations):
                 states, losses, g, t3 = obj(sim, params, loop.before(sim[0]), True, lead=lead)
                 times += t3
                 if it == 0 and (rest_rule or calibrating) and sim[0] == 0 and f <= T:  # frames 0..T simulated
