@@ -10,8 +10,8 @@ masks):
     beam     sample_data/bar pulled by a cable, two regions (the far half 3 × stiffer), constant
 
 Each capture goes through the pipeline as a lab would run it: calibrate --from-json, tetrahedralize
---order 1|2 (fTetWild, --max-tets MAX_TETS), for vision segment + fit-gaussians, for the reduced space
-generate-data + train-subspace, then `rsl adapt` online (window 3, E initialised at 0.5 E0, the default
+--order 1|2 (fTetWild, --max-tets MAX_TETS), for vision segment + fit-gaussians (silhouette: segment alone), for
+the reduced space generate-data + train-subspace, then `rsl adapt` online (window 3, E initialised at 0.5 E0, the default
 estimator unless --estimator; --substeps passed through), `rsl export --forces` and `rsl evaluate`.
 
 Per row: the median relative error of E per region over the settled frames (every frame at least w + 5
@@ -84,7 +84,8 @@ FULL_PLAN = (
        ("bar", "equilibrium", 2, "vision", "full"), ("bar", "rest", 2, "vision", "reduced"),
        ("dino", "equilibrium", 2, "vision", "reduced"),
        ("bar", "moving", 2, "markers", "reduced"), ("bar", "moving", 2, "markers", "full"),
-       ("bar", "moving", 2, "vision", "reduced")]
+       ("bar", "moving", 2, "vision", "reduced"),
+       ("bar", "equilibrium", 2, "silhouette", "reduced"), ("bar", "moving", 2, "silhouette", "reduced")]
     + [("bar", s, 1, "markers", sp) for s in ("equilibrium", "rest") for sp in ("reduced", "full")]
     + [("beam", "equilibrium", 1, "markers", "reduced"), ("dino", "equilibrium", 1, "markers", "reduced"),
        ("dino", "equilibrium", 2, "markers", "full")]
@@ -127,6 +128,8 @@ def workspace(work: Path, cap: Path, case: str, start: str, order: int, loss: st
     ws = pl.mesh(cap, work / f"ws_{case}_{start}_p{order}", order=order, max_tets=SCALES[SCALE][2])
     if loss == "vision":
         pl.gaussians(cap, ws, frame=0)
+    if loss == "silhouette" and not pl.skip(ws / "masks.h5"):  # the masks alone: no fit-gaussians
+        pl.rsl("segment", cap, "-w", ws)
     if space == "reduced":
         subspace(cap, ws, frames, SUBSPACE_DIM, CUBATURE_TOL[case], SEQUENCES)
     return ws
@@ -300,7 +303,7 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/rsl_accuracy"))
     ap.add_argument("--cases", default="", help="only these cases, comma-separated (bar, dino, beam)")
     ap.add_argument("--starts", default="", help="only these start states, comma-separated")
-    ap.add_argument("--losses", default="", help="only these losses, comma-separated (markers, vision)")
+    ap.add_argument("--losses", default="", help="only these losses, comma-separated (markers, vision, silhouette)")
     ap.add_argument("--spaces", default="", help="only these spaces, comma-separated (reduced, full)")
     ap.add_argument("--orders", default="", help="only these adapt element orders, comma-separated (1, 2)")
     ap.add_argument("--no-export", action="store_true",

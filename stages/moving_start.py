@@ -19,7 +19,9 @@ settles (adapt._rebind_moving_start, stages.sim.markers.fit_binding_to_tracks); 
 With images the shape comes from the masks instead: rsl fit-gaussians poses frame 0 from its silhouettes
 (:func:`silhouette_pose`) and fits the Gaussians there, and adapt adds the offsets to that pose x_f rather than to
 x_e(θ) (StartWindow.reference), the Gaussians bound as fitted; the prior's motion scale is the silhouette's motion
-(:func:`image_motion`).  Pure functions over a window backend, and the pose fit over the capture's masks."""
+(:func:`image_motion`).  With the masks alone (``rsl adapt --loss silhouette``, no Gaussians) adapt poses frame 0
+with :func:`silhouette_pose` itself and adds the offsets to that pose the same way.  Pure functions over a window
+backend, and the pose fit over the capture's masks."""
 from __future__ import annotations
 
 from dataclasses import dataclass

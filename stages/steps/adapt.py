@@ -620,16 +620,18 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
     elif config.loss == "silhouette" or (
             not (ws / KIND_FILES["gaussians"]).exists() and config.mode in ("online", "static") and not config.follow
             and capture.start == "equilibrium" and controls_static(inputs, list(range(max(capture.frame_count(), 1))))):
-        if capture.start == "moving":
-            raise RslError(f"{capture.toml_path}: --loss silhouette needs frame 0 simulated from the declared start, "
-                           f"which a capture filmed mid-motion (start = \"moving\") does not give; use --loss vision "
-                           f"or markers.")
         # --loss silhouette, or a still capture with images (compared through its silhouettes alone, below): no
         # Gaussians needed
         from stages.silhouette import SilhouetteObservation
 
         obs = SilhouetteObservation(capture, ws, config.cameras, mesh)
         inputs_used += [ws / KIND_FILES[k] for k in ("cameras", "masks")]
+        if capture.start == "moving":
+            # a moving start: frame 0 posed from its own masks, as fit-gaussians poses it for the Gaussians
+            # (stages.moving_start.silhouette_pose, capture.toml's E for the sag's first guess); the windows
+            # holding frame 0 add their estimated offsets to that pose, which frame 0's masks then inform directly
+            moving_reference = _pose_state(backend, _silhouette_start_pose(capture, ws, mesh, young0, poisson0))
+            moving = start_basis(backend, moving_reference, young0, poisson0)
     else:
         check_same_mesh(mesh_path, ws / KIND_FILES["gaussians"])
         obs = VisionObservation(capture, ws, config.cameras, mesh, config.appearance, config.gaussian_anchor)
@@ -643,7 +645,7 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
                 raise RslError(f"{ws / KIND_FILES['gaussians']}: the Gaussians were fitted to frame {obs.fit_frame}, "
                                f"but with start = \"moving\" rsl estimates frame 0 alone; fit them to frame 0 "
                                f"(rsl fit-gaussians --frame 0).")
-            moving_reference = _fit_pose_state(backend, obs)
+            moving_reference = _pose_state(backend, obs.rest)
             moving = start_basis(backend, moving_reference, young0, poisson0)
 
     prange = mat.poisson_range
@@ -692,7 +694,8 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
         # frame 0's render informs Δ_0 as frame 0's markers do (docs/capture.md)
         objective.win.reference = moving_reference
         objective.rebind = False
-        obs.rebind(obs.rest)
+        if config.loss == "vision":
+            obs.rebind(obs.rest)
     if config.vision_anchor not in ("estimated", "simulated"):
         raise RslError(f"{capture.toml_path}: --vision-anchor should be estimated or simulated, found "
                        f"'{config.vision_anchor}'.")
@@ -1155,12 +1158,25 @@ taken as converged, as a fraction of the object's size (2 µm on a 0.2 m object:
 noise the estimator assumes, MarkerObservation.noise_floor)."""
 
 
-def _fit_pose_state(backend, obs, iterations: int = 20) -> np.ndarray:
-    """The backend's state of the pose the Gaussians were fitted at (gaussians.h5 fit_positions, rsl fit-gaussians'
-    fit_pose; a moving start: posed from frame 0's masks): the positions themselves in the full space; in the
-    reduced space the z whose decoding is nearest, argmin |φ(z) − x_f|² by Gauss–Newton from the encoder's ψ(x_f).
-    A moving start with images adds its estimated offsets to it."""
-    x_fit = np.asarray(obs.rest, float)
+def _silhouette_start_pose(capture, ws: Path, mesh, young, poisson) -> np.ndarray:
+    """(n, 3) m: frame 0 of a moving start posed from its masks (stages.moving_start.silhouette_pose), for
+    --loss silhouette, which has no Gaussians and thus no pose of fit-gaussians to start from."""
+    from stages.moving_start import silhouette_pose
+    from stages.sim.scene import SimulationError
+
+    try:
+        return silhouette_pose(capture, ws, mesh, young, poisson, 0)[0]
+    except SimulationError as e:
+        raise RslError(f"{capture.toml_path}: cannot pose the mesh as frame 0's masks show it (start = 'moving', "
+                       f"E = {np.asarray(young).tolist()} Pa): {e}") from None
+
+
+def _pose_state(backend, x_fit: np.ndarray, iterations: int = 20) -> np.ndarray:
+    """The backend's state of a pose x_f (n, 3) m (the Gaussians' fit pose, gaussians.h5 fit_positions; a moving
+    start: posed from frame 0's masks): the positions themselves in the full space; in the reduced space the z
+    whose decoding is nearest, argmin |φ(z) − x_f|² by Gauss–Newton from the encoder's ψ(x_f).  A moving start
+    with images or silhouettes adds its estimated offsets to it."""
+    x_fit = np.asarray(x_fit, float)
     if backend.space == "full":
         return x_fit.copy()
     model = backend.model
