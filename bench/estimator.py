@@ -430,10 +430,13 @@ def _cusum_max(rows: list) -> float:
 
 
 def _default(field: str) -> float:
-    """The AdaptConfig default the runs used (0 for a field this version of rsl does not have)."""
-    from stages.steps.adapt import AdaptConfig
+    """The AdaptConfig default the runs used (0 for a field this version of rsl does not have; --process-noise: the
+    one markers take, adapt.PROCESS_NOISE)."""
+    from stages.steps import adapt
 
-    return float(getattr(AdaptConfig, field, 0.0))
+    if field == "process_noise":
+        return float(getattr(adapt, "PROCESS_NOISE", 0.0))
+    return float(getattr(adapt.AdaptConfig, field, 0.0))
 
 
 def _segments(rows: list) -> list[str]:

@@ -325,7 +325,7 @@ def part_theta(work: Path, case: str, truth_substeps: list[int], adapt_ws: list[
         sy = by_region(np.asarray(ad.young_sigma), list(ad.region_names), regions, "adapt.h5")
         sp = by_region(np.broadcast_to(np.asarray(ad.poisson_sigma), np.shape(ad.poisson)), list(ad.region_names),
                        regions, "adapt.h5")
-        model = filter_model(cfg, cap.material.poisson_range)
+        model = filter_model(cfg, cap.material.poisson_range, ad.extra)
         for rule in rules:
             if rule.startswith("lag"):
                 thetas[rule] = smoothed_theta(young, poisson, changes, lag_of(rule))

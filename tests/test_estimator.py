@@ -259,13 +259,13 @@ def _track_jump(T: int, jump_at: int | None, seed: int, w: int = 3, q: float | N
                 rel_noise: float = 0.02):
     """A sliding-window filter on log E with the change test, as adapt's _online_gn runs it (window restarted at a
     change, the prior widened by 0.5 on log E, the process noise of each fold from estimator.process_noise with
-    AdaptConfig's defaults unless given, the noise level the median of √(RSS/dof) over the last 5 windows).
+    adapt's defaults for markers unless given, the noise level the median of √(RSS/dof) over the last 5 windows).
     Observations of a quasi-static deflection: y_t,i = a_t,i / (E_t (1 + b_t)) + noise (σ = ``rel_noise`` of the
     mean deflection), b_t = ``bias`` sin(2πt/``period``): a model error that varies with the motion's phase (the
     E that explains frame t alone is E_t (1 + b_t))."""
-    from stages.steps.adapt import AdaptConfig
+    from stages.steps.adapt import PROCESS_NOISE, AdaptConfig
 
-    q = AdaptConfig.process_noise if q is None else q
+    q = PROCESS_NOISE if q is None else q
     q_change = AdaptConfig.process_noise_change if q_change is None else q_change
     rng = np.random.default_rng(seed)
     a = rng.uniform(0.5, 1.5, (T, m)) * (1 + 0.5 * np.sin(np.arange(T))[:, None])
@@ -747,6 +747,27 @@ def test_iterations_default_to_more_for_gn_on_images_of_a_moving_start():
                  ("gn", "silhouette", "")):
         assert resolve_iterations(AdaptConfig(**base), *args) == 2, args
     assert resolve_iterations(AdaptConfig(**base, iters_per_frame=3), "gn", "vision", "moving") == 3
+
+
+def test_process_noise_defaults_to_more_for_gn_on_images_or_silhouettes_of_a_moving_start():
+    """resolve_process_noise: the option as given, else 0.03 for gn with images or silhouettes on a moving start
+    (whose steps of E the change test misses) and 0.005 otherwise; the force replay's smoother reads the value that
+    ran from adapt.h5's extra when the provenance holds the default (None)."""
+    from stages.forces import filter_model
+    from stages.steps.adapt import AdaptConfig, resolve_process_noise
+
+    base = {"capture": "c", "workspace": "w"}
+    for loss in ("vision", "silhouette"):
+        assert resolve_process_noise(AdaptConfig(**base), "gn", loss, "moving") == 0.03
+    for args in (("gn", "vision", ""), ("gn", "markers", "moving"), ("adam", "vision", "moving"),
+                 ("gn", "silhouette", "equilibrium")):
+        assert resolve_process_noise(AdaptConfig(**base), *args) == 0.005, args
+    assert resolve_process_noise(AdaptConfig(**base, process_noise=0.01), "gn", "vision", "moving") == 0.01
+    cfg = {"window": 3, "process_noise": None, "process_noise_change": 0.02, "change_sigma": 0.5,
+           "model_error": 0.02, "model_error_poisson": 0.02}
+    assert filter_model(cfg, (0.3, 0.49)) is None  # (no value: not a gn run's)
+    assert filter_model(cfg, (0.3, 0.49), {"process_noise": 0.03}).process_noise == 0.03
+    assert filter_model({**cfg, "process_noise": 0.01}, (0.3, 0.49), {"process_noise": 0.03}).process_noise == 0.01
 
 
 def test_cluster_scale2_sums_by_cluster_whatever_the_labels_are():

@@ -136,6 +136,7 @@ def test_adapt_identifies_young_from_the_images_of_a_capture_filmed_mid_motion(f
     art = AdaptArtefact.load(adapt.run(adapt.AdaptConfig(capture=cap, workspace=ws, loss="vision", window=3,
                                                          space="full", young_init=0.5 * e_true, substeps=1)))
     assert art.extra["estimator"] == "gn" and art.extra["iters_per_frame"] == 6  # (adapt.MOVING_IMAGE_ITERATIONS)
+    assert art.extra["process_noise"] == 0.03  # (adapt.MOVING_IMAGE_PROCESS_NOISE)
     err = _surface_error(ws, cap, art.positions, art.frames)
     assert np.all(err <= 2e-3), err
     settled = art.young[8:, 0] / e_true
@@ -204,7 +205,7 @@ def test_adapt_identifies_young_from_the_masks_alone_of_a_capture_filmed_mid_mot
     art = AdaptArtefact.load(adapt.run(adapt.AdaptConfig(capture=cap, workspace=ws, loss="silhouette", window=3,
                                                          space="full", young_init=0.5 * e_true, substeps=1)))
     err = _surface_error(ws, cap, art.positions, art.frames)
-    assert art.extra["estimator"] == "gn" and art.loss_kind == "silhouette"
+    assert art.extra["estimator"] == "gn" and art.loss_kind == "silhouette" and art.extra["process_noise"] == 0.03
     assert np.all(err <= 2e-3), err
     settled = art.young[8:, 0] / e_true
     assert np.all(np.abs(settled - 1.0) <= 0.1), settled

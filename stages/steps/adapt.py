@@ -93,8 +93,8 @@ class AdaptConfig:
     loss: Literal["vision", "markers", "silhouette"] = "vision"
     """Observation: rendered Gaussians vs images (needs gaussians.h5, cameras.h5), markers.csv, or silhouette: the
     simulated surface's soft coverage vs masks.h5 (stages/silhouette.py; geometry alone, so frame 0's sag informs E
-    too — with one camera it measured E better than the Gaussians, at ~9× the time per frame:
-    docs/results/accuracy_notes.md, twenty-fourth stop)."""
+    too — with one camera from a sagged equilibrium it measured E about as well as the Gaussians, at several times
+    the time per frame; filmed mid-motion, frame 0 posed from its masks, worse: docs/results/accuracy_one_camera/)."""
     cameras: str = ""
     """Cameras used by the vision or silhouette loss: indices or names, comma separated (empty: all)."""
     frames: str = ""
@@ -150,13 +150,15 @@ class AdaptConfig:
     with markers (docs/results/estimator.md: steps followed within w + 5 frames, E ± 2σ calibrated), adam with
     images (measured closer to the truth than gn on images from a far start, docs/results/vision_bias.md), gn on a
     capture filmed mid-motion ([capture] start = "moving": only gn estimates its start)."""
-    process_noise: float = 0.005
+    process_noise: float | None = None
     """gn: σ of the random walk of log E (and of the ν parameter) per frame — how fast the material may change —
-    while no change of material has been detected in the last w + 5 frames.  Small, so the estimate averages over
-    the motion instead of following the model error, which varies with the motion's phase (two-region beam: the
-    3-frame window's loss minimum in the body moves from below 0.94 to 1.03 E_true at 6 substeps, with or without
-    marker noise, docs/results/estimator_window_sweep.md); a step of E is caught by the change test
-    (--change-threshold), and --process-noise-change applies after it."""
+    while no change of material has been detected in the last w + 5 frames.  Default 0.005: small, so the estimate
+    averages over the motion instead of following the model error, which varies with the motion's phase (two-region
+    beam: the 3-frame window's loss minimum in the body moves from below 0.94 to 1.03 E_true at 6 substeps, with or
+    without marker noise, docs/results/estimator_window_sweep.md); a step of E is caught by the change test
+    (--change-threshold), and --process-noise-change applies after it.  0.03 with images or silhouettes on a
+    capture filmed mid-motion, where the change test misses the steps (docs/results/accuracy_notes.md,
+    twenty-fifth stop)."""
     process_noise_change: float = 0.02
     """gn: σ of the random walk per frame (as --process-noise) during the w + 5 frames after a detected change of
     material, while the estimate re-settles on the new material."""
@@ -306,13 +308,33 @@ def resolve_iterations(config: AdaptConfig, estimator: str, loss: str, start: st
     return MOVING_IMAGE_ITERATIONS if (estimator == "gn" and loss == "vision" and start == "moving") else ITERATIONS
 
 
+PROCESS_NOISE = 0.005
+"""--process-noise's default (AdaptConfig.process_noise)."""
+MOVING_IMAGE_PROCESS_NOISE = 0.03
+"""--process-noise's default for gn with images or silhouettes on a capture filmed mid-motion: there the change
+test does not see the steps of E (one camera's silhouettes: z = 0.78 and 0.42 at the steps), so E follows a step
+only as fast as the random walk lets it.  The bar with E steps ×2 ×4 filmed mid-motion, truth converged in time,
+reduced space, median settled E error at 0.005 / 0.01 / 0.02 / 0.03: one camera's images 15.6 / 12.9 / 12.5 /
+11.4 %, its silhouettes 30.4 / 28.7 / 24.6 / 10.1 %, three cameras' images 19.3 / 17.4 / – / 4.2 %
+(docs/results/accuracy_notes.md, twenty-fifth stop)."""
+
+
+def resolve_process_noise(config: AdaptConfig, estimator: str, loss: str, start: str) -> float:
+    """The --process-noise a run takes: the config's when given, else MOVING_IMAGE_PROCESS_NOISE for gn with images
+    or silhouettes on a moving start and PROCESS_NOISE otherwise."""
+    if config.process_noise is not None:
+        return float(config.process_noise)
+    moving_images = estimator == "gn" and loss in ("vision", "silhouette") and start == "moving"
+    return MOVING_IMAGE_PROCESS_NOISE if moving_images else PROCESS_NOISE
+
+
 def single_camera_warning(cameras_path: Path, camera: str) -> str:
     """The warning of a run on one camera's images: its E is measured less well than from several
     (docs/results/accuracy_one_camera/: the accuracy bench's image rows filmed by one camera)."""
     return (f"{cameras_path}: the images come from one camera ({camera}); on the accuracy bench one camera's images "
             f"left E several times further from the truth than three cameras' on the same bar captures, most of all "
             f"on one filmed mid-motion (docs/results/accuracy_one_camera/accuracy.md): a second camera or "
-            f"markers (--loss markers) measure E better, and on that bar so did the masks alone (--loss silhouette).")
+            f"markers (--loss markers) measure E better.")
 
 
 GN_TRUST_IMAGES = 5.0
@@ -544,7 +566,7 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
     if config.estimator not in ("auto", "adam", "gn"):
         raise RslError(f"{capture.toml_path}: --estimator should be auto, adam or gn, found '{config.estimator}'.")
     estimator = resolve_estimator(config, capture.start)
-    if not (config.process_noise >= 0 and config.process_noise_change >= 0):
+    if not ((config.process_noise is None or config.process_noise >= 0) and config.process_noise_change >= 0):
         raise RslError(f"{capture.toml_path}: --process-noise and --process-noise-change must be 0 or more, found "
                        f"{config.process_noise} and {config.process_noise_change}.")
     if config.gn_trust is not None and not config.gn_trust >= 0:
@@ -1269,7 +1291,8 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     iterations = resolve_iterations(config, "gn", obs.kind, "moving" if loop.moving is not None else "")
     k_th = gn.k_theta
     p_th = np.concatenate([log_e, s_nu]) if config.fit_poisson else log_e.copy()
-    filt = WindowFilter(_gn_prior(p_th), np.full(k_th, float(config.process_noise)))
+    q_settled = resolve_process_noise(config, "gn", obs.kind, "moving" if loop.moving is not None else "")
+    filt = WindowFilter(_gn_prior(p_th), np.full(k_th, q_settled))
     sigma = None
     sens: dict[int, np.ndarray] = {}  # frame -> d state/dp (k_θ, …)
     sig_hist: list[float] = []
@@ -1454,8 +1477,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                     r0 = r_lin[0] + J_lin[0][:, k_th:] @ (res.p[k_th:] - res.p_lin[k_th:])
                 # the process noise of the frame: small while the material is taken as constant, larger during the
                 # w + 5 frames after a detected change (the estimate re-settles there)
-                filt.q = np.full(k_th, process_noise(T, changes, w, config.process_noise,
-                                                     config.process_noise_change))
+                filt.q = np.full(k_th, process_noise(T, changes, w, q_settled, config.process_noise_change))
                 filt.leave(res.p_lin[:k_th], r0, J0, s_fold, huber_weights(r0, sigma, obs.huber), nuisance)
             r_all = np.concatenate(gn.last_rs)
             # the noise level: the median over the last 5 frames of the windows' residual scale per degree of
@@ -1607,6 +1629,8 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         # gn: the --gn-trust that ran (its default resolved from the loss); the provenance keeps the option as given,
         # so that `rsl run` finds an adapt.h5 made with the default up to date
         "gn_trust": resolve_gn_trust(config, obs.kind),
+        # gn: the --process-noise that ran (its default resolved from the loss and the start), as gn_trust
+        "process_noise": resolve_process_noise(config, resolve_estimator(config, start), obs.kind, start),
         "material_changes_detected": list(getattr(rec, "changes", [])),  # gn: frames whose innovation widened θ
         # gn: per frame, the change test's normalised innovation rᵀr/(mσ²) (None: not tested)
         "innovation_ratio": [None if not np.isfinite(z) else float(z) for z in getattr(rec, "innovation", [])],

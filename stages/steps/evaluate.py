@@ -206,7 +206,8 @@ def _adapt_errors(config, ws, capture, truth, adapt_path, mesh_path, reporter) -
         "psnr_mean": float(np.mean(psnr)) if psnr else None,
         "psnr_per_frame": dict(zip(map(str, psnr_frames), psnr)),
         "forces": _forces(config, capture, adapt, mesh, reporter,
-                          filter_model(read_provenance(adapt_path).get("config"), capture.material.poisson_range)),
+                          filter_model(read_provenance(adapt_path).get("config"), capture.material.poisson_range,
+                                       adapt.extra)),
     }
     if config.plot:
         _plot(ws / "evaluation_young.png", frames, adapt, truth, idx, vert_err)

@@ -418,7 +418,7 @@ def _compute_forces(ctx: Context) -> dict:
                        damping=material_damping(ctx.capture, ctx.adapt))
     substeps = replay_substeps(FORCE_SUBSTEPS, ad)  # rsl export --forces' default replay
     walk = filter_model(read_provenance(ctx.ws / KIND_FILES["adapt"]).get("config"),
-                        ctx.capture.material.poisson_range)  # the gn filter's random walk (θ rule "smoothed")
+                        ctx.capture.material.poisson_range, ad.extra)  # the gn filter's random walk (θ rule "smoothed")
     rows, _, _ = adapted_forces(scene, controls, ad, ctx.capture.start, substeps, ctx.internal_forces,
                                 ctx.config.contact_distance, model=walk)
     out: dict = {}
