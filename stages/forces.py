@@ -302,10 +302,11 @@ def filter_model(config: dict | None, poisson_range, extra: dict | None = None) 
     keys = ("window", "process_noise", "change_sigma", "model_error", "model_error_poisson")
     if any(config.get(k) is None for k in keys) or poisson_range is None:
         return None
-    change = config.get("process_noise_change")
+    q, change = float(config["process_noise"]), config.get("process_noise_change")
     lo, hi = (float(v) for v in np.ravel(poisson_range)[:2])
-    return FilterModel(int(config["window"]), float(config["process_noise"]),
-                       float(config["process_noise"] if change is None else change), float(config["change_sigma"]),
+    # (after a change adapt takes the larger of the two σ)
+    return FilterModel(int(config["window"]), q, q if change is None else max(q, float(change)),
+                       float(config["change_sigma"]),
                        float(config["model_error"]), float(config["model_error_poisson"]), (lo, hi))
 
 

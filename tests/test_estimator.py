@@ -768,6 +768,9 @@ def test_process_noise_defaults_to_more_for_gn_on_images_or_silhouettes_of_a_mov
     assert filter_model(cfg, (0.3, 0.49)) is None  # (no value: not a gn run's)
     assert filter_model(cfg, (0.3, 0.49), {"process_noise": 0.03}).process_noise == 0.03
     assert filter_model({**cfg, "process_noise": 0.01}, (0.3, 0.49), {"process_noise": 0.03}).process_noise == 0.01
+    # after a change the walk never takes less than the settled σ (adapt: max of the two)
+    assert filter_model(cfg, (0.3, 0.49), {"process_noise": 0.03}).process_noise_change == 0.03
+    assert filter_model({**cfg, "process_noise": 0.005}, (0.3, 0.49)).process_noise_change == 0.02
 
 
 def test_cluster_scale2_sums_by_cluster_whatever_the_labels_are():

@@ -161,7 +161,8 @@ class AdaptConfig:
     twenty-fifth stop)."""
     process_noise_change: float = 0.02
     """gn: σ of the random walk per frame (as --process-noise) during the w + 5 frames after a detected change of
-    material, while the estimate re-settles on the new material."""
+    material, while the estimate re-settles on the new material (the larger of the two: never less than
+    --process-noise's)."""
     state_correction: Literal["states", "past", "off"] = "states"
     """gn: also estimate a correction of the window's two starting states, so the simulated past cannot drift
     from what is observed.  states: every latent coordinate of both states in the reduced space (2r unknowns),
@@ -1477,7 +1478,8 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                     r0 = r_lin[0] + J_lin[0][:, k_th:] @ (res.p[k_th:] - res.p_lin[k_th:])
                 # the process noise of the frame: small while the material is taken as constant, larger during the
                 # w + 5 frames after a detected change (the estimate re-settles there)
-                filt.q = np.full(k_th, process_noise(T, changes, w, q_settled, config.process_noise_change))
+                filt.q = np.full(k_th, process_noise(T, changes, w, q_settled,
+                                                     max(q_settled, config.process_noise_change)))
                 filt.leave(res.p_lin[:k_th], r0, J0, s_fold, huber_weights(r0, sigma, obs.huber), nuisance)
             r_all = np.concatenate(gn.last_rs)
             # the noise level: the median over the last 5 frames of the windows' residual scale per degree of

@@ -322,8 +322,9 @@ def compute_forces(seq: Sequence, field: StressField, config: ExportConfig, repo
         # replayed in the full space, as truth/forces.csv defines them (stages.forces module doc)
         substeps = replay_substeps(config.force_substeps, seq.adapt)
         start = seq.capture.start if seq.capture is not None else None
+        # the gn filter's random walk (--force-theta smoothed)
         walk = (filter_model(read_provenance(seq.source_path).get("config"), seq.capture.material.poisson_range,
-                             seq.adapt.extra) if seq.capture is not None else None)  # the gn filter's random walk (--force-theta smoothed)
+                             seq.adapt.extra) if seq.capture is not None else None)
         rows, applied, _ = adapted_forces(scene, controls, seq.adapt, start, substeps, lambda: field.forces,
                                           config.contact_distance, reporter, config.force_extrapolate,
                                           config.force_theta, walk)
