@@ -69,7 +69,8 @@ from stages.window_model import Observation, WindowBackend
 from stages.workspace import prepare_workspace
 from stages.window_backends import (FullSpace, Guarded, ReducedSpace, SolveCollapsed, SolveGuard, StoredStates,
                                     substepped)
-from stages.moving_start import image_motion, marker_motion, start_basis, start_directions, start_prior
+from stages.moving_start import (image_motion, marker_motion, silhouette_pose, start_basis, start_directions,
+                                 start_prior)
 from stages.observations import MarkerObservation, VisionObservation
 from stages.windows import (STATE_PRIOR_SCALE, GNWindow, StartWindow, StaticWindow, WindowObjective, controls_static,
                             model_error_floors, past_directions, sigma_from_cov, state_directions)
@@ -316,7 +317,7 @@ MOVING_IMAGE_PROCESS_NOISE = 0.03
 test does not see the steps of E (one camera's silhouettes: z = 0.78 and 0.42 at the steps), so E follows a step
 only as fast as the random walk lets it.  The bar with E steps ×2 ×4 filmed mid-motion, truth converged in time,
 reduced space, median settled E error at 0.005 / 0.01 / 0.02 / 0.03: one camera's images 15.6 / 12.9 / 12.5 /
-11.4 %, its silhouettes 30.4 / 28.7 / 24.6 / 10.1 %, three cameras' images 19.3 / 17.4 / – / 4.2 %
+11.4 %, its silhouettes 30.4 / 28.7 / 24.6 / 10.1 %, three cameras' images 19.3 / 17.4 / 9.4 / 4.2 %
 (docs/results/accuracy_notes.md, twenty-fifth stop)."""
 
 
@@ -1184,7 +1185,6 @@ noise the estimator assumes, MarkerObservation.noise_floor)."""
 def _silhouette_start_pose(capture, ws: Path, mesh, young, poisson) -> np.ndarray:
     """(n, 3) m: frame 0 of a moving start posed from its masks (stages.moving_start.silhouette_pose), for
     --loss silhouette, which has no Gaussians and thus no pose of fit-gaussians to start from."""
-    from stages.moving_start import silhouette_pose
     from stages.sim.scene import SimulationError
 
     try:
