@@ -652,7 +652,8 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
         inputs_used += [ws / KIND_FILES[k] for k in ("cameras", "masks")]
         if capture.start == "moving":
             # a moving start: frame 0 posed from its own masks, as fit-gaussians poses it for the Gaussians
-            # (stages.moving_start.silhouette_pose, capture.toml's E for the sag's first guess); the windows
+            # (stages.moving_start.silhouette_pose; the sag's first guess is the initial E — --young-init when given,
+            # where fit-gaussians takes capture.toml's); the windows
             # holding frame 0 add their estimated offsets to that pose, which frame 0's masks then inform directly
             moving_reference = _pose_state(backend, _silhouette_start_pose(capture, ws, mesh, young0, poisson0))
             moving = start_basis(backend, moving_reference, young0, poisson0)
@@ -1289,10 +1290,11 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     gn = GNWindow(objective, config.fit_poisson, s_nu)
     gn.young_range = loop.young_range
     gn.trust = resolve_gn_trust(config, obs.kind)
-    iterations = resolve_iterations(config, "gn", obs.kind, "moving" if loop.moving is not None else "")
+    start = "moving" if loop.moving is not None else ""
+    iterations = resolve_iterations(config, "gn", obs.kind, start)
     k_th = gn.k_theta
     p_th = np.concatenate([log_e, s_nu]) if config.fit_poisson else log_e.copy()
-    q_settled = resolve_process_noise(config, "gn", obs.kind, "moving" if loop.moving is not None else "")
+    q_settled = resolve_process_noise(config, "gn", obs.kind, start)
     filt = WindowFilter(_gn_prior(p_th), np.full(k_th, q_settled))
     sigma = None
     sens: dict[int, np.ndarray] = {}  # frame -> d state/dp (k_θ, …)
@@ -1612,13 +1614,14 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
     states = np.stack([loop.stored[t] for t in rec.frames])
     X = backend.decode(states)[:, :mesh.n_vertices]
     start = "moving" if loop.moving is not None else ""
+    estimator = resolve_estimator(config, start)
     # how the Gaussians followed the mesh (stages.results.gaussian_anchor); a moving start's: bound as fitted
     gaussian_anchor = "fitted" if loop.moving is not None and obs.kind == "vision" else getattr(obs, "anchor_kind",
                                                                                                 None)
     extra = {
         "capture": str(Path(config.capture).resolve()),
         "frame_loss": rec.frame_loss,
-        "iters_per_frame": resolve_iterations(config, resolve_estimator(config, start), obs.kind, start),
+        "iters_per_frame": resolve_iterations(config, estimator, obs.kind, start),
         "cameras": getattr(obs, "cameras", []),
         "gaussian_anchor": gaussian_anchor,
         "refine": config.refine,
@@ -1627,12 +1630,12 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         # --damping auto: {"beta", "tried": [[β, cost], ...], "flat"} (stages/damping_profile.py); else None
         "damping_profile": None if rec.damping_profile is None else rec.damping_profile.as_record(),
         "status": status,  # complete | interrupted | failed
-        "estimator": resolve_estimator(config, start),
+        "estimator": estimator,
         # gn: the --gn-trust that ran (its default resolved from the loss); the provenance keeps the option as given,
         # so that `rsl run` finds an adapt.h5 made with the default up to date
         "gn_trust": resolve_gn_trust(config, obs.kind),
         # gn: the --process-noise that ran (its default resolved from the loss and the start), as gn_trust
-        "process_noise": resolve_process_noise(config, resolve_estimator(config, start), obs.kind, start),
+        "process_noise": resolve_process_noise(config, estimator, obs.kind, start),
         "material_changes_detected": list(getattr(rec, "changes", [])),  # gn: frames whose innovation widened θ
         # gn: per frame, the change test's normalised innovation rᵀr/(mσ²) (None: not tested)
         "innovation_ratio": [None if not np.isfinite(z) else float(z) for z in getattr(rec, "innovation", [])],
