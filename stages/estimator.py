@@ -460,11 +460,13 @@ class ChangeDetector:
 
 
 def process_noise(frame: int, changes: list, window: int, settled: float, after_change: float) -> float:
-    """σ of the random walk per frame that the arrival cost takes at ``frame``: ``after_change`` during the
-    window + 5 frames after the last detected change of the unknowns (``changes``: their frames), while the estimate
-    re-settles on the new value; ``settled`` otherwise (a constant material: the estimate averages over the motion
-    rather than follow a model error that varies with it)."""
-    return float(after_change if changes and 0 <= frame - changes[-1] < window + 5 else settled)
+    """σ of the random walk per frame that the arrival cost takes at ``frame``: max(``settled``, ``after_change``)
+    during the window + 5 frames after the last detected change of the unknowns (``changes``: their frames), while
+    the estimate re-settles on the new value; ``settled`` otherwise (a constant material: the estimate averages over
+    the motion rather than follow a model error that varies with it)."""
+    if changes and 0 <= frame - changes[-1] < window + 5:
+        return float(max(settled, after_change))
+    return float(settled)
 
 
 def _sym_inv(a: np.ndarray) -> np.ndarray:

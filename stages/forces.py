@@ -304,8 +304,7 @@ def filter_model(config: dict | None, poisson_range, extra: dict | None = None) 
         return None
     q, change = float(config["process_noise"]), config.get("process_noise_change")
     lo, hi = (float(v) for v in np.ravel(poisson_range)[:2])
-    # (after a change adapt takes the larger of the two σ)
-    return FilterModel(int(config["window"]), q, q if change is None else max(q, float(change)),
+    return FilterModel(int(config["window"]), q, q if change is None else float(change),
                        float(config["change_sigma"]),
                        float(config["model_error"]), float(config["model_error_poisson"]), (lo, hi))
 

@@ -326,6 +326,8 @@ def test_change_test_stays_quiet_on_a_constant_sequence_with_noise():
 def test_process_noise_is_small_until_a_change_and_larger_for_w_plus_5_frames_after_it():
     assert process_noise(10, [], 3, 0.005, 0.02) == 0.005
     assert [process_noise(t, [12], 3, 0.005, 0.02) for t in (11, 12, 19, 20)] == [0.005, 0.02, 0.02, 0.005]
+    # a settled σ above the change's: the walk after a change never takes less than the settled σ
+    assert [process_noise(t, [12], 3, 0.03, 0.02) for t in (11, 12, 19, 20)] == [0.03, 0.03, 0.03, 0.03]
 
 
 def test_constant_material_stays_within_3_percent_although_the_model_error_varies_with_the_motion():
@@ -768,9 +770,14 @@ def test_process_noise_defaults_to_more_for_gn_on_images_or_silhouettes_of_a_mov
     assert filter_model(cfg, (0.3, 0.49)) is None  # (no value: not a gn run's)
     assert filter_model(cfg, (0.3, 0.49), {"process_noise": 0.03}).process_noise == 0.03
     assert filter_model({**cfg, "process_noise": 0.01}, (0.3, 0.49), {"process_noise": 0.03}).process_noise == 0.01
-    # after a change the walk never takes less than the settled σ (adapt: max of the two)
-    assert filter_model(cfg, (0.3, 0.49), {"process_noise": 0.03}).process_noise_change == 0.03
-    assert filter_model({**cfg, "process_noise": 0.005}, (0.3, 0.49)).process_noise_change == 0.02
+    # after a change the walk never takes less than the settled σ (stages.estimator.process_noise: max of the two),
+    # in adapt and in the smoother's model alike
+    m = filter_model(cfg, (0.3, 0.49), {"process_noise": 0.03})
+    assert process_noise(7, [6], 3, m.process_noise, m.process_noise_change) == 0.03
+    assert process_noise(20, [6], 3, m.process_noise, m.process_noise_change) == 0.03
+    m = filter_model({**cfg, "process_noise": 0.005}, (0.3, 0.49))
+    assert process_noise(7, [6], 3, m.process_noise, m.process_noise_change) == 0.02
+    assert process_noise(20, [6], 3, m.process_noise, m.process_noise_change) == 0.005
 
 
 def test_cluster_scale2_sums_by_cluster_whatever_the_labels_are():

@@ -1480,8 +1480,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                     r0 = r_lin[0] + J_lin[0][:, k_th:] @ (res.p[k_th:] - res.p_lin[k_th:])
                 # the process noise of the frame: small while the material is taken as constant, larger during the
                 # w + 5 frames after a detected change (the estimate re-settles there)
-                filt.q = np.full(k_th, process_noise(T, changes, w, q_settled,
-                                                     max(q_settled, config.process_noise_change)))
+                filt.q = np.full(k_th, process_noise(T, changes, w, q_settled, config.process_noise_change))
                 filt.leave(res.p_lin[:k_th], r0, J0, s_fold, huber_weights(r0, sigma, obs.huber), nuisance)
             r_all = np.concatenate(gn.last_rs)
             # the noise level: the median over the last 5 frames of the windows' residual scale per degree of
