@@ -1433,11 +1433,13 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             if config.fit_poisson and config.poisson_information > 0 and len(frames) > 1:
                 hold_nu = weakly_informed(n_data, prior.info, np.diag(filt.prior.cov), R + np.arange(R),
                                           config.poisson_information)
-            if obs.kind == "vision" and config.change_threshold > 0 and len(frames) > 1:
-                # images: the window's states start from a past simulated with earlier estimates, and the frames
-                # folded while the estimate was far off (a far start) or the material changed make an arrival
-                # cost the window's data contradict: its variance of log E is matched to them (estimator.
-                # matched_arrival) where they lie more than --change-threshold σ away
+            if obs.kind in ("vision", "silhouette") and config.change_threshold > 0 and len(frames) > 1:
+                # images and silhouettes: the window's states start from a past simulated with earlier estimates,
+                # and the frames folded while the estimate was far off (a far start) or the material changed make an
+                # arrival cost the window's data contradict: its variance of log E is matched to them (estimator.
+                # matched_arrival) where they lie more than --change-threshold σ away (silhouettes filmed
+                # mid-motion: their change test sees no step, and the matched arrival follows it; accuracy_notes.md,
+                # twenty-sixth stop)
                 filt.prior, _ = matched_arrival(filt.prior, res.p, n_data, prior.info,
                                                 np.arange(R), config.change_threshold)
             if hasattr(obs, "clusters") and len(frames) > 1:  # (the fit frame alone carries no information)
