@@ -93,17 +93,21 @@ def write(rows: list[dict], values: list[float], out: Path, meta: dict) -> None:
                                f"{platform.python_version()}",
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), "rows": rows}
     (out / "process_noise.json").write_text(json.dumps(data, indent=1))
-    keys = list(dict.fromkeys((r["case"], r["start"], r["loss"], r["space"], r["cameras"], r["dofs"]) for r in rows))
-    by = {(r["case"], r["start"], r["loss"], r["space"], r["cameras"], r["dofs"], r["value"]): r for r in rows}
-    head = ("| capture | loss | cameras | DOFs | " + " | ".join(f"{v:g}" for v in values)
-            + " | best | best ÷ " + f"{values[0]:g}" + " |\n|---|---|---|---:|" + "---:|" * len(values) + "---|---:|")
+    # a row per capture, loss, mesh and code (runs of one workspace by different code: one row each)
+    keys = list(dict.fromkeys((r["case"], r["start"], r["loss"], r["space"], r["cameras"], r["dofs"], r.get("code"))
+                              for r in rows))
+    by = {(r["case"], r["start"], r["loss"], r["space"], r["cameras"], r["dofs"], r.get("code"), r["value"]): r
+          for r in rows}
+    head = ("| capture | loss | cameras | DOFs | code | " + " | ".join(f"{v:g}" for v in values)
+            + " | best | best ÷ " + f"{values[0]:g}" + " |\n|---|---|---|---:|---|" + "---:|" * len(values)
+            + "---|---:|")
     lines, seg_lines, force_lines = [head], [], []
     for k in keys:
         got = [by.get((*k, v)) for v in values]
         med = [g.get("median_error", np.nan) if g else np.nan for g in got]
         finite = [i for i, m in enumerate(med) if np.isfinite(m)]
         best = min(finite, key=lambda i: med[i]) if finite else None
-        label = f"| {k[0]} {k[1]} | {k[2]} | {k[4]} | {k[5]} | "
+        label = f"| {k[0]} {k[1]} | {k[2]} | {k[4]} | {k[5]} | {k[6]} | "
         lines.append(label + " | ".join(("**" + _pct(m) + "**") if i == best else _pct(m) for i, m in enumerate(med))
                      + f" | {values[best]:g} | " + (f"{med[best] / med[0]:.2f}" if best is not None and
                                                     np.isfinite(med[0]) and med[0] > 0 else "—") + " |"
@@ -111,8 +115,8 @@ def write(rows: list[dict], values: list[float], out: Path, meta: dict) -> None:
         seg_lines.append(label + " | ".join(" / ".join(_pct(s) for s in g["segment_errors"]) if g and "segment_errors"
                                             in g else "—" for g in got) + " |")
         force_lines.append(label + " | ".join(_pct(g.get("force_error")) if g else "—" for g in got) + " |")
-    sub_head = ("| capture | loss | cameras | DOFs | " + " | ".join(f"{v:g}" for v in values) + " |\n|---|---|---|---:|"
-                + "---:|" * len(values))
+    sub_head = ("| capture | loss | cameras | DOFs | code | " + " | ".join(f"{v:g}" for v in values)
+                + " |\n|---|---|---|---:|---|" + "---:|" * len(values))
     md = (f"# `rsl adapt --process-noise` on captures filmed mid-motion\n\n"
           f"gn on images (Gaussians) or silhouettes, start = moving. Truth: P2, {meta['truth_substeps']} substeps per "
           f"frame, hard handles; the bar's E steps E0 → 2E0 → 4E0 at T/3 and 2T/3; rsl: P2 fTetWild mesh, reduced "
@@ -138,7 +142,7 @@ def write(rows: list[dict], values: list[float], out: Path, meta: dict) -> None:
         for c, (v, g) in enumerate(got):
             if g and "young" in g:
                 ax.plot(np.asarray(g["young"])[:, 0], color=f"C{c}", lw=1, label=f"--process-noise {v:g}")
-        ax.set_title(f"{k[0]} {k[1]}, {k[2]}, {k[4]} camera(s)", fontsize=9)
+        ax.set_title(f"{k[0]} {k[1]}, {k[2]}, {k[4]} camera(s), {str(k[6])[:7]}", fontsize=8)
         ax.set_xlabel("frame")
         ax.set_ylabel("E (Pa)")
         ax.set_yscale("log")
