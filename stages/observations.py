@@ -206,7 +206,7 @@ class VisionObservation:
     kind = "vision"
 
     def __init__(self, capture: Capture, ws: Path, cam_spec: str, mesh: MeshArtefact, appearance: bool,
-                 anchor: str = "rebind"):
+                 anchor: str = "rebind", unseen: str = "ignore"):
         from stages.render.image_loss import ImageLoss  # loads scipy.spatial: rsl adapt --help stays light
 
         self.capture, self.n = capture, mesh.n_vertices
@@ -243,6 +243,21 @@ class VisionObservation:
         self.fit_frame = int(read_provenance(ws / KIND_FILES["gaussians"]).get("config", {}).get("frame", 0) or 0)
         self.rest = self.loss_fn.fit_positions  # (n, 3) where the Gaussians were fitted (rest for older files)
         self.anchor = np.zeros_like(mesh.vertices)  # (n, 3) x_fit(θ) − fit_positions
+        # Gaussians whose colours the fit hardly saw (a face hidden from its cameras, or seen edge-on, that turns
+        # into view): the pixels they paint are left out (:meth:`unseen`).  The fit's evidence of each Gaussian,
+        # W_i: its blending weight summed over the images of the cameras fit-gaussians fitted (capture.toml's
+        # cameras in cameras.h5), at the fit pose with the binding as fitted.  --appearance refines the colours
+        # online instead, so it keeps them.
+        if unseen not in ("ignore", "keep"):
+            raise RslError(f"unseen_gaussians should be 'ignore' or 'keep', found '{unseen}'.")
+        self.unseen_ignored = unseen == "ignore" and not appearance
+        self._unseen: dict[int, list[np.ndarray | None]] = {}
+        self.unseen_pixels: dict[int, int] = {}  # frame -> pixels :meth:`unseen` left out (over the cameras)
+        self.fit_weight = None
+        if self.unseen_ignored:
+            names = [c.name for c in cams_art.cameras]
+            fit_cams = [cams_art.by_name(c) for c in capture.camera_names if c in names] or list(cams_art.cameras)
+            self.fit_weight = self.loss_fn.blend_weights(self.rest, fit_cams).sum(axis=0)  # (G,) px
 
     def rebind(self, x_fit: np.ndarray) -> None:
         """Anchor the Gaussians at the simulated fit-frame positions x_fit (n, 3)."""
@@ -289,15 +304,48 @@ class VisionObservation:
                 del self._cache[old]
         return self._cache[t]
 
-    def ignore(self, t: int) -> list[np.ndarray | None]:
-        """Per chosen camera, the (H, W) pixels the occluders cover at frame t (None: no occluder)."""
-        if not self.occluded:
-            return [None] * len(self.cameras)
-        if t not in self._ignore:
-            self._ignore[t] = [ignore_mask(self.controls, t, c) for c in self._cams]
-            for old in [k for k in self._ignore if k < t - 64]:
-                del self._ignore[old]
-        return self._ignore[t]
+    def ignore(self, t: int, x: np.ndarray | None = None) -> list[np.ndarray | None]:
+        """Per chosen camera, the (H, W) pixels left out at frame t (None: none): those the occluders cover, and
+        those :meth:`unseen` finds (from the render positions x (n, 3) at the frame's first evaluation; later
+        calls, x or not, take that frame's pixels as found then)."""
+        occ = [None] * len(self.cameras)
+        if self.occluded:
+            if t not in self._ignore:
+                self._ignore[t] = [ignore_mask(self.controls, t, c) for c in self._cams]
+                for old in [k for k in self._ignore if k < t - 64]:
+                    del self._ignore[old]
+            occ = self._ignore[t]
+        if not self.unseen_ignored or (x is None and t not in self._unseen):
+            return occ
+        un = self.unseen(t, x)
+        return [a if b is None else (b if a is None else a | b) for a, b in zip(occ, un)]
+
+    UNSEEN_RATIO = 1.5
+    """A Gaussian paints unseen colour in a camera when its blending weight there exceeds this many times the fit's
+    evidence of it (+ :attr:`UNSEEN_FLOOR`): the one-camera bar filmed mid-motion, whose end face turns into view,
+    flagged that face alone at 1.5 and 2 (2 with holes in it) and nothing of the faces the fit saw
+    (accuracy_notes.md, twenty-seventh stop)."""
+    UNSEEN_FLOOR = 0.05
+    """Pixels of blending weight below which no Gaussian is flagged (:attr:`UNSEEN_RATIO`)."""
+
+    def unseen(self, t: int, x: np.ndarray) -> list[np.ndarray | None]:
+        """Per chosen camera, the (H, W) pixels of frame t painted at least half by Gaussians whose colour the fit
+        did not see: Gaussian i is flagged in camera c when w_i^c(x) > UNSEEN_RATIO · W_i + UNSEEN_FLOOR (w its
+        blending weight summed over the image at the render positions x (n, 3), W the fit's, ImageLoss.
+        blend_weights), and a pixel of coverage A ≥ 0.05 is left out when the flagged Gaussians paint ≥ A / 2 of it
+        (ImageLoss.painted_share).  Computed at the frame's first call and kept (None: no pixel)."""
+        if t not in self._unseen:
+            w = self.loss_fn.blend_weights(x)
+            flags = w > self.UNSEEN_RATIO * self.fit_weight[None] + self.UNSEEN_FLOOR
+            out = []
+            for share, cover in self.loss_fn.painted_share(x, flags):
+                m = (cover >= 0.05) & (share >= 0.5 * cover)
+                out.append(m if m.any() else None)
+            self._unseen[t] = out
+            self.unseen_pixels[t] = int(sum(m.sum() for m in out if m is not None))
+            for old in [k for k in self._unseen if k < t - 64]:
+                del self._unseen[old]
+        return self._unseen[t]
 
     def loss(self, frames: Sequence[int], X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(per-frame L1 losses (w,), dL/dX (w, n, 3)); also sets ``anchor_grad`` (n, 3) = dL/dx_f, the derivative
@@ -306,7 +354,8 @@ class VisionObservation:
         losses, grad = np.zeros(len(frames)), np.zeros_like(X)
         ga = np.zeros((self.n, 3))
         for i, t in enumerate(frames):
-            li, gi, gai = self.loss_fn(X[i, :self.n] - self.anchor, self.targets(t), self.ignore(t), anchor_grad=True)
+            x = X[i, :self.n] - self.anchor
+            li, gi, gai = self.loss_fn(x, self.targets(t), self.ignore(t, x), anchor_grad=True)
             losses[i], grad[i, :self.n] = li, gi
             ga += gai if self.anchor_kind == "rebind" else -gi
         self.anchor_grad = ga
@@ -321,12 +370,14 @@ class VisionObservation:
         return np.concatenate([im.reshape(-1) for im in self.loss_fn.render(x[:self.n] - self.anchor)]
                               ).astype(np.float64)
 
-    def _keep(self, t: int) -> np.ndarray | float:
-        """1 for the pixels that count at frame t, 0 under an occluder (flattened like the residuals), or 1.0."""
-        if not self.occluded:
+    def _keep(self, t: int, x: np.ndarray | None = None) -> np.ndarray | float:
+        """1 for the pixels that count at frame t, 0 for those :meth:`ignore` leaves out (flattened like the
+        residuals), or 1.0 when it leaves none; ``x``: the render positions (n, 3) of the frame's evaluation."""
+        masks = self.ignore(t, x)
+        if all(m is None for m in masks):
             return 1.0
         return np.concatenate([np.repeat(~(np.zeros(c.height * c.width, bool) if m is None else m.reshape(-1)), 3)
-                               for c, m in zip(self._cams, self.ignore(t))]).astype(np.float64)
+                               for c, m in zip(self._cams, masks)]).astype(np.float64)
 
     def _target_flat(self, t: int) -> np.ndarray:
         """Frame t's :meth:`targets` of every camera flattened like the residuals, float64 (kept for t and the 7
@@ -349,9 +400,10 @@ class VisionObservation:
         return a * (keep[:, None] if a.ndim == 2 else keep)
 
     def residuals(self, frames: Sequence[int], X: np.ndarray) -> list[np.ndarray]:
-        """Per frame, r_f = R(G(x_f), c) − Ĩ_f^c over every pixel, channel and camera, flattened (0 under an
-        occluder)."""
-        return [self._masked(self._renders(x) - self._target_flat(t), self._keep(t)) for t, x in zip(frames, X)]
+        """Per frame, r_f = R(G(x_f), c) − Ĩ_f^c over every pixel, channel and camera, flattened (0 where
+        :meth:`ignore` leaves a pixel out)."""
+        return [self._masked(self._renders(x) - self._target_flat(t), self._keep(t, x[:self.n] - self.anchor))
+                for t, x in zip(frames, X)]
 
     #: how GNWindow gets ∂r/∂p: "jvp" — exact forward mode through projection and rasterizer, all k columns in one
     #: pass per frame and camera (:meth:`residuals_and_jacobian`), where the renderer supports it
@@ -384,7 +436,7 @@ class VisionObservation:
             if dXa is not None and self.anchor_kind == "offset":
                 V = V - dXa[:, :self.n]
             out = lf.images_jvp(x[:self.n] - self.anchor, V, binding)
-            keep = self._keep(t)
+            keep = self._keep(t, x[:self.n] - self.anchor)
             rs.append(self._masked(np.concatenate([o[0].reshape(-1) for o in out]).astype(np.float64)
                                    - self._target_flat(t), keep))
             J = np.concatenate([o[1].reshape(len(V), -1) for o in out], axis=1).T.astype(np.float64)  # (m, k)

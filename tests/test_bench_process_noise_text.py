@@ -35,3 +35,20 @@ def test_process_noise_page_marks_the_lowest_value_and_keeps_codes_apart(tmp_pat
     assert "| bar moving | silhouette | 1 | 5000 | old | 47.0 | **3.3** | 0.03 | 0.07 |" in md
     assert "| bar moving | silhouette | 1 | 5000 | new | 2.7 | **2.5** | 0.03 | 0.93 |" in md
     assert "| bar moving | silhouette | 1 | 5000 | new | 2.7 / 2.7 / 2.7 | 2.5 / 2.5 / 2.5 |" in md
+
+
+def test_another_option_names_its_page_and_keeps_its_values_as_text(tmp_path: Path) -> None:
+    """--option=--unseen-gaussians --values keep,ignore: the page unseen_gaussians.md, its columns the values as
+    given, the baseline the first."""
+    m = load_bench("process_noise")
+    assert m.value("0.03") == 0.03 and m.value("keep") == "keep"
+    rows = [{**_row(0.0, 0.337, "new"), "value": "keep", "loss": "vision"},
+            {**_row(0.0, 0.166, "new"), "value": "ignore", "loss": "vision"}]
+    m.write(rows, ["keep", "ignore"], tmp_path, {"truth_substeps": 24, "sequences": 12, "runs": [],
+                                                 "option": "--unseen-gaussians"})
+    md = (tmp_path / "unseen_gaussians.md").read_text()
+    assert md.startswith("# `rsl adapt --unseen-gaussians` on captures filmed mid-motion")
+    assert "| capture | loss | cameras | DOFs | code | keep | ignore | best | best ÷ keep |" in md
+    assert "| bar moving | vision | 1 | 5000 | new | 33.7 | **16.6** | ignore | 0.49 |" in md
+    assert (tmp_path / "unseen_gaussians.json").is_file() and (tmp_path / "unseen_gaussians.png").is_file()
+    assert not (tmp_path / "process_noise.md").exists()

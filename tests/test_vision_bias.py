@@ -384,14 +384,15 @@ def _adapt_own_model(cap: Path, ws: Path, anchor: str, change: float = 0.4, cali
                      recalibrate: bool = False):
     """`rsl adapt`'s online Adam (window 2, from E_TRUE, ν held; --anchor-calibration ``calibration``, 0: the
     --anchor-change rule): (E per frame, the anchor's E per frame (NaN unless estimated), the frame from which the
-    anchor's material was its own unknown (None: never))."""
+    anchor's material was its own unknown (None: never)).  --unseen-gaussians keep: rsl's own Gaussians film these
+    captures, so those the fit did not see paint the truth's colours too."""
     from stages.artefacts import AdaptArtefact
     from stages.steps import adapt
 
     adapt.run(adapt.AdaptConfig(capture=cap, workspace=ws, window=2, space="full", loss="vision", young_init=E_TRUE,
                                 fit_poisson=False, estimator="adam", vision_anchor=anchor, lr=0.1,
                                 anchor_change=change, anchor_calibration=calibration, recalibrate=recalibrate,
-                                substeps=1))  # the capture's own time step
+                                substeps=1, unseen_gaussians="keep"))  # the capture's own time step
     a = AdaptArtefact.load(ws / "adapt.h5")
     Ea = np.asarray(a.extra.get("anchor_young") or [[np.nan]] * len(a.young))[:, 0]
     return a.young[:, 0], Ea, a.extra.get("anchor_apart_from")

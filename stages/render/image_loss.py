@@ -189,29 +189,72 @@ class ImageLoss:
         M = F L, Σ = M Mᵀ.  ``views``: [(camera, background)] to render instead of the loss's own cameras and
         backgrounds (:meth:`render_views`).
         """
+        g = self.g
+        beta, factor = self._beta64, self._factor
+        if xa is not None and self._anchor_x is not None:
+            beta, Fi, _, _ = self._anchored(xa)
+            factor = Fi @ self.torch.as_tensor(self._fit_factor)
+        pairs = list(zip(self.cams, self.backgrounds)) if views is None else views
+        return [g.shade(*proj, cam, bg, self.rasterizer).image
+                for proj, (cam, bg) in zip(self._projected(xt, beta, factor, [c for c, _ in pairs]), pairs)]
+
+    def _projected(self, xt, beta, factor, cams: list) -> list:
+        """Per camera (means2d, conics, depths, visible, means — None on the fused path) of the Gaussians of the
+        binding (β, factors L) at positions xt: the fused numba kernel (bind_project.project_bound) where it
+        applies (rasterizer "fast", pinhole camera, SH degree 0), else its torch twin (gaussians.bound_geometry +
+        project_gaussians)."""
         from stages.render.bind_project import project_bound
         from stages.render.gaussians import bound_geometry
         from stages.render.projection import project_gaussians
 
         g = self.g
         xt = self.torch.as_tensor(xt)
-        beta, factor = self._beta64, self._factor
-        if xa is not None and self._anchor_x is not None:
-            beta, Fi, _, _ = self._anchored(xa)
-            factor = Fi @ self.torch.as_tensor(self._fit_factor)
         twin = None  # (centres, factors) in torch, computed once for every camera that needs them
         out = []
-        for cam, bg in (zip(self.cams, self.backgrounds) if views is None else views):
+        for cam in cams:
             if self.rasterizer == "fast" and g.fusable(cam):
-                m2d, con, dep, vis = project_bound(xt, beta, factor, self._host, self._shape, cam, g.dtype)
-                means = None
-            else:
-                if twin is None:
-                    twin = bound_geometry(xt, beta, factor, self._host, self._shape, g.dtype)
-                means = twin[0]
-                proj = project_gaussians(means, None, cam, factors=twin[1])
-                m2d, con, dep, vis = proj.means2d, proj.conics, proj.depths, proj.visible
-            out.append(g.shade(m2d, con, dep, vis, means, cam, bg, self.rasterizer).image)
+                out.append((*project_bound(xt, beta, factor, self._host, self._shape, cam, g.dtype), None))
+                continue
+            if twin is None:
+                twin = bound_geometry(xt, beta, factor, self._host, self._shape, g.dtype)
+            proj = project_gaussians(twin[0], None, cam, factors=twin[1])
+            out.append((proj.means2d, proj.conics, proj.depths, proj.visible, twin[0]))
+        return out
+
+    def blend_weights(self, x: np.ndarray, cameras: list | None = None) -> np.ndarray:
+        """(C, G): per camera (``cameras``, artefacts.Camera; None: the loss's own), each Gaussian's blending weight
+        summed over the image, Σ_p α_i(p) Π_{j<i}(1 − α_j(p)) (pixels), at positions x (n, 3) with the current
+        binding — ∂/∂c_i of the summed render of colours c (torch autograd through the rasterizer): how much of
+        the image Gaussian i paints."""
+        from stages.render.gaussians import RASTERIZERS
+
+        torch, g = self.torch, self.g
+        cams = self.cams if cameras is None else [g.camera(c) for c in cameras]
+        out = []
+        for (m2d, con, dep, vis, _), cam in zip(self._projected(torch.tensor(np.asarray(x, np.float64)),
+                                                                self._beta64, self._factor, cams), cams):
+            colors = torch.ones((len(vis), 3), dtype=m2d.dtype, requires_grad=True)
+            premult, _ = RASTERIZERS[self.rasterizer](m2d.detach(), con.detach(), colors, g.opacities().detach(),
+                                                      dep.detach(), vis, cam.width, cam.height)
+            premult[..., 0].sum().backward()
+            out.append(colors.grad[:, 0].numpy().astype(np.float64))
+        return np.stack(out)
+
+    def painted_share(self, x: np.ndarray, flags: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per camera (s (H, W), A (H, W)) at positions x (n, 3): s = Σ_i w_i(p) f_i, the part of each pixel painted
+        by the Gaussians flagged in ``flags`` (C, G) (that camera's row), and A = Σ_i w_i(p) the coverage."""
+        from stages.render.gaussians import RASTERIZERS
+
+        torch, g = self.torch, self.g
+        out = []
+        with torch.no_grad():
+            for (m2d, con, dep, vis, _), cam, f in zip(self._projected(torch.tensor(np.asarray(x, np.float64)),
+                                                                       self._beta64, self._factor, self.cams),
+                                                       self.cams, np.asarray(flags)):
+                colors = torch.as_tensor(np.repeat(np.asarray(f, np.float64)[:, None], 3, axis=1), dtype=m2d.dtype)
+                premult, alpha = RASTERIZERS[self.rasterizer](m2d, con, colors, g.opacities(), dep, vis,
+                                                              cam.width, cam.height)
+                out.append((premult[..., 0].numpy().astype(np.float64), alpha.numpy().astype(np.float64)))
         return out
 
     @property

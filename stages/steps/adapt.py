@@ -140,6 +140,11 @@ class AdaptConfig:
     gaussians.h5 fit_positions: frame f under the start convention with capture.toml's θ; rest for older files)
     follow the simulation.  rebind: each Gaussian is re-bound to the tet of frame f simulated with the current
     θ that holds it (exact at frame f); offset: rendered at x_t − (x_f − x_fit) (first order in x_f − x_fit)."""
+    unseen_gaussians: Literal["ignore", "keep"] = "ignore"
+    """Vision loss: the pixels painted mostly by Gaussians whose colours fit-gaussians hardly saw — a face hidden
+    from its cameras, or seen edge-on, that turns into view: each such Gaussian paints more than 1.5 × the image
+    weight it had in the fit — are left out of the loss (ignore), or compared like the others (keep).  Without
+    --appearance only (which refines those colours online instead)."""
     follow: bool = False
     """Process frames as they appear in the capture folder; Ctrl-C ends with everything saved."""
     follow_timeout: float = 0.0
@@ -668,7 +673,8 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
             moving = start_basis(backend, moving_reference, young0, poisson0)
     else:
         check_same_mesh(mesh_path, ws / KIND_FILES["gaussians"])
-        obs = VisionObservation(capture, ws, config.cameras, mesh, config.appearance, config.gaussian_anchor)
+        obs = VisionObservation(capture, ws, config.cameras, mesh, config.appearance, config.gaussian_anchor,
+                                config.unseen_gaussians)
         inputs_used += [ws / KIND_FILES[k] for k in ("cameras", "gaussians", "masks")]
         inputs_used += [capture.root / "frames" / c if src.files is not None else src.video
                         for c, src in obs.sources.items()]  # the frames read (a hash per camera)
@@ -1635,6 +1641,9 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         "iters_per_frame": resolve_iterations(config, estimator, obs.kind, start),
         "cameras": getattr(obs, "cameras", []),
         "gaussian_anchor": gaussian_anchor,
+        # images, --unseen-gaussians ignore: per frame, the pixels painted by Gaussians the fit did not see, left out
+        "unseen_pixels": ([getattr(obs, "unseen_pixels", {}).get(int(t), 0) for t in frames]
+                          if getattr(obs, "unseen_ignored", False) else None),
         "refine": config.refine,
         "substeps": config.substeps,
         "damping": loop.damping,  # β s of the simulation (capture.toml [material] damping, or --damping)

@@ -1,0 +1,110 @@
+"""Gaussians whose colours the fit did not see (rsl adapt --unseen-gaussians): the blending weights against the
+render they sum (premultiplied colour is linear in the colours), nothing flagged at the fit pose, and the face
+hidden from the camera flagged once it turns into view — its pixels then left out of the residuals and the loss."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from stages.artefacts import Camera, CamerasArtefact, GaussiansArtefact, mesh_artefact
+from stages.render.mesh_raster import look_at
+from stages.sim.meshgen import box_tets
+
+RES = 48
+
+
+def _camera() -> Camera:
+    R, t = look_at(np.array([0.05, -0.3, 0.12]), np.array([0.05, 0.02, 0.02]), np.array([0.0, 0.0, 1.0]))
+    K = np.array([[1.1 * RES, 0, (RES - 1) / 2], [0, 1.1 * RES, (RES - 1) / 2], [0, 0, 1]])
+    return Camera("c0", K, np.zeros(5), R, t, RES, RES)
+
+
+@pytest.fixture(scope="module")
+def bar(tmp_path_factory):
+    """A 6×3×3-cell bar (0.12 × 0.04 × 0.04 m) with 400 small Gaussians throughout, one camera in front of its
+    y = 0 face, one frame (the render at rest, so the fit pose is the rest shape); a capture and workspace for
+    VisionObservation."""
+    from stages.capture import write_image
+    from stages.render.image_loss import ImageLoss
+
+    v, tets = box_tets((6, 3, 3), (0.12, 0.04, 0.04), origin=(-0.01, 0.0, 0.0))
+    mesh = mesh_artefact(v, tets, 1000.0)
+    rng = np.random.default_rng(0)
+    n = 400
+    gauss = GaussiansArtefact(host_tet=rng.integers(0, len(tets), n), bary=rng.dirichlet(np.ones(4), n),
+                              log_scales=np.full((n, 3), np.log(0.004)), rotations=np.tile([1.0, 0, 0, 0], (n, 1)),
+                              opacity_logit=np.full(n, 2.0), sh=rng.normal(0, 1.0, (n, 1, 3)),
+                              background=np.zeros(3))
+    cam = _camera()
+    root = tmp_path_factory.mktemp("unseen")
+    cap, ws = root / "cap", root / "ws"
+    (cap / "frames" / "c0").mkdir(parents=True)
+    import meshio
+
+    meshio.write(str(cap / "object.mesh"), meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)]), file_format="medit")
+    (cap / "capture.toml").write_text('[capture]\ncameras = ["c0"]\nstart = "rest"\n[object]\nmesh = "object.mesh"\n')
+    (cap / "controls.json").write_text(json.dumps({}))
+    img = ImageLoss(gauss, mesh, [cam]).render(v)[0]
+    write_image(cap / "frames" / "c0" / "000000.png", np.round(np.clip(img, 0, 1) * 255).astype(np.uint8))
+    ws.mkdir()
+    CamerasArtefact([cam], "json").save(ws / "cameras.h5")
+    gauss.save(ws / "gaussians.h5")
+    centre = v.mean(axis=0)
+    turned = (v - centre) @ Rotation.from_rotvec([np.pi, 0, 0]).as_matrix().T + centre  # the far face in front
+    return SimpleNamespace(cap=cap, ws=ws, mesh=mesh, v=v, turned=turned)
+
+
+def _obs(bar, unseen="ignore", appearance=False):
+    from stages.capture import load_capture
+    from stages.observations import VisionObservation
+
+    return VisionObservation(load_capture(bar.cap), bar.ws, "", bar.mesh, appearance, "rebind", unseen)
+
+
+def test_blend_weights_are_what_the_render_sums(bar):
+    """Σ_p premult(p) = Σ_i w_i c_i for any colours c (the premultiplied colour is linear in them), and the
+    weights of all Gaussians sum to the coverage in every pixel."""
+    obs = _obs(bar)
+    lf = obs.loss_fn
+    for x in (bar.v, bar.turned):
+        w = lf.blend_weights(x)
+        assert w.shape == (1, 400) and np.all(w >= -1e-6)
+        f = np.random.default_rng(1).uniform(0, 1, (1, 400))
+        share, cover = lf.painted_share(x, f)[0]
+        assert share.sum() == pytest.approx(float(w[0] @ f[0]), rel=1e-4)
+        everything, cover2 = lf.painted_share(x, np.ones((1, 400)))[0]
+        np.testing.assert_allclose(everything, cover, atol=1e-5)
+        np.testing.assert_array_equal(cover, cover2)
+        assert cover.sum() == pytest.approx(float(w.sum()), rel=1e-4)
+
+
+def test_nothing_is_left_out_at_the_fit_pose_and_the_face_turned_into_view_is(bar):
+    """At the pose of the fit every Gaussian paints what it painted there: no pixel flagged.  Turned 180° about
+    the bar's axis, the face the camera never saw is in front: its pixels are flagged (most of the object's),
+    their residuals are 0, and the frame keeps the pixels found at its first evaluation."""
+    obs = _obs(bar)
+    assert obs.unseen(0, bar.v) == [None]
+    assert obs.unseen_pixels[0] == 0
+    obs2 = _obs(bar)
+    mask = obs2.unseen(0, bar.turned)[0]
+    cover = obs2.loss_fn.painted_share(bar.turned, np.ones((1, 400)))[0][1]
+    obj = cover >= 0.05
+    assert mask is not None and mask.sum() >= 0.5 * obj.sum() and not np.any(mask & ~obj)
+    r = obs2.residuals([0], bar.turned[None])[0].reshape(RES, RES, 3)
+    assert np.all(r[mask] == 0) and np.abs(r[~mask & obj]).max() > 0
+    np.testing.assert_array_equal(obs2.ignore(0, bar.v)[0], mask)  # found at the first evaluation, kept
+    L, _ = obs2.loss([0], bar.turned[None])
+    L_ref, _ = obs2.loss_fn(bar.turned, obs2.targets(0), [mask])
+    assert L[0] == pytest.approx(L_ref, rel=1e-6)
+
+
+def test_keep_and_appearance_leave_every_pixel_in(bar):
+    for obs in (_obs(bar, unseen="keep"), _obs(bar, appearance=True)):
+        assert not obs.unseen_ignored and obs.ignore(0, bar.turned) == [None]
+    with pytest.raises(Exception, match="unseen_gaussians should be 'ignore' or 'keep'"):
+        _obs(bar, unseen="drop")
