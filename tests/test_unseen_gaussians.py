@@ -4,7 +4,6 @@ hidden from the camera flagged once it turns into view — its pixels then left 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
