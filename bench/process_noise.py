@@ -69,6 +69,11 @@ def stem(option: str) -> str:
     return option.strip("-").replace("-", "_")
 
 
+SCENES = {"bar": "the bar's E steps E0 → 2E0 → 4E0 at T/3 and 2T/3",
+          "dino": "the dinosaur pushed by a sphere at constant E",
+          "beam": "the two-region beam (its far half 3 × stiffer) at constant E"}
+
+
 def run_value(q: str, a: argparse.Namespace, first: bool) -> dict:
     """bench/accuracy.py for the rows with `rsl adapt OPTION q`; its accuracy.json."""
     out = a.work / f"q_{q}"
@@ -140,9 +145,15 @@ def write(rows: list[dict], values: list, out: Path, meta: dict) -> None:
         force_lines.append(label + " | ".join(_pct(g.get("force_error")) if g else "—" for g in got) + " |")
     sub_head = ("| capture | loss | cameras | DOFs | code | " + " | ".join(_v(v) for v in values)
                 + " |\n|---|---|---|---:|---|" + "---:|" * len(values))
-    md = (f"# `rsl adapt {option}` on captures filmed mid-motion\n\n"
-          f"gn on images (Gaussians) or silhouettes, start = moving. Truth: P2, {meta['truth_substeps']} substeps per "
-          f"frame, hard handles; the bar's E steps E0 → 2E0 → 4E0 at T/3 and 2T/3; rsl: P2 fTetWild mesh, reduced "
+    moving = all(r["start"] == "moving" for r in rows)
+    scenes = "; ".join(SCENES[c] for c in dict.fromkeys(r["case"] for r in rows) if c in SCENES)
+    md = ((f"# `rsl adapt {option}` on captures filmed mid-motion\n\n"
+           "gn on images (Gaussians) or silhouettes, start = moving.") if moving else
+          (f"# `rsl adapt {option}` on the accuracy bench's captures\n\n"
+           "Images (Gaussians) or silhouettes; each row's start state in its capture column (moving: filmed "
+           "mid-motion), the estimator `auto`'s choice.")) + (
+          f" Truth: P2, {meta['truth_substeps']} substeps per "
+          f"frame, hard handles; {scenes}; rsl: P2 fTetWild mesh, reduced "
           f"r = 30, {meta['sequences']} training sequences, window 3, E initialised at 0.5 E0. Each row's columns "
           f"share its captures, mesh and subspace; only adapt's {option} differs.\n\n"
           f"Median |E − E_true| / E_true over the settled frames (%), by {option} (bold: the lowest of the "

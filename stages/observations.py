@@ -200,6 +200,10 @@ class MarkerObservation:
     huber = None  # marker noise is Gaussian: plain least squares
 
 
+UNSEEN_OUTLINE_PX = 2
+"""VisionObservation.unseen keeps the pixels within this many of the object mask's outline."""
+
+
 class VisionObservation:
     """Image observations: render the Gaussians bound to the mesh in each chosen camera (stages.render)."""
 
@@ -258,6 +262,7 @@ class VisionObservation:
             names = [c.name for c in cams_art.cameras]
             fit_cams = [cams_art.by_name(c) for c in capture.camera_names if c in names] or list(cams_art.cameras)
             self.fit_weight = self.loss_fn.blend_weights(self.rest, fit_cams).sum(axis=0)  # (G,) px
+            self._fit_size = self._image_size(self.rest)  # (C, G): what scales a Gaussian's weight, at the fit
 
     def rebind(self, x_fit: np.ndarray) -> None:
         """Anchor the Gaussians at the simulated fit-frame positions x_fit (n, 3)."""
@@ -322,24 +327,44 @@ class VisionObservation:
 
     UNSEEN_RATIO = 1.5
     """A Gaussian paints unseen colour in a camera when its blending weight there exceeds this many times the fit's
-    evidence of it (+ :attr:`UNSEEN_FLOOR`): the one-camera bar filmed mid-motion, whose end face turns into view,
-    flagged that face alone at 1.5 and 2 (2 with holes in it) and nothing of the faces the fit saw
-    (accuracy_notes.md, twenty-seventh stop)."""
+    evidence of it, scaled by how much larger it now images (:meth:`_image_size`; + :attr:`UNSEEN_FLOOR`): the
+    one-camera bar filmed mid-motion, whose end face turns into view, flagged that face alone at 1.5 and 2 (2 with
+    holes in it) and nothing of the faces the fit saw (accuracy_notes.md, twenty-seventh stop)."""
     UNSEEN_FLOOR = 0.05
     """Pixels of blending weight below which no Gaussian is flagged (:attr:`UNSEEN_RATIO`)."""
 
+    def _image_size(self, x: np.ndarray) -> np.ndarray:
+        """(C, G): per chosen camera, each Gaussian's image area were it seen face-on, up to a constant:
+        √(λ₁ λ₂) / z² (λ₁, λ₂ the two largest eigenvalues of its world covariance, z its depth in the camera) at
+        the render positions x (n, 3) — what a Gaussian's blending weight grows with when it comes nearer or its
+        surface stretches, unlike turning towards the camera."""
+        mu, cov = self.loss_fn.geometry(x)
+        lam = np.linalg.eigvalsh(cov)
+        area = np.sqrt(np.clip(lam[:, 1] * lam[:, 2], 0.0, None))
+        z = np.stack([(mu @ np.asarray(c.R, float).T + np.asarray(c.t, float).ravel())[:, 2] for c in self._cams])
+        return area[None] / np.maximum(z, 1e-9) ** 2
+
     def unseen(self, t: int, x: np.ndarray) -> list[np.ndarray | None]:
         """Per chosen camera, the (H, W) pixels of frame t painted at least half by Gaussians whose colour the fit
-        did not see: Gaussian i is flagged in camera c when w_i^c(x) > UNSEEN_RATIO · W_i + UNSEEN_FLOOR (w its
-        blending weight summed over the image at the render positions x (n, 3), W the fit's, ImageLoss.
-        blend_weights), and a pixel of coverage A ≥ 0.05 is left out when the flagged Gaussians paint ≥ A / 2 of it
-        (ImageLoss.painted_share).  Computed at the frame's first call and kept (None: no pixel)."""
+        did not see: Gaussian i is flagged in camera c when w_i^c(x) > UNSEEN_RATIO · W_i · a_i^c(x) / a_i^c(x_fit)
+        + UNSEEN_FLOOR (w its blending weight summed over the image at the render positions x (n, 3), W the fit's,
+        ImageLoss.blend_weights; a its face-on image size, :meth:`_image_size`), and a pixel of coverage A ≥ 0.05
+        is left out when the flagged Gaussians paint ≥ A / 2 of it (ImageLoss.painted_share) and, with masks.h5,
+        it lies inside the frame's object mask more than UNSEEN_OUTLINE_PX from its outline (there the coverage,
+        right whatever the colours, still tells the shape).  Computed at the frame's first call and kept (None:
+        no pixel)."""
         if t not in self._unseen:
             w = self.loss_fn.blend_weights(x)
-            flags = w > self.UNSEEN_RATIO * self.fit_weight[None] + self.UNSEEN_FLOOR
+            grown = self._image_size(x) / self._fit_size  # (C, G): nearer the camera, or the surface stretched
+            flags = w > self.UNSEEN_RATIO * self.fit_weight[None] * grown + self.UNSEEN_FLOOR
             out = []
-            for share, cover in self.loss_fn.painted_share(x, flags):
+            for c, (share, cover) in zip(self.cameras, self.loss_fn.painted_share(x, flags)):
                 m = (cover >= 0.05) & (share >= 0.5 * cover)
+                if self.masks is not None and c in self.masks and t < len(self.masks[c]):
+                    # the object's outline stays: its coverage is right whatever the colours
+                    inside = cv2.erode((np.asarray(self.masks[c][t]) > 0.5).astype(np.uint8), np.ones((3, 3), np.uint8),
+                                       iterations=UNSEEN_OUTLINE_PX)
+                    m &= inside.astype(bool)
                 out.append(m if m.any() else None)
             self._unseen[t] = out
             self.unseen_pixels[t] = int(sum(m.sum() for m in out if m is not None))

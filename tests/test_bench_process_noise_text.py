@@ -48,6 +48,12 @@ def test_another_option_names_its_page_and_keeps_its_values_as_text(tmp_path: Pa
                                                  "option": "--unseen-gaussians"})
     md = (tmp_path / "unseen_gaussians.md").read_text()
     assert md.startswith("# `rsl adapt --unseen-gaussians` on captures filmed mid-motion")
+    rows.append({**_row(0.0, 0.02, "new"), "value": "keep", "loss": "vision", "start": "equilibrium"})
+    m.write(rows, ["keep", "ignore"], tmp_path, {"truth_substeps": 24, "sequences": 12, "runs": [],
+                                                 "option": "--unseen-gaussians"})
+    md = (tmp_path / "unseen_gaussians.md").read_text()
+    assert md.startswith("# `rsl adapt --unseen-gaussians` on the accuracy bench's captures")
+    assert "| bar equilibrium | vision | 1 | 5000 | new | **2.0** | — | keep | 1.00 |" in md
     assert "| capture | loss | cameras | DOFs | code | keep | ignore | best | best ÷ keep |" in md
     assert "| bar moving | vision | 1 | 5000 | new | 33.7 | **16.6** | ignore | 0.49 |" in md
     assert (tmp_path / "unseen_gaussians.json").is_file() and (tmp_path / "unseen_gaussians.png").is_file()

@@ -102,6 +102,39 @@ def test_nothing_is_left_out_at_the_fit_pose_and_the_face_turned_into_view_is(ba
     assert L[0] == pytest.approx(L_ref, rel=1e-6)
 
 
+def test_the_outline_of_the_object_mask_stays_in(bar):
+    """With masks, the flagged pixels within UNSEEN_OUTLINE_PX of the mask's outline stay in the loss (their
+    coverage tells the shape whatever the colours); those deeper inside are still left out."""
+    import cv2
+
+    from stages.observations import UNSEEN_OUTLINE_PX
+
+    obs = _obs(bar)
+    full = obs.unseen(0, bar.turned)[0]
+    obj = obs.loss_fn.painted_share(bar.turned, np.ones((1, 400)))[0][1] >= 0.05
+    obs2 = _obs(bar)
+    obs2.masks = {"c0": obj[None].astype(np.uint8)}
+    m = obs2.unseen(0, bar.turned)[0]
+    inside = cv2.erode(obj.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=UNSEEN_OUTLINE_PX).astype(bool)
+    assert m is not None and not np.any(m & ~inside) and np.array_equal(m, full & inside)
+    assert (full & ~inside).sum() > 0  # the outline held flagged pixels
+
+
+def test_a_bar_nearer_the_camera_or_stretched_is_not_unseen(bar):
+    """Brought 35 % nearer the camera, each Gaussian paints about (1/0.65)² ≈ 2.4 × its fit weight, more than
+    UNSEEN_RATIO, and stretched by 1.6 along its axis 1.6 ×: both are the faces the fit saw, imaged larger, so
+    nothing is flagged (the weight is compared with the fit's scaled by the face-on image size)."""
+    obs = _obs(bar)
+    cam = np.array([0.05, -0.3, 0.12])
+    near = bar.v + 0.35 * (cam - bar.v.mean(axis=0))
+    grown = obs.loss_fn.blend_weights(near)[0] / np.maximum(obs.fit_weight, 1e-9)
+    seen = obs.fit_weight > 1.0
+    assert np.median(grown[seen]) > 2 * obs.UNSEEN_RATIO / 1.5  # the plain ratio alone would flag them
+    assert obs.unseen(0, near) == [None]
+    stretched = bar.v * np.array([1.6, 1.0, 1.0])
+    assert _obs(bar).unseen(0, stretched) == [None]
+
+
 def test_keep_and_appearance_leave_every_pixel_in(bar):
     for obs in (_obs(bar, unseen="keep"), _obs(bar, appearance=True)):
         assert not obs.unseen_ignored and obs.ignore(0, bar.turned) == [None]
