@@ -95,8 +95,9 @@ class AdaptConfig:
     """Observation: rendered Gaussians vs images (needs gaussians.h5, cameras.h5), markers.csv, or silhouette: the
     simulated surface's soft coverage vs masks.h5 (stages/silhouette.py; geometry alone, so frame 0's sag informs E
     too — with one camera from a sagged equilibrium it measured E about as well as the Gaussians, at several times
-    the time per frame; filmed mid-motion, frame 0 posed from its masks, far better: 2.5 and 4.7 % against 25 and
-    27 % on two meshes, docs/results/accuracy_one_camera/, process_noise_one_camera/)."""
+    the time per frame; filmed mid-motion, frame 0 posed from its masks: the bar with steps of E far better, 2.5 and
+    4.7 % against 13–27 %, the dinosaur and the two-region beam worse, 7.4 against 3.4 %, docs/results/
+    accuracy_one_camera/, process_noise_one_camera/, unseen_gaussians_one_camera/)."""
     cameras: str = ""
     """Cameras used by the vision or silhouette loss: indices or names, comma separated (empty: all)."""
     frames: str = ""
@@ -341,15 +342,17 @@ def resolve_process_noise(config: AdaptConfig, estimator: str, loss: str, start:
 def single_camera_warning(cameras_path: Path, camera: str, moving: bool = False) -> str:
     """The warning of a run on one camera's images (the Gaussians): its E is measured less well than from several
     (docs/results/accuracy_one_camera/: the accuracy bench's image rows filmed by one camera); filmed mid-motion
-    (``moving``), the silhouettes measured it far better on every mesh measured."""
+    (``moving``), the silhouettes measured the bar's steps of E better, the Gaussians the dinosaur and the beam."""
     text = (f"{cameras_path}: the images come from one camera ({camera}); on the accuracy bench one camera's images "
             f"left E several times further from the truth than three cameras' on the same bar captures, most of all "
             f"on one filmed mid-motion (docs/results/accuracy_one_camera/accuracy.md): a second camera or "
             f"markers (--loss markers) measure E better.")
     if moving:
         text += (" This capture is filmed mid-motion: there --loss silhouette (the outline against masks.h5) read "
-                 "2.5 and 4.7 % on two meshes of the bench's bar where the Gaussians read 25 and 27 %, at about 4 "
-                 "times the time per frame (docs/results/accuracy_notes.md, twenty-sixth stop).")
+                 "the bench's bar with steps of E at 2.5 and 4.7 % where the Gaussians read 13–27 %, but the "
+                 "dinosaur at 7.4 % where the Gaussians read 3.4 % and the two-region beam worse in both regions, "
+                 "at about 4 times the time per frame: compare both on your capture (docs/results/"
+                 "accuracy_notes.md, twenty-sixth and twenty-seventh stops).")
     return text
 
 
