@@ -362,9 +362,8 @@ class VisionObservation:
                 m = (cover >= 0.05) & (share >= 0.5 * cover)
                 if self.masks is not None and c in self.masks and t < len(self.masks[c]):
                     # the object's outline stays: its coverage is right whatever the colours
-                    inside = cv2.erode((np.asarray(self.masks[c][t]) > 0.5).astype(np.uint8), np.ones((3, 3), np.uint8),
-                                       iterations=UNSEEN_OUTLINE_PX)
-                    m &= inside.astype(bool)
+                    obj = (np.asarray(self.masks[c][t]) > 0.5).astype(np.uint8)
+                    m &= cv2.erode(obj, np.ones((3, 3), np.uint8), iterations=UNSEEN_OUTLINE_PX).astype(bool)
                 out.append(m if m.any() else None)
             self._unseen[t] = out
             self.unseen_pixels[t] = int(sum(m.sum() for m in out if m is not None))
