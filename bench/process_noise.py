@@ -17,8 +17,9 @@ The baseline column is the first value (the default for markers and for equilibr
     .venv/bin/python bench/process_noise.py --option=--unseen-gaussians --values keep,ignore --cameras 1 ...
 
 --option: the `rsl adapt` option whose --values are compared (default --process-noise); its page and JSON are named
-after it (unseen_gaussians.md for --unseen-gaussians).  Each value's bench/accuracy.py page is kept under WORK/q_<value>/.  --merge writes one page from several runs
-(their rows side by side; each run's captures and meshes are its own, named in the table).
+after it (unseen_gaussians.md for --unseen-gaussians).  Each value's bench/accuracy.py page is kept under
+WORK/q_<value>/.  --merge writes one page from several runs (their rows side by side; each run's captures and
+meshes are its own, named in the table).
 """
 from __future__ import annotations
 
