@@ -210,7 +210,7 @@ class VisionObservation:
     kind = "vision"
 
     def __init__(self, capture: Capture, ws: Path, cam_spec: str, mesh: MeshArtefact, appearance: bool,
-                 anchor: str = "rebind", unseen: str = "ignore"):
+                 anchor: str = "rebind", unseen: str = "keep"):
         from stages.render.image_loss import ImageLoss  # loads scipy.spatial: rsl adapt --help stays light
 
         self.capture, self.n = capture, mesh.n_vertices
