@@ -140,3 +140,24 @@ def test_keep_and_appearance_leave_every_pixel_in(bar):
         assert not obs.unseen_ignored and obs.ignore(0, bar.turned) == [None]
     with pytest.raises(Exception, match="unseen_gaussians should be 'ignore' or 'keep'"):
         _obs(bar, unseen="drop")
+
+
+def test_adapt_records_the_pixels_it_left_out(tmp_path):
+    """rsl adapt --unseen-gaussians ignore on the cable-pulled beam filmed by one camera (40², 8 frames, Gaussians
+    fitted to frame 0): adapt.h5's extra unseen_pixels holds one count per frame, none at the fit frame and some
+    once the beam has turned; with the default keep it is None."""
+    from stages.artefacts import AdaptArtefact
+    from stages.steps import adapt, fit_gaussians
+    from test_adapt_e2e import E_TRUE, _make_capture
+
+    cap, ws = _make_capture(tmp_path, frames=8, cameras=1, resolution=40)
+    fit_gaussians.run(fit_gaussians.FitGaussiansConfig(capture=cap, workspace=ws, iterations=40, gaussians=400))
+    runs = {}
+    for unseen in ("ignore", "keep"):
+        adapt.run(adapt.AdaptConfig(capture=cap, workspace=ws, space="full", loss="vision", window=3, estimator="gn",
+                                    young_init=E_TRUE, substeps=1, unseen_gaussians=unseen))
+        runs[unseen] = AdaptArtefact.load(ws / "adapt.h5").extra["unseen_pixels"]
+    counts = runs["ignore"]
+    assert len(counts) == 8 and counts[0] == 0 and all(isinstance(c, int) and c >= 0 for c in counts)
+    assert sum(counts) > 0, counts
+    assert runs["keep"] is None
