@@ -111,19 +111,44 @@ def test_box_visual_covers_the_convex_hull_of_its_projected_corners_and_moves_wi
 
 
 # =========================================================================== the image loss
+def box_bar_gaussians(rng, n: int, scale: float, opacity_logit: float) -> tuple:
+    """A 6×3×3-cell bar (0.12 × 0.04 × 0.04 m) and n Gaussians of one scale (m) at random points of its tets, with
+    random colours drawn from ``rng``: (vertices, mesh artefact, GaussiansArtefact)."""
+    v, tets = box_tets((6, 3, 3), (0.12, 0.04, 0.04), origin=(-0.01, 0.0, 0.0))
+    gauss = GaussiansArtefact(host_tet=rng.integers(0, len(tets), n), bary=rng.dirichlet(np.ones(4), n),
+                              log_scales=np.full((n, 3), np.log(scale)), rotations=np.tile([1.0, 0, 0, 0], (n, 1)),
+                              opacity_logit=np.full(n, opacity_logit), sh=rng.normal(0, 1.0, (n, 1, 3)),
+                              background=np.zeros(3))
+    return v, mesh_artefact(v, tets, 1000.0), gauss
+
+
+def one_camera_capture(root: Path, mesh, cam, gauss, frame: np.ndarray, controls: dict) -> tuple[Path, Path]:
+    """(capture, workspace) under ``root`` for VisionObservation: the capture holds the mesh, camera "c0" (start
+    rest), ``controls`` and frame 0 = ``frame`` (uint8); the workspace cameras.h5 and gaussians.h5."""
+    import meshio
+
+    from stages.artefacts import CamerasArtefact
+    from stages.capture import write_image
+
+    cap, ws = root / "cap", root / "ws"
+    (cap / "frames" / "c0").mkdir(parents=True)
+    meshio.write(str(cap / "object.mesh"), meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)]), file_format="medit")
+    (cap / "capture.toml").write_text('[capture]\ncameras = ["c0"]\nstart = "rest"\n[object]\nmesh = "object.mesh"\n')
+    (cap / "controls.json").write_text(json.dumps(controls))
+    write_image(cap / "frames" / "c0" / "000000.png", frame)
+    ws.mkdir()
+    CamerasArtefact([cam], "json").save(ws / "cameras.h5")
+    gauss.save(ws / "gaussians.h5")
+    return cap, ws
+
+
 @pytest.fixture(scope="module")
 def scene():
     """A 6×3×3-cell bar with random Gaussians in view of one camera, and a box occluder over one end."""
     from stages.render.image_loss import ImageLoss
 
-    v, tets = box_tets((6, 3, 3), (0.12, 0.04, 0.04), origin=(-0.01, 0.0, 0.0))
-    mesh = mesh_artefact(v, tets, 1000.0)
     rng = np.random.default_rng(0)
-    n = 150
-    gauss = GaussiansArtefact(host_tet=rng.integers(0, len(tets), n), bary=rng.dirichlet(np.ones(4), n),
-                              log_scales=np.full((n, 3), np.log(0.006)), rotations=np.tile([1.0, 0, 0, 0], (n, 1)),
-                              opacity_logit=np.full(n, 1.5), sh=rng.normal(0, 1.0, (n, 1, 3)),
-                              background=np.zeros(3))
+    v, mesh, gauss = box_bar_gaussians(rng, 150, 0.006, 1.5)
     cam = _camera(res=48)
     loss = ImageLoss(gauss, mesh, [cam])
     box = [[-0.02, -0.02, -0.02], [0.0, 0.02, 0.02]]  # over the bar's far end, in front of it
@@ -216,23 +241,11 @@ def test_adapt_vision_observations_leave_the_occluder_out(scene, tmp_path) -> No
     the occluder's ignore mask, and the Gauss–Newton residuals, their Jacobian columns and Jᵀ W r are zero /
     unchanged under it, whatever the frame holds there."""
     from stages.observations import VisionObservation
-    from stages.artefacts import CamerasArtefact
     from stages.capture import load_capture, write_image
 
     loss, x, target, ign, mesh, cam = scene.loss, scene.x, scene.target, scene.ign, scene.mesh, scene.cam
-    cap = tmp_path / "cap"
-    (cap / "frames" / "c0").mkdir(parents=True)
-    import meshio
-
-    meshio.write(str(cap / "object.mesh"), meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)]), file_format="medit")
-    (cap / "capture.toml").write_text('[capture]\ncameras = ["c0"]\nstart = "rest"\n[object]\nmesh = "object.mesh"\n')
-    (cap / "controls.json").write_text(json.dumps(scene.controls))
     frame = np.round(target * 255).astype(np.uint8)
-    write_image(cap / "frames" / "c0" / "000000.png", frame)
-    ws = tmp_path / "ws"
-    ws.mkdir()
-    CamerasArtefact([cam], "json").save(ws / "cameras.h5")
-    scene.gauss.save(ws / "gaussians.h5")
+    cap, ws = one_camera_capture(tmp_path, mesh, cam, scene.gauss, frame, scene.controls)
     obs = VisionObservation(load_capture(cap), ws, "", mesh, False)
     assert obs.occluded
     np.testing.assert_array_equal(obs.ignore(0)[0], ign)

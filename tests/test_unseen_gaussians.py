@@ -3,24 +3,16 @@ render they sum (premultiplied colour is linear in the colours), nothing flagged
 hidden from the camera flagged once it turns into view — its pixels then left out of the residuals and the loss."""
 from __future__ import annotations
 
-import json
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stages.artefacts import Camera, CamerasArtefact, GaussiansArtefact, mesh_artefact
-from stages.render.mesh_raster import look_at
-from stages.sim.meshgen import box_tets
+from test_occluders import _camera, box_bar_gaussians, one_camera_capture
 
 RES = 48
-
-
-def _camera() -> Camera:
-    R, t = look_at(np.array([0.05, -0.3, 0.12]), np.array([0.05, 0.02, 0.02]), np.array([0.0, 0.0, 1.0]))
-    K = np.array([[1.1 * RES, 0, (RES - 1) / 2], [0, 1.1 * RES, (RES - 1) / 2], [0, 0, 1]])
-    return Camera("c0", K, np.zeros(5), R, t, RES, RES)
+CAMERA = dict(res=RES, centre=(0.05, -0.3, 0.12), target=(0.05, 0.02, 0.02))
 
 
 @pytest.fixture(scope="module")
@@ -28,31 +20,13 @@ def bar(tmp_path_factory):
     """A 6×3×3-cell bar (0.12 × 0.04 × 0.04 m) with 400 small Gaussians throughout, one camera in front of its
     y = 0 face, one frame (the render at rest, so the fit pose is the rest shape); a capture and workspace for
     VisionObservation."""
-    from stages.capture import write_image
     from stages.render.image_loss import ImageLoss
 
-    v, tets = box_tets((6, 3, 3), (0.12, 0.04, 0.04), origin=(-0.01, 0.0, 0.0))
-    mesh = mesh_artefact(v, tets, 1000.0)
-    rng = np.random.default_rng(0)
-    n = 400
-    gauss = GaussiansArtefact(host_tet=rng.integers(0, len(tets), n), bary=rng.dirichlet(np.ones(4), n),
-                              log_scales=np.full((n, 3), np.log(0.004)), rotations=np.tile([1.0, 0, 0, 0], (n, 1)),
-                              opacity_logit=np.full(n, 2.0), sh=rng.normal(0, 1.0, (n, 1, 3)),
-                              background=np.zeros(3))
-    cam = _camera()
-    root = tmp_path_factory.mktemp("unseen")
-    cap, ws = root / "cap", root / "ws"
-    (cap / "frames" / "c0").mkdir(parents=True)
-    import meshio
-
-    meshio.write(str(cap / "object.mesh"), meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)]), file_format="medit")
-    (cap / "capture.toml").write_text('[capture]\ncameras = ["c0"]\nstart = "rest"\n[object]\nmesh = "object.mesh"\n')
-    (cap / "controls.json").write_text(json.dumps({}))
+    v, mesh, gauss = box_bar_gaussians(np.random.default_rng(0), 400, 0.004, 2.0)
+    cam = _camera(**CAMERA)
     img = ImageLoss(gauss, mesh, [cam]).render(v)[0]
-    write_image(cap / "frames" / "c0" / "000000.png", np.round(np.clip(img, 0, 1) * 255).astype(np.uint8))
-    ws.mkdir()
-    CamerasArtefact([cam], "json").save(ws / "cameras.h5")
-    gauss.save(ws / "gaussians.h5")
+    cap, ws = one_camera_capture(tmp_path_factory.mktemp("unseen"), mesh, cam, gauss,
+                                 np.round(np.clip(img, 0, 1) * 255).astype(np.uint8), {})
     centre = v.mean(axis=0)
     turned = (v - centre) @ Rotation.from_rotvec([np.pi, 0, 0]).as_matrix().T + centre  # the far face in front
     return SimpleNamespace(cap=cap, ws=ws, mesh=mesh, v=v, turned=turned)
@@ -125,7 +99,7 @@ def test_a_bar_nearer_the_camera_or_stretched_is_not_unseen(bar):
     UNSEEN_RATIO, and stretched by 1.6 along its axis 1.6 ×: both are the faces the fit saw, imaged larger, so
     nothing is flagged (the weight is compared with the fit's scaled by the face-on image size)."""
     obs = _obs(bar)
-    cam = np.array([0.05, -0.3, 0.12])
+    cam = np.array(CAMERA["centre"])
     near = bar.v + 0.35 * (cam - bar.v.mean(axis=0))
     grown = obs.loss_fn.blend_weights(near)[0] / np.maximum(obs.fit_weight, 1e-9)
     seen = obs.fit_weight > 1.0
