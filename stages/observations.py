@@ -200,6 +200,12 @@ class MarkerObservation:
     huber = None  # marker noise is Gaussian: plain least squares
 
 
+def _forget_before(cache: dict, first: int) -> None:
+    """Drop the frames before ``first`` from a per-frame cache (the frames a window may still revisit stay)."""
+    for old in [k for k in cache if k < first]:
+        del cache[old]
+
+
 UNSEEN_OUTLINE_PX = 2
 """VisionObservation.unseen keeps the pixels within this many of the object mask's outline."""
 
@@ -305,8 +311,7 @@ class VisionObservation:
                 img = src.read(t) if src.video is not None else read_frame(self.capture, c, t)
                 out.append(target_image(img, self.masks, c, t, self.loss_fn.background))
             self._cache[t] = out
-            for old in [k for k in self._cache if k < t - 64]:
-                del self._cache[old]
+            _forget_before(self._cache, t - 64)
         return self._cache[t]
 
     def ignore(self, t: int, x: np.ndarray | None = None) -> list[np.ndarray | None]:
@@ -317,8 +322,7 @@ class VisionObservation:
         if self.occluded:
             if t not in self._ignore:
                 self._ignore[t] = [ignore_mask(self.controls, t, c) for c in self._cams]
-                for old in [k for k in self._ignore if k < t - 64]:
-                    del self._ignore[old]
+                _forget_before(self._ignore, t - 64)
             occ = self._ignore[t]
         if not self.unseen_ignored or (x is None and t not in self._unseen):
             return occ
@@ -367,8 +371,7 @@ class VisionObservation:
                 out.append(m if m.any() else None)
             self._unseen[t] = out
             self.unseen_pixels[t] = int(sum(m.sum() for m in out if m is not None))
-            for old in [k for k in self._unseen if k < t - 64]:
-                del self._unseen[old]
+            _forget_before(self._unseen, t - 64)
         return self._unseen[t]
 
     def loss(self, frames: Sequence[int], X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
