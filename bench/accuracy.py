@@ -228,7 +228,9 @@ def run_row(work: Path, row: tuple, frames: int, refine: int) -> dict:
             "time_per_frame_s": float(np.median(a.time_total_s)), "adapt_s": t_adapt,
             "young": np.asarray(a.young).tolist(), "young_true": yt.tolist(),
             "young_sigma": (np.asarray(a.young_sigma).tolist() if getattr(a, "young_sigma", None) is not None
-                            else None), "regions": list(a.region_names)}
+                            else None),
+            # gn: the model-error floor in young_sigma per frame and region (bench/sigma_calibration.py)
+            "young_model_error": (a.extra or {}).get("young_model_error"), "regions": list(a.region_names)}
 
 
 def _force_error(ev: dict) -> float | None:
