@@ -115,9 +115,9 @@ def test_report_loads_in_headless_chromium_with_every_plot(full_ws, rsl, tmp_pat
     for plot in ("E(t) and nu(t) per region", "von Mises stress over time", "handle and contact forces over time",
                  "adapt time per frame", "stress colour bar", "time per stage"):
         assert plot in alts, f"plot {plot!r} missing; images: {alts}"
-    for frame in (0, FRAMES - 1):  # --frames 2: the first and the last, each camera: photo, render, stress
+    for frame in (0, FRAMES - 1):  # --frames 2: the first and the last, each camera: photo, render, residual, stress
         for cam in ("cam0", "cam1"):
-            for kind in ("photo", "render", "stress render"):
+            for kind in ("photo", "render", "residual", "stress render"):
                 assert f"{kind} {cam} frame {frame}" in alts
     import matplotlib.image as mpimg
 

@@ -5,8 +5,9 @@ Sections (each made from the artefacts present; one that cannot be made says why
 * material   E(t) and ν(t) per region from adapt.h5, with the band E ± σ where adapt.h5 holds
              ``young_sigma`` (Pa) and the truth of truth/material.csv when the capture has one;
 * renders    for a few frames: the capture's photo, the adapted Gaussians rendered from the same
-             camera (stages.render.image_loss.ImageLoss, as ``rsl evaluate`` renders them) and the same
-             Gaussians coloured by von Mises stress (turbo map, 0 … 99th percentile);
+             camera (stages.render.image_loss.ImageLoss, as ``rsl evaluate`` renders them), the residual
+             |render − photo| as adapt's image loss compares them (stages.observations.target_image) and the
+             same Gaussians coloured by von Mises stress (turbo map, 0 … 99th percentile);
 * stress     max / 99th percentile / median von Mises per frame (stages.sim.stress, as ``rsl export``);
 * forces     per handle and obstacle over time, ‖Σ f_int‖ and ‖applied‖ (stages.sim.stress.set_forces,
              or WS/export/forces.csv), with truth/forces.csv overlaid when present;
@@ -31,10 +32,11 @@ from pathlib import Path
 import numpy as np
 
 from stages.artefacts import (KIND_FILES, AdaptArtefact, ArtefactError, CamerasArtefact, GaussiansArtefact,
-                              MeshArtefact, describe, read_provenance)
+                              MasksArtefact, MeshArtefact, describe, read_provenance)
 from stages.capture import Capture, CaptureError, load_capture, read_forces_csv, read_material_csv
 from stages.errors import RslError
 from stages.forces import FORCE_SUBSTEPS, adapted_forces, filter_model, replay_substeps
+from stages.observations import read_frame, render_backgrounds, target_image
 from stages.progress import Reporter, SilentReporter
 from stages.render.image_loss import ImageLoss
 from stages.results import (compute_stress, gaussian_anchor, material_damping, material_setting, recorded_capture,
@@ -294,6 +296,10 @@ def section_material(ctx: Context) -> str:
                                                                         for n in notes)
 
 
+RESIDUAL_SCALE = 0.5
+"""The renders' residual images: |render − photo| (intensity in [0, 1]) drawn at the colour map's top."""
+
+
 def _render_rows(ctx: Context) -> np.ndarray:
     T = len(ctx.adapt.frames)
     n = max(1, min(int(ctx.config.frames), T))
@@ -327,7 +333,10 @@ def section_renders(ctx: Context, reporter: Reporter) -> str:
     corners = ctx.mesh.tets[gauss.host_tet][:, :4]  # (G, 4) corner nodes: the fitted binding's barycentrics
     from matplotlib import colormaps
 
-    turbo = colormaps["turbo"]
+    turbo, magma = colormaps["turbo"], colormaps["magma"]
+    masks_path = ws / KIND_FILES["masks"]
+    masks = MasksArtefact.load(masks_path).masks if masks_path.exists() else None
+    plates = render_backgrounds(ctx.capture, names, masks)  # what adapt's image loss composites over
     app_sh = renderer.g.sh.data.clone()
     blocks = []
     with reporter.task("report renders", len(rows)) as task, torch.no_grad():
@@ -335,7 +344,7 @@ def section_renders(ctx: Context, reporter: Reporter) -> str:
             t = int(ad.frames[i])
             x = ad.positions[i] - anchor
             renderer.g.sh.data = app_sh
-            renderer.set_backgrounds([None] * len(names))
+            renderer.set_backgrounds(plates)
             app = [im.detach().numpy() for im in renderer.images(x)]
             vm_g = np.sum(np.asarray(gauss.bary, np.float64) * vm_v[i][corners], axis=1)
             rgb = np.asarray(turbo(np.clip(vm_g / vmax, 0, 1)))[:, :3]
@@ -348,13 +357,23 @@ def section_renders(ctx: Context, reporter: Reporter) -> str:
             cells = []
             for c, a, s in zip(names, app, stress):
                 src = ctx.capture.frame_source(c)
-                photo = _image_png(src.read(t)) if t < src.count else None
+                image = read_frame(ctx.capture, c, t) if t < src.count else None
+                photo, residual, note = None, None, ""
+                if image is not None:
+                    photo = _image_png(image)
+                    # |R − Ĩ| as the loss sees it (Ĩ: the frame, its background replaced where masks.h5 has a mask)
+                    r = np.abs(a - target_image(image, masks, c, t, renderer.background)).mean(axis=2)
+                    residual = _image_png(np.asarray(magma(np.clip(r / RESIDUAL_SCALE, 0, 1)))[..., :3])
+                    note = f" (mean {r.mean():.3f})"
+                none = "<div class='px none'>no photo</div>"
                 cells.append(
                     "<figure class='trio'>"
-                    + (_img(photo, f"photo {c} frame {t}", "px") if photo else "<div class='px none'>no photo</div>")
+                    + (_img(photo, f"photo {c} frame {t}", "px") if photo else none)
                     + _img(_image_png(a), f"render {c} frame {t}", "px")
+                    + (_img(residual, f"residual {c} frame {t}", "px") if residual else none)
                     + _img(_image_png(s), f"stress render {c} frame {t}", "px")
-                    + f"<figcaption>{_esc(c)}, frame {t}: photo · render · von Mises</figcaption></figure>")
+                    + f"<figcaption>{_esc(c)}, frame {t}: photo · render · |render − photo|{note} · von Mises"
+                      f"</figcaption></figure>")
             blocks.append("<div class='row'>" + "".join(cells) + "</div>")
             task.advance(1)
     renderer.g.sh.data = app_sh
@@ -366,8 +385,12 @@ def section_renders(ctx: Context, reporter: Reporter) -> str:
     fig.colorbar(mpl.cm.ScalarMappable(norm=mpl.colors.Normalize(0, vmax / 1e3), cmap="turbo"), cax=ax,
                  orientation="horizontal", label="von Mises stress (kPa)")
     bar = _img(_fig_png(fig), "stress colour bar", "bar")
-    return ("<p>Left to right: the capture's photo, the adapted Gaussians rendered from the same camera, and "
-            "the same Gaussians coloured by von Mises stress (0 … 99th percentile of the frames shown).</p>"
+    return ("<p>Left to right: the capture's photo, the adapted Gaussians rendered from the same camera (over the "
+            "background the image loss uses), their difference as the image loss compares them (|render − photo| "
+            f"per pixel, mean over the colour channels, black 0 … bright {RESIDUAL_SCALE:g} and above, the photo's "
+            "background replaced where masks.h5 has a mask: a bright patch on the object is what the simulated "
+            "Gaussians do not explain — a face the fit never saw, a shadow, a pose off), and the same Gaussians "
+            "coloured by von Mises stress (0 … 99th percentile of the frames shown).</p>"
             + "".join(blocks) + bar)
 
 
