@@ -69,7 +69,7 @@ def row_frames(row: dict, assumed: float) -> dict | None:
     if floor is None or not np.isfinite(S).any():
         return None
     ok = settled_mask(Et)
-    base = float(np.max(floor))  # the run's e (the best-informed region's floor)
+    base = float(np.min(floor))  # the run's e: the best-informed region's floor (e_i = e · min(√(I_max/I_i), 6))
     s_log2 = np.maximum((S / E) ** 2 - floor ** 2, 0.0)
     return {"rel": (np.abs(E - Et) / E)[ok].ravel(), "s_log2": s_log2[ok].ravel(),
             "spread": (floor / base)[ok].ravel(), "floor": base,
