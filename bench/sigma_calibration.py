@@ -91,9 +91,10 @@ def load_rows(pages: list[Path], cubature_tol: float, assumed: float) -> tuple[l
     rows, skipped = [], []
     for page in pages:
         data = json.loads(page.read_text())
-        substeps = (data.get("plan") or {}).get("truth_substeps", 3)
+        plan = data.get("plan") or {}
+        name = str(page.relative_to(ROOT) if page.is_relative_to(ROOT) else page)
         for r in data.get("cases", []):
-            label = f"{page.relative_to(ROOT) if page.is_relative_to(ROOT) else page}: {r.get('case')} {r.get('start')} {r.get('loss')} {r.get('space')}"
+            label = f"{name}: {r.get('case')} {r.get('start')} {r.get('loss')} {r.get('space')}"
             if r.get("order") != 2:
                 continue
             if r.get("space") == "reduced" and r.get("cubature_tol") != cubature_tol:
@@ -104,10 +105,9 @@ def load_rows(pages: list[Path], cubature_tol: float, assumed: float) -> tuple[l
                         and np.asarray(r["young"], float).shape[1] > 1:
                     skipped.append(f"{label} (several regions, floors not recorded)")
                 continue
-            rows.append({"page": str(page.relative_to(ROOT) if page.is_relative_to(ROOT) else page),
-                         "case": r.get("case"), "start": r.get("start"), "loss": r.get("loss"),
-                         "space": r.get("space"), "cameras": r.get("cameras") or (data.get("plan") or {}).get("cameras"),
-                         "truth_substeps": substeps, "adapt_options": r.get("adapt_options") or [],
+            rows.append({"page": name, "case": r.get("case"), "start": r.get("start"), "loss": r.get("loss"),
+                         "space": r.get("space"), "cameras": r.get("cameras") or plan.get("cameras"),
+                         "truth_substeps": plan.get("truth_substeps", 3), "adapt_options": r.get("adapt_options") or [],
                          "ended": r.get("ended"), "frames": f})
     return rows, skipped
 

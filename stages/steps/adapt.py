@@ -225,9 +225,10 @@ class AdaptConfig:
     error of rsl's mesh, time step and reduced space against the material, which more frames do not average out.
     Default 0.03 in the full space, 0.04 in the reduced (its cubature and subspace add theirs): the smallest floors
     that put the truth inside ±2σ on 90 % of the settled frames of the accuracy bench's marker rows, truths on
-    another discretisation (docs/results/sigma_calibration.md; MODEL_ERROR).  With several regions, e_i = e √(I_max / I_i) (at most 6 e), I_i the data's information on region i's log E summed over the
-    windows so far: a region the data tell weakly carries more of the model's error (stages.windows.
-    model_error_floors, region_sweep.md)."""
+    another discretisation (docs/results/sigma_calibration.md; MODEL_ERROR).  With several regions,
+    e_i = e √(I_max / I_i) (at most 6 e), I_i the data's information on region i's log E summed over the windows so
+    far: a region the data tell weakly carries more of the model's error (stages.windows.model_error_floors,
+    region_sweep.md)."""
     model_error_poisson: float = 0.02
     """gn: σ of ν that the discretisation itself adds to the reported ν ± σ (in quadrature; ν is weakly identified
     and absorbs model error, calibrated in docs/results/estimator.md)."""
@@ -366,8 +367,8 @@ def single_camera_warning(cameras_path: Path, camera: str, moving: bool = False)
             f"markers (--loss markers) measure E better.")
     if moving:
         text += (" This capture is filmed mid-motion: there --loss silhouette (the outline against masks.h5) read "
-                 "the bench's bar with steps of E at 2.5–4.7 % on three meshes where the Gaussians read 25–34 %, but the "
-                 "dinosaur at 7.4 % where the Gaussians read 3.4 % and the two-region beam worse in both regions, "
+                 "the bench's bar with steps of E at 2.5–4.7 % on three meshes where the Gaussians read 25–34 %, "
+                 "but the dinosaur at 7.4 % where the Gaussians read 3.4 % and the two-region beam worse in both regions, "
                  "at about 4 times the time per frame: compare both on your capture, and the Gaussians with "
                  "--unseen-gaussians ignore, which read that bar at 12.8 and 29.9 % on two meshes where the default "
                  "read 33.7 and 32.3 % (docs/results/accuracy_notes.md, twenty-sixth to twenty-eighth stops).")
