@@ -653,18 +653,18 @@ def test_adapt_gn_markers_recovers_young_with_sigma(beam, rsl):
     assert np.all(np.abs(art.young[20:, 0] / E_TRUE - 1) < 0.01), art.young[:, 0]
     assert np.all(np.abs(art.young[20:, 0] - E_TRUE) <= 3 * art.young_sigma[20:, 0]), art.young_sigma[:, 0]
     assert art.young_sigma[0, 0] > art.young_sigma[-1, 0] > 0  # it knows it has learnt
-    from stages.steps.adapt import MODEL_ERROR
+    from stages.steps.adapt import AdaptConfig
 
+    default = AdaptConfig(capture="c", workspace="w").model_error
     floors = np.asarray(art.extra["young_model_error"])  # one region: the --model-error default on every frame
-    assert floors.shape == art.young.shape and np.allclose(floors, MODEL_ERROR["full"])
-    assert art.extra["model_error"] == MODEL_ERROR["full"]
+    assert floors.shape == art.young.shape and np.allclose(floors, default)
     proc = rsl("adapt", cap, "-w", ws, "--space", "full", "--loss", "markers", "--mode", "offline",
                "--young-init", str(E_TRUE / 4), "--estimator", "gn", "--frames", "0:12", "--offline-iters", "8",
                "--substeps", "1")
     assert proc.returncode == 0, proc.stderr
     art = AdaptArtefact.load(ws / "adapt.h5")
     assert abs(art.young[0, 0] / E_TRUE - 1) < 0.01 and np.all(np.isfinite(art.young_sigma))
-    assert np.allclose(art.extra["young_model_error"], MODEL_ERROR["full"]) and len(art.extra["young_model_error"]) == 12
+    assert np.allclose(art.extra["young_model_error"], default) and len(art.extra["young_model_error"]) == 12
     # Adam reports no σ: NaN
     proc = rsl("adapt", cap, "-w", ws, "--space", "full", "--loss", "markers", "--frames", "0:4", "--estimator", "adam")
     assert proc.returncode == 0, proc.stderr
@@ -781,24 +781,6 @@ def test_process_noise_defaults_to_more_for_gn_on_images_or_silhouettes_of_a_mov
     m = filter_model({**cfg, "process_noise": 0.005}, (0.3, 0.49))
     assert process_noise(7, [6], 3, m.process_noise, m.process_noise_change) == 0.02
     assert process_noise(20, [6], 3, m.process_noise, m.process_noise_change) == 0.005
-
-
-def test_model_error_defaults_per_space_and_the_smoother_reads_the_value_that_ran():
-    """resolve_model_error: the option as given, else 0.03 in the full space and 0.04 in the reduced one
-    (docs/results/sigma_calibration.md); the force replay's smoother reads the value that ran from adapt.h5's extra
-    when the provenance holds the default (None)."""
-    from stages.forces import filter_model
-    from stages.steps.adapt import AdaptConfig, resolve_model_error
-
-    base = {"capture": "c", "workspace": "w"}
-    assert resolve_model_error(AdaptConfig(**base), "full") == 0.03
-    assert resolve_model_error(AdaptConfig(**base), "reduced") == 0.04
-    assert resolve_model_error(AdaptConfig(**base, model_error=0.02), "reduced") == 0.02
-    cfg = {"window": 3, "process_noise": 0.005, "process_noise_change": 0.02, "change_sigma": 0.5,
-           "model_error": None, "model_error_poisson": 0.02}
-    assert filter_model(cfg, (0.3, 0.49)) is None  # (no value: not a gn run's)
-    assert filter_model(cfg, (0.3, 0.49), {"model_error": 0.04}).model_error == 0.04
-    assert filter_model({**cfg, "model_error": 0.01}, (0.3, 0.49), {"model_error": 0.04}).model_error == 0.01
 
 
 def test_cluster_scale2_sums_by_cluster_whatever_the_labels_are():
