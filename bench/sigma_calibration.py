@@ -1,5 +1,5 @@
-"""σ of `rsl adapt --estimator gn` against truths simulated on another discretisation: the measurement behind the
-default model-error floor (`rsl adapt --model-error`).
+"""σ of `rsl adapt --estimator gn` against truths simulated on another discretisation: the measurement behind
+the default model-error floor (`rsl adapt --model-error`).
 
 The gn estimator reports σ_E = E √(σ²_logE + e_i²) per frame and region (stages.windows.sigma_from_cov): σ_logE from
 the window's Gauss–Newton normal matrix, e_i the model-error floor, the error of rsl's discretisation (mesh, time
@@ -170,6 +170,11 @@ def write(rows: list[dict], skipped: list[str], pages: list[Path], out: Path, cu
                      f"±2σ at the floors the rows ran with; the smallest floor of the grid reaching "
                      f"{100 * TARGET:.0f} %: " + (f"{min(grid):g}" if grid else "none") +
                      f"; the floor for {100 * TARGET:.0f} % exactly: {s['floor_for_target']:.3f}.")
+    both = [e for e in FLOORS if all(s["coverage"][str(e)] >= TARGET for s in markers.values())]
+    lines.append(f"- One floor for the markers rows of every space: the smallest of the grid with each space at "
+                 f"{100 * TARGET:.0f} % or more: " + (f"{min(both):g} (" + ", ".join(
+                     f"{g} {100 * s['coverage'][str(min(both))]:.0f} %" for g, s in markers.items()) + ")"
+                     if both else "none") + ".")
     for g, s in by_space_loss.items():
         if not g.endswith("markers"):
             lines.append(f"- {g}: {100 * s['coverage_ran']:.0f} % at the floors run, "
