@@ -202,6 +202,7 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
     n_eval, it = 1, 0
     p_lin, r_lin, J_lin = p.copy(), r, J
     W = huber_weights(r, sigma, huber) if max_iterations < 1 else None  # (formed in the loop)
+    checked = False  # (no iteration: the covariance at p0, which was evaluated)
     for it in range(1, max_iterations + 1):
         p_lin, r_lin, J_lin = p.copy(), r, J
         W = huber_weights(r, sigma, huber)

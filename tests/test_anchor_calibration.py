@@ -229,3 +229,23 @@ def test_online_adam_calibrates_the_anchor_on_the_first_moving_frames(delayed): 
     assert anchor[T_c] == pytest.approx(E[T_c], rel=1e-12) and np.all(anchor[T_c:] == anchor[T_c]), anchor
     assert abs(anchor[T_c] / E_TRUE - 1) < 0.03, anchor[T_c] / E_TRUE
 
+
+
+def test_a_held_calibration_fit_reports_its_sigma(delayed):  # noqa: F811
+    """--hold-fit: E(t) holds the calibration's fit from its frame on, and σ with it — the Gauss–Newton (Laplace)
+    covariance of that fit over its frames with the model-error floor (adapt._fit_sigma), NaN while E moves with
+    Adam before it.  Own model, so the fit is within 3 % and the truth inside ±2σ; σ ≥ the floor.  The same σ
+    comes from _fit_sigma called on the fit's frames again (the record is that call's)."""
+    from stages.artefacts import AdaptArtefact
+
+    cap, ws, _, _ = delayed
+    E = _adapt(cap, ws, anchor_calibration=3)
+    art = AdaptArtefact.load(ws / "adapt.h5")
+    T_c = DELAY + 3
+    s = np.asarray(art.young_sigma, float)[:, 0]
+    assert np.all(np.isnan(s[:T_c])) and np.all(np.isfinite(s[T_c:])), s
+    assert np.all(s[T_c:] == s[T_c]) and np.all(E[T_c:] == E[T_c]), (E, s)  # held with the fit
+    floor = AdaptConfig(capture="c", workspace="w").model_error
+    assert s[T_c] >= floor * E[T_c] * (1 - 1e-9) and abs(E[T_c] - E_TRUE) <= 2 * s[T_c], (E[T_c], s[T_c])
+    floors = np.asarray(art.extra["young_model_error"], float)[:, 0]
+    assert np.all(np.isnan(floors[:T_c])) and np.allclose(floors[T_c:], floor)

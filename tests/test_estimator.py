@@ -783,6 +783,22 @@ def test_process_noise_defaults_to_more_for_gn_on_images_or_silhouettes_of_a_mov
     assert process_noise(20, [6], 3, m.process_noise, m.process_noise_change) == 0.005
 
 
+def test_gauss_newton_without_iterations_gives_the_covariance_at_the_start():
+    """max_iterations = 0 (adapt._fit_sigma: σ of a fit made elsewhere): p stays p0, and cov is the Huber-weighted
+    Gauss–Newton posterior there, (Jᵀ W J / σ² + P⁻¹)⁻¹, W the Huber weights of the residuals at p0."""
+    rng = np.random.default_rng(14)
+    A = rng.normal(size=(60, K))
+    y = A @ np.array([1.0, -2.0]) + rng.normal(0, 0.1, 60)
+    y[:3] += 2.0  # outliers: Huber weights below 1
+    ev = (lambda p, nj: (A @ p - y, A if nj else None))
+    prior = Prior(np.zeros(K), np.eye(K) * 4.0)
+    p0 = np.array([0.9, -1.8])
+    res = gauss_newton(ev, p0, prior, 0.1, max_iterations=0, huber=1.345)
+    W = huber_weights(A @ p0 - y, 0.1, 1.345)
+    assert np.array_equal(res.p, p0) and res.iterations == 0 and res.checked and W.min() < 1
+    np.testing.assert_allclose(res.cov, np.linalg.inv(A.T @ (A * W[:, None]) / 0.01 + np.eye(K) / 4.0), rtol=1e-10)
+
+
 def test_cluster_scale2_sums_by_cluster_whatever_the_labels_are():
     """The fast path (np.bincount over labels 0..4m) and the relabelled one (np.unique: negative, sparse or float
     labels) give one s²; both equal the sandwich formula with the per-cluster sums taken by an explicit loop."""

@@ -899,6 +899,7 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
     seen_later = 0  # the later changes (rule 5) already recalibrated for
     change_lo = loop.first + 1  # the earliest frame a later change may be located at (after the last calibration)
     holding = calibrating and _holds_fit(config)  # E(t) held at the last fit between changes
+    fit_sigma = ()  # with holding: (σ_E, σ_ν, floors) of the last fit (_fit_sigma)
     iterations = resolve_iterations(config, "adam", config.loss, "")
     with loop.reporter.task(f"adapt online ({loop.backend.space}, {loop.obs.kind}, w={w})", loop.total()) as task:
         for T in loop.online_frames():
@@ -971,6 +972,8 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                 adam.restart()
                 calibrating = False
                 calib_p = params.copy()  # the material of the frames since the last change
+                if holding:  # E(t) holds this fit: its σ (the Laplace covariance over its frames) is held with it
+                    fit_sigma = _fit_sigma(loop, sim, params, loop.before(sim[0]))
                 fit_e, fit_nu = theta_from_params(params[:R], params[R:], loop.prange)
                 rec.calibrations.append({"frames": [calib_from, T], "young": fit_e.tolist(),
                                          "poisson": fit_nu.tolist()})
@@ -998,9 +1001,18 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                     calibrating, informed = True, T - calib_from + 1  # frames c..T: the new material, moving
                 rec.anchor_apart, rec.anchor_later = anchor.apart_from, list(anchor.later)
                 rec.anchor_young.append(theta_from_params(anchor.p[:R], anchor.p[R:], loop.prange)[0].tolist())
-            rec.add(T, E, nu, losses.sum(), losses[-1], tuple(times), time.perf_counter() - tt)
-            task.advance(1, frame=T, E=" ".join(f"{e:.4g}" for e in E), loss=float(losses.sum()),
-                         s_per_frame=rec.t_tot[-1])
+            # σ: a held fit's (images, --hold-fit); NaN while E moves with Adam (before the first fit, while a
+            # window grows again after a change)
+            held_sigma = fit_sigma if holding and anchor.fixed and not calibrating and fit_sigma else None
+            nan = np.full(R, np.nan)
+            sE, sN, floors = held_sigma if held_sigma is not None else (nan, nan, nan)
+            if holding:
+                rec.model_error.append(np.asarray(floors).tolist())
+            rec.add(T, E, nu, losses.sum(), losses[-1], tuple(times), time.perf_counter() - tt,
+                    *((sE, sN) if holding else ()))
+            task.advance(1, frame=T, E=" ".join(f"{e:.4g}" + (f"±{se:.2g}" if np.isfinite(se) else "")
+                                                for e, se in zip(E, sE)),
+                         loss=float(losses.sum()), s_per_frame=rec.t_tot[-1])
 
 
 class _Splits:
@@ -1117,6 +1129,32 @@ def _calibrate_anchor(obj: WindowObjective, sim: list[int], p: np.ndarray, befor
     scipy.optimize.minimize(cost, np.array(p, float), jac=True, method="L-BFGS-B", bounds=bounds,
                             options={"maxiter": CALIBRATION_ITERATIONS})
     return best[1]
+
+
+def _fit_sigma(loop: _Loop, frames: list[int], params: np.ndarray, before: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(σ_E (R,) Pa, σ_ν (R,), the model-error floors e_i (R,)) of an Adam fit θ(params) over ``frames`` simulated
+    from ``before`` (an anchor calibration): the Gauss–Newton (Laplace) covariance at the fit as ``--estimator gn``
+    forms it — (Jᵀ W J / (σ² s²))⁻¹ with its Huber weights W, the noise level σ of the fit's residuals and the
+    images' cluster-robust s², under a flat prior — and the model-error floors (stages.windows.sigma_from_cov).
+    The fit is not moved (no Gauss–Newton step)."""
+    config, obs, R = loop.config, loop.obs, loop.objective.R
+    gn = GNWindow(loop.objective, config.fit_poisson, params[R:])
+    gn.young_range = loop.young_range
+    p = np.array(params if config.fit_poisson else params[:R], float)
+    r0, _ = gn.evaluate(frames, p, before, None, False)
+    sigma = max(obs.noise_scale(r0), obs.noise_floor)
+    res, _ = _gn_solve(gn, frames, p, Prior(p.copy(), np.eye(len(p)) * FLAT_PRIOR_VARIANCE), before, None, sigma, obs,
+                       0)
+    W, J = res.weights, res.jacobian
+    information = np.einsum("mk,m,mk->k", J, W, J)[:R]  # diag(Jᵀ W J) of each log E (model_error_floors)
+    floors = model_error_floors(config.model_error, information)
+    sE, sN = sigma_from_cov(gn, res.p, res.cov_scaled[:gn.k_theta, :gn.k_theta], floors, config.model_error_poisson)
+    return sE, sN, floors
+
+
+FLAT_PRIOR_VARIANCE = 1e6
+"""_fit_sigma: the prior variance of log E and s of an Adam fit's σ (σ = 1000: no prior information)."""
 
 
 def _frame_loss(obs, r: np.ndarray) -> float:
