@@ -296,7 +296,9 @@ class AdaptConfig:
     with the fit: what a later change is located against), passing over the w frames after each fit (a restarted
     Adam's first steps, --lr whatever the gradient, look like a change); during a recalibration's growing window E(t)
     is its estimate.  A material that drifts slowly is followed in steps of rule 5's threshold.  --no-hold-fit: E(t)
-    is the sliding window's Adam estimate at every frame.  Measured: accuracy_notes.md, thirteenth stop."""
+    is the sliding window's Adam estimate at every frame.  Measured: accuracy_notes.md, thirteenth stop.  A held
+    fit reports σ (adapt.h5 young_sigma, poisson_sigma; NaN on the other frames): the Gauss–Newton covariance at the
+    fit over its frames, with --model-error's floor (_fit_sigma)."""
 
 
 def resolve_estimator(config: AdaptConfig, start: str = "") -> str:
