@@ -14,7 +14,7 @@ group of rows (space, loss):
 - the smallest floor that puts the truth inside ±2σ on 90 % of the group's settled frames: per frame the floor that
   just covers it, e_t = √(max(0, (|E − E_true| / 2E)² − σ²_logE)), and its 90th percentile.
 
-Rows read: gn rows (σ recorded) on quadratic tets (P1 in adapt is a discretisation rsl does not default to: its E is
+Rows read: rows with σ (gn; Adam on images: its held fits) on quadratic tets (P1 in adapt is a discretisation rsl does not default to: its E is
 biased by 15–25 %, docs/results/convergence.md), in the reduced space only at the cubature tolerance given
 (--cubature-tol, train-subspace's default).  The floor a row ran with is adapt.h5's young_model_error where the
 page recorded it (bench/accuracy.py, rows since this script), else --model-error of the row's adapt options, else
@@ -56,9 +56,20 @@ def _ran_floor(row: dict, assumed: float) -> np.ndarray | None:
     return np.full(young.shape, e)
 
 
+def estimator(row: dict) -> str:
+    """The estimator a row ran: its --estimator, or what auto chose (adapt.resolve_estimator: gn with markers or
+    on a capture filmed mid-motion, Adam otherwise)."""
+    opts = [str(o) for o in row.get("adapt_options") or []]
+    est = opts[opts.index("--estimator") + 1] if "--estimator" in opts else row.get("estimator", "auto")
+    if est in ("gn", "adam"):
+        return est
+    return "gn" if row.get("loss") == "markers" or row.get("start") == "moving" else "adam"
+
+
 def row_frames(row: dict, assumed: float) -> dict | None:
-    """The settled frames of one gn row: relative error, σ_logE and the floor's spread e_i / e (all flattened over
-    frames and regions), or None where the row has no σ or its floors are unknown."""
+    """The settled frames with a σ of one row (gn; Adam on images: its held fits): relative error, σ_logE and the
+    floor's spread e_i / e (all flattened over frames and regions), or None where the row has no σ or its floors
+    are unknown."""
     if row.get("young_sigma") is None:
         return None
     E = np.asarray(row["young"], float)
@@ -68,7 +79,8 @@ def row_frames(row: dict, assumed: float) -> dict | None:
     floor = _ran_floor(row, assumed)
     if floor is None or not np.isfinite(S).any():
         return None
-    ok = settled_mask(Et)
+    floor = np.where(np.isfinite(floor), floor, np.nanmin(floor) if np.isfinite(floor).any() else assumed)
+    ok = settled_mask(Et) & np.all(np.isfinite(S), axis=1)  # (Adam: σ of its held fits only, NaN elsewhere)
     base = float(np.min(floor))  # the run's e: the best-informed region's floor (e_i = e · min(√(I_max/I_i), 6))
     s_log2 = np.maximum((S / E) ** 2 - floor ** 2, 0.0)
     return {"rel": (np.abs(E - Et) / E)[ok].ravel(), "s_log2": s_log2[ok].ravel(),
@@ -106,6 +118,7 @@ def load_rows(pages: list[Path], cubature_tol: float, assumed: float) -> tuple[l
                     skipped.append(f"{label} (several regions, floors not recorded)")
                 continue
             rows.append({"page": name, "case": r.get("case"), "start": r.get("start"), "loss": r.get("loss"),
+                         "estimator": estimator(r),
                          "space": r.get("space"), "cameras": r.get("cameras") or plan.get("cameras"),
                          "truth_substeps": plan.get("truth_substeps", 3), "adapt_options": r.get("adapt_options") or [],
                          "ended": r.get("ended"), "frames": f})
@@ -128,14 +141,15 @@ def group_summary(rows: list[dict], key) -> dict:
 
 def write(rows: list[dict], skipped: list[str], pages: list[Path], out: Path, cubature_tol: float) -> None:
     by_space = group_summary(rows, lambda r: r["space"])
-    by_space_loss = group_summary(rows, lambda r: f"{r['space']}, {r['loss']}")
+    by_space_loss = group_summary(rows, lambda r: f"{r['space']}, {r['loss']}, {r['estimator']}")
     markers = group_summary([r for r in rows if r["loss"] == "markers"], lambda r: r["space"])
     head = " | ".join(f"e′ = {e:g}" for e in FLOORS)
     lines = [
         "# σ of the gn estimator against truths on another discretisation",
         "",
         "The truth inside E ± 2σ on the settled frames (≥ w + 5 after the start and after each step of E_true) of "
-        "bench/accuracy.py's gn rows: with the model-error floor e each row ran with, and with σ recomputed for "
+        "bench/accuracy.py's rows that report σ (gn; Adam on images: its held calibration fits, frames without σ "
+        "left out): with the model-error floor e each row ran with, and with σ recomputed for "
         "other floors e′ (σ_E = E √(σ²_logE + e′²), σ_logE of the row kept). \"floor for 90 %\": the 90th percentile "
         "over the group's settled frames of the floor that just covers each frame. Rows: quadratic tets in adapt; "
         f"reduced space at cubature tolerance {cubature_tol:g}. Produced by `bench/sigma_calibration.py` from the "
@@ -154,7 +168,7 @@ def write(rows: list[dict], skipped: list[str], pages: list[Path], out: Path, cu
         lines.append(f"| {r['page']} | {r['case']} | {r['start']}{opts} | {r['loss']} | {r['space']} | {r['cameras']} "
                      f"| {r['truth_substeps']} | {len(f['rel'])} | {100 * f['error']:.1f} % | {f['floor']:g} "
                      f"| {100 * np.mean(coverage(f)):.0f} % | {cov} |")
-    for title, summary in (("By space", by_space), ("By space and loss", by_space_loss),
+    for title, summary in (("By space", by_space), ("By space, loss and estimator", by_space_loss),
                            ("Markers rows by space", markers)):
         lines += ["", f"## {title}", "",
                   f"| group | rows | settled frames | within ±2σ (e ran) | {head} | floor for 90 % |",
@@ -176,7 +190,7 @@ def write(rows: list[dict], skipped: list[str], pages: list[Path], out: Path, cu
                      f"{g} {100 * s['coverage'][str(min(both))]:.0f} %" for g, s in markers.items()) + ")"
                      if both else "none") + ".")
     for g, s in by_space_loss.items():
-        if not g.endswith("markers"):
+        if ", markers," not in g:
             lines.append(f"- {g}: {100 * s['coverage_ran']:.0f} % at the floors run, "
                          f"{100 * s['coverage'][str(FLOORS[2])]:.0f} % at e′ = {FLOORS[2]:g}, the floor for "
                          f"{100 * TARGET:.0f} %: {s['floor_for_target']:.3f} ({s['rows']} rows, {s['frames']} frames).")
@@ -232,7 +246,7 @@ def main() -> None:
     pages = [p.resolve() for p in args.pages]
     rows, skipped = load_rows(pages, args.cubature_tol, args.assumed_floor)
     if not rows:
-        sys.exit("no gn rows with σ on quadratic tets in the pages given")
+        sys.exit("no rows with σ on quadratic tets in the pages given")
     write(rows, skipped, pages, args.out, args.cubature_tol)
 
 

@@ -59,7 +59,7 @@ def test_page_leaves_out_rows_it_cannot_use_and_reads_recorded_floors(tmp_path: 
     m.write(got, skipped, [page], tmp_path / "out", 0.0005)
     md = (tmp_path / "out" / "sigma_calibration.md").read_text()
     # 3 % error, σ_logE 0.5 %: covered from e′ = 0.02 on (2 √(0.005² + 0.02²) = 4.1 % ≥ 2.9 %)
-    assert "| reduced, markers | 1 | 28 | 100 % | 100 % | 100 % | 100 % | 100 % | 100 % | 100 % |" in md
+    assert "| reduced, markers, gn | 1 | 28 | 100 % | 100 % | 100 % | 100 % | 100 % | 100 % | 100 % |" in md
     assert "- Markers, full space: 100 % of 28 settled frames within ±2σ" in md
     assert "Left out (σ recorded, floors not recoverable): " in md
     assert (tmp_path / "out" / "sigma_calibration.json").is_file()
