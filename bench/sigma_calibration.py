@@ -14,8 +14,9 @@ group of rows (space, loss):
 - the smallest floor that puts the truth inside ±2σ on 90 % of the group's settled frames: per frame the floor that
   just covers it, e_t = √(max(0, (|E − E_true| / 2E)² − σ²_logE)), and its 90th percentile.
 
-Rows read: rows with σ (gn; Adam on images: its held fits) on quadratic tets (P1 in adapt is a discretisation rsl does not default to: its E is
-biased by 15–25 %, docs/results/convergence.md), in the reduced space only at the cubature tolerance given
+Rows read: rows with σ (gn; Adam on images: its held fits) on quadratic tets (P1 in adapt is a discretisation rsl
+does not default to: its E is biased by 15–25 %, docs/results/convergence.md), in the reduced space only at the
+cubature tolerance given
 (--cubature-tol, train-subspace's default).  The floor a row ran with is adapt.h5's young_model_error where the
 page recorded it (bench/accuracy.py, rows since this script), else --model-error of the row's adapt options, else
 --assumed-floor (0.02, adapt's default before this script's measurement); a row with several regions and no
