@@ -360,8 +360,8 @@ def single_camera_warning(cameras_path: Path, camera: str, moving: bool = False)
     if moving:
         text += (" This capture is filmed mid-motion: there --loss silhouette (the outline against masks.h5) read "
                  "the bench's bar with steps of E at 2.5–4.7 % on three meshes where the Gaussians read 25–34 %, "
-                 "but the dinosaur at 7.4 % where the Gaussians read 3.4 % and the two-region beam worse in both regions, "
-                 "at about 4 times the time per frame: compare both on your capture, and the Gaussians with "
+                 "but the dinosaur at 7.4 % where the Gaussians read 3.4 % and the two-region beam worse in both "
+                 "regions, at about 4 times the time per frame: compare both on your capture, and the Gaussians with "
                  "--unseen-gaussians ignore, which read that bar at 12.8 and 29.9 % on two meshes where the default "
                  "read 33.7 and 32.3 % (docs/results/accuracy_notes.md, twenty-sixth to twenty-eighth stops).")
     return text
