@@ -929,7 +929,7 @@ class AdaptArtefact:
     loss_kind: str  # "vision" | "markers"
     window: int
     extra: dict = field(default_factory=dict)
-    young_sigma: np.ndarray | None = None  # (T, R) Pa, σ of E per frame (NaN where unknown, e.g. Adam)
+    young_sigma: np.ndarray | None = None  # (T, R) Pa, σ of E per frame (NaN where unknown, e.g. Adam off its held fits)
     poisson_sigma: np.ndarray | None = None  # (T, R), σ of ν per frame (NaN where unknown)
     # (2, n, 3) m, x_{−1} and x_0: the state before frame 0 and frame 0's own, as estimated for a capture filmed
     # mid-motion ([capture] start = "moving"; the force replay starts there); None for the other starts

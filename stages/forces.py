@@ -62,8 +62,9 @@ between the material changes adapt's gn estimator detected, the segment's last e
 has seen the whole segment); "smoothed" (default :data:`FORCE_THETA`) = the fixed-interval (Rauch–Tung–Striebel)
 smoother of the recorded E ± σ, ν ± σ under the random walk the gn filter itself assumed (:func:`rts_theta`: its
 process noise per frame, none between frames that shared a window, its change σ at a detected change — the settings
-come from adapt.h5's provenance, :func:`filter_model`); an Adam run with images and --anchor-calibration (no σ)
-is held per segment between its located changes at the calibrations' fits (:func:`calibrated_theta`), any other
+come from adapt.h5's provenance, :func:`filter_model`); an Adam run with images and --anchor-calibration (σ of
+its held fits only) is held per segment between its located changes at the calibrations' fits
+(:func:`calibrated_theta`), any other
 Adam run keeps its recorded θ(t).  Export runs after adapt, so the replay need not be causal.
 docs/results/forces_theta.md (bench/forces.py --part theta; gn, markers, full space, replay Richardson (1, 2), two adapt runs per capture)
 measured against the truth refined in time.  The default is chosen on the frames where the truth's force is defined
@@ -419,7 +420,7 @@ def replay_theta(young: np.ndarray, poisson: np.ndarray, extra: dict | None, rul
     extra = extra or {}
     if rule == "online":
         return young, poisson, "θ(t) of adapt.h5"
-    if extra.get("anchor_calibrations"):  # adam with images: no σ, but fits per segment
+    if extra.get("anchor_calibrations"):  # adam with images: fits per segment (σ of the held fits only)
         changes = [int(c) for c in extra.get("anchor_change_frames", []) or []]
         y, p, held = calibrated_theta(young, poisson, extra["anchor_calibrations"], changes)
         return y, p, (f"θ(t) of adapt.h5 held at its anchor calibrations' fits ({held} of "

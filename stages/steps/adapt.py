@@ -1759,7 +1759,7 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
 
 
 def _sigmas(rec: _Record) -> dict:
-    """young_sigma / poisson_sigma (T, R) of the record (NaN where the estimator gives none: Adam)."""
+    """young_sigma / poisson_sigma (T, R) of the record (NaN where the estimator gives none: Adam without --hold-fit)."""
     T, R = len(rec.frames), len(rec.young[0])
     out = {}
     for k in ("young_sigma", "poisson_sigma"):
