@@ -64,8 +64,7 @@ smoother of the recorded E ± σ, ν ± σ under the random walk the gn filter i
 process noise per frame, none between frames that shared a window, its change σ at a detected change — the settings
 come from adapt.h5's provenance, :func:`filter_model`); an Adam run with images and --anchor-calibration (σ of
 its held fits only) is held per segment between its located changes at the calibrations' fits
-(:func:`calibrated_theta`), any other
-Adam run keeps its recorded θ(t).  Export runs after adapt, so the replay need not be causal.
+(:func:`calibrated_theta`), any other Adam run keeps its recorded θ(t).  Export runs after adapt, so the replay need not be causal.
 docs/results/forces_theta.md (bench/forces.py --part theta; gn, markers, full space, replay Richardson (1, 2), two adapt runs per capture)
 measured against the truth refined in time.  The default is chosen on the frames where the truth's force is defined
 — converged in time: every frame of the two-region beam (constant E) and every capture's frames before its first
