@@ -1799,12 +1799,10 @@ def _report(loop: _Loop, reporter: Reporter, names: list[str], dofs: int, mesh: 
         source = "--damping" if config.damping.strip() else "the capture's [material] damping"
         reporter.info(f"simulated with the viscous damping β = {loop.damping:g} s ({source})")
     E, nu = rec.young[-1], rec.poisson[-1]
-    if rec.young_sigma:  # the estimator's 1σ (E ± σ: the truth lies inside ±2σ about 95 % of the time)
-        sE, sN = rec.young_sigma[-1], rec.poisson_sigma[-1]
-        mats = ", ".join(f"{nm}: E={e:.4g} ± {se:.2g} Pa ν={v:.3f} ± {sn:.2g}"
-                         for nm, e, se, v, sn in zip(names, E, sE, nu, sN))
-    else:
-        mats = ", ".join(f"{nm}: E={e:.4g} Pa ν={v:.3f}" for nm, e, v in zip(names, E, nu))
+    sE, sN = (rec.young_sigma[-1], rec.poisson_sigma[-1]) if rec.young_sigma else ([np.nan] * len(E),) * 2
+    # the estimator's 1σ where it gives one (E ± σ: the truth lies inside ±2σ on most settled frames)
+    mats = ", ".join(f"{nm}: E={e:.4g}" + (f" ± {se:.2g}" if np.isfinite(se) else "") + f" Pa ν={v:.3f}"
+                     + (f" ± {sn:.2g}" if np.isfinite(sn) else "") for nm, e, se, v, sn in zip(names, E, sE, nu, sN))
     stop = " (stopped early)" if interrupted else ""
     late = getattr(rec, "late_bindings", [])
     if late:  # markers first seen after frame 0, bound when a window first saw them
