@@ -45,23 +45,30 @@ FLOORS = (0.02, 0.03, 0.04, 0.05, 0.06, 0.08)
 TARGET = 0.90  # issue 13: the truth inside ±2σ on at least 90 % of the settled frames
 
 
+def _option(row: dict, name: str) -> str | None:
+    """The value of the rsl adapt option ``name`` in the row's adapt options (None: not passed)."""
+    opts = [str(o) for o in row.get("adapt_options") or []]
+    return opts[opts.index(name) + 1] if name in opts[:-1] else None
+
+
+def _regions(row: dict) -> int:
+    return np.asarray(row["young"], float).reshape(len(row["young"]), -1).shape[1]
+
+
 def _ran_floor(row: dict, assumed: float) -> np.ndarray | None:
     """(T, R) floor e_i the row's σ carried, or None where it cannot be recovered."""
-    young = np.asarray(row["young"], float).reshape(len(row["young"]), -1)
+    shape = (len(row["young"]), _regions(row))
     if row.get("young_model_error") is not None:
-        return np.asarray(row["young_model_error"], float).reshape(young.shape)
-    if young.shape[1] > 1:
+        return np.asarray(row["young_model_error"], float).reshape(shape)
+    if shape[1] > 1:
         return None
-    opts = [str(o) for o in row.get("adapt_options") or []]
-    e = float(opts[opts.index("--model-error") + 1]) if "--model-error" in opts else assumed
-    return np.full(young.shape, e)
+    return np.full(shape, float(_option(row, "--model-error") or assumed))
 
 
 def estimator(row: dict) -> str:
     """The estimator a row ran: its --estimator, or what auto chose (adapt.resolve_estimator: gn with markers or
     on a capture filmed mid-motion, Adam otherwise)."""
-    opts = [str(o) for o in row.get("adapt_options") or []]
-    est = opts[opts.index("--estimator") + 1] if "--estimator" in opts else row.get("estimator", "auto")
+    est = _option(row, "--estimator") or row.get("estimator", "auto")
     if est in ("gn", "adam"):
         return est
     return "gn" if row.get("loss") == "markers" or row.get("start") == "moving" else "adam"
@@ -114,8 +121,7 @@ def load_rows(pages: list[Path], cubature_tol: float, assumed: float) -> tuple[l
                 continue
             f = row_frames(r, assumed)
             if f is None:
-                if r.get("young_sigma") is not None and np.asarray(r["young"], float).ndim > 1 \
-                        and np.asarray(r["young"], float).shape[1] > 1:
+                if r.get("young_sigma") is not None and _regions(r) > 1:
                     skipped.append(f"{label} (several regions, floors not recorded)")
                 continue
             rows.append({"page": name, "case": r.get("case"), "start": r.get("start"), "loss": r.get("loss"),
