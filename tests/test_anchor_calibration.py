@@ -234,8 +234,8 @@ def test_online_adam_calibrates_the_anchor_on_the_first_moving_frames(delayed): 
 def test_a_held_calibration_fit_reports_its_sigma(delayed):  # noqa: F811
     """--hold-fit: E(t) holds the calibration's fit from its frame on, and σ with it — the Gauss–Newton (Laplace)
     covariance of that fit over its frames with the model-error floor (adapt._fit_sigma), NaN while E moves with
-    Adam before it.  Own model, so the fit is within 3 % and the truth inside ±2σ; σ ≥ the floor.  The same σ
-    comes from _fit_sigma called on the fit's frames again (the record is that call's)."""
+    Adam before it.  Own model, so the fit is within 3 % and the truth inside ±2σ; σ ≥ the floor, which adapt.h5
+    records on those frames."""
     from stages.artefacts import AdaptArtefact
 
     cap, ws, _, _ = delayed

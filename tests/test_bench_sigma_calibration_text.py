@@ -40,6 +40,12 @@ def test_coverage_and_the_floor_that_covers_ninety_percent(tmp_path: Path) -> No
     need = m.needed_floor(f)
     assert np.allclose(need, np.sqrt(np.maximum((rel / 2) ** 2 - 1e-4, 0)))
     assert np.all(m.coverage(f, float(need.max()) + 1e-9))  # the largest needed floor covers every frame
+    # Adam on images: σ on its held fits only, NaN elsewhere; those frames are not counted
+    adam = _row(err, 0.01, 0.04)
+    adam["young_sigma"] = [[np.nan] if 10 <= t < 20 else s for t, s in enumerate(adam["young_sigma"])]
+    adam["young_model_error"] = [[np.nan] if 10 <= t < 20 else e for t, e in enumerate(adam["young_model_error"])]
+    g = m.row_frames(adam, 0.02)
+    assert len(g["rel"]) == 18 and g["floor"] == 0.04 and np.allclose(g["rel"], np.r_[rel[:2], rel[12:]])
 
 
 def test_page_leaves_out_rows_it_cannot_use_and_reads_recorded_floors(tmp_path: Path) -> None:
