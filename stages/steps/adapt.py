@@ -1144,10 +1144,11 @@ def _fit_sigma(loop: _Loop, frames: list[int], params: np.ndarray, before: np.nd
     gn = GNWindow(loop.objective, config.fit_poisson, params[R:])
     gn.young_range = loop.young_range
     p = np.array(params if config.fit_poisson else params[:R], float)
-    r0, _ = gn.evaluate(frames, p, before, None, False)
-    sigma = max(obs.noise_scale(r0), obs.noise_floor)
+    gn.rebind_next = True
+    primed = gn.evaluate(frames, p, before, None, True)  # the residuals' noise level and the solve's linearisation
+    sigma = max(obs.noise_scale(primed[0]), obs.noise_floor)
     res, _ = _gn_solve(gn, frames, p, Prior(p.copy(), np.eye(len(p)) * FLAT_PRIOR_VARIANCE), before, None, sigma, obs,
-                       0)
+                       0, primed=primed)
     W, J = res.weights, res.jacobian
     information = np.einsum("mk,m,mk->k", J, W, J)[:R]  # diag(Jᵀ W J) of each log E (model_error_floors)
     floors = model_error_floors(config.model_error, information)
