@@ -901,7 +901,7 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
     seen_later = 0  # the later changes (rule 5) already recalibrated for
     change_lo = loop.first + 1  # the earliest frame a later change may be located at (after the last calibration)
     holding = calibrating and _holds_fit(config)  # E(t) held at the last fit between changes
-    fit_sigma = ()  # with holding: (σ_E, σ_ν, floors) of the last fit (_fit_sigma)
+    fit_sigma = None  # with holding: (σ_E, σ_ν, floors) of the last fit (_fit_sigma)
     iterations = resolve_iterations(config, "adam", config.loss, "")
     with loop.reporter.task(f"adapt online ({loop.backend.space}, {loop.obs.kind}, w={w})", loop.total()) as task:
         for T in loop.online_frames():
@@ -982,10 +982,12 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
             if losses.shape[0] > w:  # the growing window: the loss of the last w frames, as a window's
                 losses = losses[-w:]
             E, nu = theta_from_params(params[:R], params[R:], loop.prange)
+            held_sigma = None  # (σ_E, σ_ν, floors) of the fit E(t) holds at this frame (None: E moves with Adam)
             if anchor is not None:
                 rec.window_young.append(E.tolist())
                 if holding and anchor.fixed and not calibrating:
                     E, nu = theta_from_params(calib_p[:R], calib_p[R:], loop.prange)  # the last fit, held
+                    held_sigma = fit_sigma
 
                 def explains(F, p):  # Σ loss over the frames F simulated from the start with θ(p), anchored there
                     _, fl, _, t3 = obj(list(range(F[-1] + 1)), p, loop.before(0), False)
@@ -1005,7 +1007,6 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
                 rec.anchor_young.append(theta_from_params(anchor.p[:R], anchor.p[R:], loop.prange)[0].tolist())
             # σ: a held fit's (images, --hold-fit); NaN while E moves with Adam (before the first fit, while a
             # window grows again after a change)
-            held_sigma = fit_sigma if holding and anchor.fixed and not calibrating and fit_sigma else None
             nan = np.full(R, np.nan)
             sE, sN, floors = held_sigma if held_sigma is not None else (nan, nan, nan)
             if holding:
