@@ -66,12 +66,12 @@ def _ran_floor(row: dict, assumed: float) -> np.ndarray | None:
 
 
 def estimator(row: dict) -> str:
-    """The estimator a row ran: its --estimator, or what auto chose (adapt.resolve_estimator: gn with markers or
-    on a capture filmed mid-motion, Adam otherwise)."""
-    est = _option(row, "--estimator") or row.get("estimator", "auto")
-    if est in ("gn", "adam"):
-        return est
-    return "gn" if row.get("loss") == "markers" or row.get("start") == "moving" else "adam"
+    """The estimator a row ran: its --estimator, or what auto chose (stages.steps.adapt.resolve_estimator)."""
+    from stages.steps.adapt import AdaptConfig, resolve_estimator
+
+    config = AdaptConfig(capture="", workspace="", loss=row.get("loss", "vision"),
+                         estimator=_option(row, "--estimator") or row.get("estimator", "auto"))
+    return resolve_estimator(config, "moving" if row.get("start") == "moving" else "")
 
 
 def row_frames(row: dict, assumed: float) -> dict | None:
