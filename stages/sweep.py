@@ -95,12 +95,16 @@ def marker_loss_curve(X_of: Callable[[float], np.ndarray], faces: np.ndarray, ma
 
 def vision_loss_curve(X_of: Callable[[float], np.ndarray], image_loss, targets: Callable[[int], list],
                       grid: Sequence[float], frames: Sequence[int], fit_frame: int = 0,
-                      anchor_young: float | None = None) -> np.ndarray:
+                      anchor_young: float | None = None, anchor: np.ndarray | None = None) -> np.ndarray:
     """Per grid value, the per-frame L1 image loss (K, T) of stages.render.image_loss.ImageLoss with the Gaussians
     re-bound to the simulated fit frame (adapt's ``rebind`` anchor); with ``anchor_young`` (Pa), to the fit frame
-    simulated with that E for every grid value (the anchor's dependence on E switched off)."""
+    simulated with that E for every grid value (the anchor's dependence on E switched off); with ``anchor`` (n, 3)
+    m, to those positions for every grid value (a capture filmed mid-motion: the fit pose x_f, as adapt binds them)."""
+    if anchor_young is not None and anchor is not None:
+        raise ValueError("vision_loss_curve takes anchor_young or anchor, not both")
     out = np.zeros((len(grid), len(frames)))
-    anchor = None if anchor_young is None else np.array(X_of(anchor_young)[fit_frame])
+    if anchor_young is not None:
+        anchor = np.array(X_of(anchor_young)[fit_frame])
     for k, e in enumerate(grid):
         X = X_of(e)
         image_loss.rebind(X[fit_frame] if anchor is None else anchor)
@@ -141,7 +145,7 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
           start: str | None = None, refine: int = 0, substeps: int = 1,
           reporter: Callable[[str], None] | None = None, base_young: Sequence[float] | None = None,
           anchor_young: float | None = None, past_young: np.ndarray | None = None,
-          region: str | None = None) -> SweepResult:
+          region: str | None = None, before: np.ndarray | None = None) -> SweepResult:
     """The loss of ``capture`` (stages.capture.Capture) on ``mesh`` (a MeshArtefact: P1 or P2; ``refine``
     splits its tets 8-fold that many times) over the grid of E (Pa; every region's E scaled with region 0's
     ``base_young`` value (R,) Pa, default capture.toml's; one region: E itself) with ν fixed (``poisson`` or
@@ -153,15 +157,28 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
     the truth's before a step of E; ν as above), frames a..b−1 continued from them with each grid value
     (stages.sim.static.continue_frames): the loss of the frames after a change of material, given the past
     (a = frames[0]).  ``region``: only that region's E takes the grid's values, every other region held at its
-    ``base_young`` (the check that one region's loss is lowest at its own E_true, the others known)."""
+    ``base_young`` (the check that one region's loss is lowest at its own E_true, the others known).
+    ``before`` (2, n, 3) m: (x_{−1}, x_0) of a capture filmed mid-motion (start "moving"), e.g. adapt.h5's estimated
+    start_positions — every E of the grid is simulated from that same start (stages.sim.static.simulate_from_start),
+    and the Gaussians stay bound to their fit pose (gaussians.h5 fit_positions) as adapt binds them."""
     from stages.sim.scene import frame_inputs, make_scene  # JAX and numba physics: loaded on use
     from stages.sim.static import continue_frames, last_states, simulate_from_start
 
     start = start or getattr(capture, "start", "equilibrium")
-    if start == "moving":
+    if start == "moving" and before is None:
         raise RslError(f"{capture.toml_path}: the loss sweep simulates every E from the start state, which a capture "
-                       f"filmed mid-motion (start = \"moving\") does not give; pass start \"rest\" or "
+                       f"filmed mid-motion (start = \"moving\") does not give; pass the estimated start state "
+                       f"(adapt.h5's start_positions: `rsl evaluate --sweep` after `rsl adapt`), or start \"rest\" or "
                        f"\"equilibrium\" for a capture that starts there.")
+    if before is not None:
+        before = np.asarray(before, np.float64)
+        if start != "moving":
+            raise ValueError(f"a start state before frame 0 is given, but the sweep's start is {start!r}, not moving")
+        if before.shape != (2, mesh.n_vertices, 3):
+            raise ValueError(f"the start state (x_{{-1}}, x_0) should be (2, {mesh.n_vertices}, 3) on the mesh's "
+                             f"nodes, not {before.shape}")
+        if refine:
+            raise ValueError("a moving start's state is given on the mesh's own nodes: it cannot be refined")
     ctl = capture.controls()
     if refine:
         v, t, reg = mesh.vertices, mesh.tets, mesh.tet_region
@@ -203,7 +220,7 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
                              f"{len(past_young)}")
         states: list = []
         past = simulate_from_start(scene, inputs_at, past_young, np.tile(nu, (a, 1)), a, start, substeps,
-                                   states=states)
+                                   states=states, before=before)
         last = last_states(past, states)
 
     def X_of(e: float) -> np.ndarray:
@@ -211,7 +228,7 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
             young = base * (e / base[0]) if swept is None else np.where(np.arange(len(base)) == swept, e, base)
             cache.clear()
             if past is None:
-                cache[e] = simulate_fixed(scene, ctl, young, nu, T_sim, start, substeps)
+                cache[e] = simulate_fixed(scene, ctl, young, nu, T_sim, start, substeps, before=before)
             else:
                 cache[e] = np.concatenate([past, continue_frames(scene, inputs_at, young, nu, range(a, T_sim), *last,
                                                                  substeps)])
@@ -227,7 +244,7 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
             raise ValueError("surface faces index beyond the mesh's vertices")
         per = marker_loss_curve(X_of, faces, P, grid, fr)
     elif loss == "vision":
-        per = _vision(capture, workspace, cameras, mesh, X_of, grid, fr, anchor_young)
+        per = _vision(capture, workspace, cameras, mesh, X_of, grid, fr, anchor_young, start == "moving")
     elif loss == "silhouette":
         per = _silhouette(capture, workspace, cameras, mesh, X_of, grid, fr)
     else:
@@ -241,7 +258,7 @@ def sweep(capture, mesh, grid: Sequence[float], loss: str = "markers", frames: t
                         "refine": int(refine), "loss": loss, "region": region})
 
 
-def _vision(capture, workspace, cameras, mesh, X_of, grid, frames, anchor_young=None) -> np.ndarray:
+def _vision(capture, workspace, cameras, mesh, X_of, grid, frames, anchor_young=None, moving=False) -> np.ndarray:
     ws = Path(workspace)
     cams_art = CamerasArtefact.load(ws / KIND_FILES["cameras"])
     gauss = GaussiansArtefact.load(ws / KIND_FILES["gaussians"])
@@ -258,7 +275,13 @@ def _vision(capture, workspace, cameras, mesh, X_of, grid, frames, anchor_young=
             cache[t] = [target_image(read_frame(capture, c, t), masks, c, t, il.background) for c in names]
         return cache[t]
 
-    return vision_loss_curve(X_of, il, targets, grid, frames, fit_frame, anchor_young)
+    anchor = None
+    if moving:  # frame 0 is estimated about the fit pose x_f, where adapt keeps the Gaussians bound
+        if gauss.fit_positions is None or np.shape(gauss.fit_positions) != np.shape(mesh.vertices):
+            raise ValueError(f"{ws / KIND_FILES['gaussians']}: records no fit pose on mesh.h5's nodes (fit_positions), "
+                             f"which a capture filmed mid-motion binds its Gaussians to; run rsl fit-gaussians again")
+        anchor = np.asarray(gauss.fit_positions, np.float64)
+    return vision_loss_curve(X_of, il, targets, grid, frames, fit_frame, anchor_young, anchor)
 
 
 def _silhouette(capture, workspace, cameras, mesh, X_of, grid, frames) -> np.ndarray:

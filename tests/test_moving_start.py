@@ -7,6 +7,7 @@ the simulation it came from; the prior's scale; rsl adapt on a capture `rsl synt
 inputs it refuses."""
 from __future__ import annotations
 
+import json
 import re
 import shutil
 
@@ -200,6 +201,14 @@ def test_adapt_follows_a_capture_filmed_mid_motion(moving_beam):
     scene = make_scene(mesh, c.controls(), c.material.model, c.dt, c.gravity)
     rows, applied, source = adapted_forces(scene, c.controls(), art, c.start, 1, lambda: None, extrapolate=False)
     assert "replay" in source and len(applied) == len(art.frames)
+    # the loss sweep starts from that estimated start: the marker loss over the frames lowest at E_true
+    from stages.steps import evaluate
+
+    out = json.loads(evaluate.run(evaluate.EvaluateConfig(capture=cap, workspace=ws, sweep=True, sweep_points=5,
+                                                          sweep_min=0.7, sweep_max=1.4, plot=False)).read_text())
+    sw = out["sweep"]
+    assert sw["start"] == "moving" and sw["interior"], sw
+    assert sw["min_over_true"] == pytest.approx(1.0, abs=0.03), sw
 
 
 @pytest.mark.parametrize("kw, message", [
@@ -241,6 +250,19 @@ def test_fit_gaussians_poses_a_moving_start_at_its_equilibrium_and_the_loss_swee
         fit_pose(c, mesh, 1)
     with pytest.raises(RslError, match=r"the loss sweep simulates every E from the start state"):
         sweep(c, mesh, [e_true])
+    with pytest.raises(ValueError, match=r"should be \(2, \d+, 3\) on the mesh's nodes"):
+        sweep(c, mesh, [e_true], before=np.zeros((2, 3, 3)))
+    with pytest.raises(ValueError, match=r"the sweep's start is 'rest', not moving"):
+        sweep(c, mesh, [e_true], start="rest", before=np.stack([mesh.vertices] * 2))
+    # rsl evaluate --sweep takes the start adapt estimated; without adapt.h5 it says so
+    from stages.steps import evaluate
+
+    bare = ws.parent / "ws_without_adapt"
+    bare.mkdir(exist_ok=True)
+    shutil.copy(ws / "mesh.h5", bare / "mesh.h5")
+    with pytest.raises(RslError, match=r"start = \"moving\": the loss sweep starts from the start state rsl adapt "
+                                       r"estimates, and .*adapt.h5 is not there; run rsl adapt first"):
+        evaluate.run(evaluate.EvaluateConfig(capture=cap, workspace=bare, sweep=True, plot=False))
 
 
 def test_capture_toml_names_the_three_starts(moving_beam, tmp_path):

@@ -2,6 +2,8 @@
 capture simulated with rsl's own model under each declared start (and off it under the wrong start)."""
 from __future__ import annotations
 
+import json
+
 import meshio
 import numpy as np
 import pytest
@@ -92,6 +94,21 @@ def test_a_sweep_after_a_step_of_e_given_the_past_is_lowest_at_the_new_e(box, tm
     assert plain.loss.min() > 1e3 * res.loss[2] + 1e-12
     with pytest.raises(ValueError, match="past_young"):
         sweep(cap, mesh, grid, "markers", frames=(5, 10), poisson=0.45, past_young=np.full((4, 1), 6e4))
+    # rsl evaluate --sweep-past truth: the same sweep, its past read from truth/material.csv
+    from stages.steps.evaluate import EvaluateConfig
+    from stages.steps.evaluate import run as evaluate
+
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    mesh.save(ws / "mesh.h5")
+    kw = dict(capture=out, workspace=ws, sweep=True, sweep_frames="5:10", sweep_points=5, sweep_min=0.7,
+              sweep_max=1.3, plot=False)
+    given = json.loads(evaluate(EvaluateConfig(**kw, sweep_past="truth")).read_text())["sweep"]
+    assert given["past"] == "truth" and given["min_over_true"] == pytest.approx(1.0, rel=0.01)
+    ends = [0, -1]  # (the grid's ends are the same E; evaluate spaces the others evenly in log E)
+    assert np.allclose(np.array(given["loss_values"])[ends], res.loss[ends], rtol=1e-9)
+    alone = json.loads(evaluate(EvaluateConfig(**kw)).read_text())["sweep"]
+    assert alone["past"] == "grid" and np.allclose(np.array(alone["loss_values"])[ends], plain.loss[ends], rtol=1e-9)
 
 
 def test_one_regions_sweep_is_lowest_at_its_own_truth(box, tmp_path):

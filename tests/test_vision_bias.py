@@ -622,7 +622,7 @@ def test_anchor_material_follows_the_window_while_tied_and_its_own_gradient_once
 def test_vision_loss_curve_binds_the_gaussians_to_the_anchor_young_fit_frame_when_asked():
     """stages.sweep.vision_loss_curve: by default the Gaussians are re-bound to the fit frame simulated with each E
     of the grid; with anchor_young to the fit frame simulated with that E for every grid value — and with it equal
-    to the one grid value, the loss is the default's."""
+    to the one grid value, the loss is the default's; with anchor (a moving start's fit pose) to those positions."""
     from stages.sweep import vision_loss_curve
 
     base = np.random.default_rng(0).normal(size=(5, 7, 3))  # (T, n, 3)
@@ -650,3 +650,9 @@ def test_vision_loss_curve_binds_the_gaussians_to_the_anchor_young_fit_frame_whe
     assert not np.allclose(fixed, curve)
     one = vision_loss_curve(X_of, Loss(), lambda t: 0.1 * t, [2.0], [1, 2, 4], fit, anchor_young=2.0)
     assert np.array_equal(one[0], curve[2])
+    pose = np.random.default_rng(1).normal(size=(7, 3))  # a capture filmed mid-motion: bound at the fit pose
+    posed = Loss()
+    vision_loss_curve(X_of, posed, lambda t: 0.1 * t, grid, [1, 2, 4], fit, anchor=pose)
+    assert len(posed.bound) == 3 and all(np.array_equal(b, pose) for b in posed.bound)
+    with pytest.raises(ValueError, match="anchor_young or anchor, not both"):
+        vision_loss_curve(X_of, Loss(), lambda t: 0.1 * t, grid, [1], fit, anchor_young=1.0, anchor=pose)

@@ -62,7 +62,7 @@ class EvaluateConfig:
     forces: bool = True
     """Compare the handle and obstacle forces of adapt.h5 (as `rsl export --forces` computes them) with truth/forces.csv when the capture has it."""
     sweep: bool = False
-    """Also sweep the loss over a grid of fixed E (ν at the truth's) from the declared start on mesh.h5, and write evaluation_sweep.png; works without adapt.h5."""
+    """Also sweep the loss over a grid of fixed E (ν at the truth's) from the declared start on mesh.h5, and write evaluation_sweep.png; works without adapt.h5, except on a capture filmed mid-motion (start = "moving"), whose sweep starts from adapt.h5's estimated start state."""
     sweep_loss: Literal["markers", "vision", "silhouette"] = "markers"
     """Loss of the sweep: markers (markers.csv), vision (the Gaussians of gaussians.h5 against the images) or silhouette (the mesh's coverage against masks.h5: geometry alone, what still depends on E on a static capture)."""
     sweep_points: int = 9
@@ -77,6 +77,8 @@ class EvaluateConfig:
     """Implicit-Euler steps per frame in the sweep's simulation."""
     sweep_region: str = ""
     """Sweep only this region's E, every other region held at the truth's; empty = every region's E scaled together."""
+    sweep_past: Literal["grid", "truth"] = "grid"
+    """Frames before --sweep-frames' first: simulated with each E of the grid (grid), or once with the truth's E(t) and each E of the grid from there on (truth: the loss of the frames after a change of material, given the past)."""
     force_substeps: int = FORCE_SUBSTEPS
     """Implicit-Euler steps per frame S of the full-space replay the forces are computed on; 0 (the default) = adapt's --substeps, the time step θ was estimated with (docs/results/forces_converged.md, forces_damped.md)."""
     force_extrapolate: bool = FORCE_EXTRAPOLATE
@@ -291,17 +293,25 @@ def _sweep(config, ws, capture, truth, mesh, reporter) -> dict:
     grid = e_true[ref] * np.geomspace(config.sweep_min, config.sweep_max, config.sweep_points)
     if config.sweep_loss == "markers" and capture.markers() is None:
         raise RslError(f"{capture.root}: holds no markers.csv (or markers.c3d); use --sweep-loss vision.")
+    before = _sweep_start(capture, ws) if capture.start == "moving" else None
+    past = None
+    if config.sweep_past == "truth" and f0 > 0:
+        if len(truth.young) < f0:
+            raise RslError(f"{capture.truth_dir / 'material.csv'}: lists fewer than the {f0} frames before the swept "
+                           f"ones (--sweep-past truth).")
+        past = truth.young[:f0, idx]
     what = f"E of region {region}" if region is not None else "E"
     with reporter.task(f"{config.sweep_loss} loss sweep over {len(grid)} values of {what}", len(grid)) as task:
         try:  # base_young = the truth's E: scaled together (its ratios between regions kept), or held but one
             res = sweep(capture, mesh, grid, config.sweep_loss, frames=frames, workspace=ws,
                         poisson=float(nu_true[ref]), substeps=config.sweep_substeps, base_young=e_true,
-                        reporter=lambda _m: task.advance(1), region=region)
+                        reporter=lambda _m: task.advance(1), region=region, past_young=past, before=before)
         except ValueError as e:  # a missing or mismatched input of the loss, said in one sentence
             raise RslError(f"{str(e).rstrip('.')}.") from None
     e_ref = float(e_true[ref])
     return {"loss": config.sweep_loss, "frames": res.info["frames"], "start": res.info["start"],
             "substeps": config.sweep_substeps, "poisson": float(nu_true[ref]), "region": region,
+            "past": "truth" if past is not None else "grid",
             "young_pa": res.young.tolist(),
             "loss_values": res.loss.tolist(), "young_min": res.young_min, "interior": res.interior,
             # (max − min) / max over the grid: ~0 when the loss does not depend on E (e.g. images of a still capture)
@@ -309,6 +319,20 @@ def _sweep(config, ws, capture, truth, mesh, reporter) -> dict:
             "young_true": e_ref, "min_over_true": res.young_min / e_ref,
             "constant_truth": bool(np.all(truth.young[res.info["frames"][0]:res.info["frames"][1], idx[ref]] == e_ref)),
             "order": res.info["order"], "n_vertices": res.info["n_vertices"]}
+
+
+def _sweep_start(capture, ws: Path) -> np.ndarray:
+    """(2, n, 3) m: (x_{−1}, x_0) of a capture filmed mid-motion as rsl adapt estimated them (adapt.h5
+    start_positions), the start every E of the sweep is simulated from."""
+    path = ws / KIND_FILES["adapt"]
+    if not path.exists():
+        raise RslError(f"{capture.toml_path}: start = \"moving\": the loss sweep starts from the start state rsl adapt "
+                       f"estimates, and {path} is not there; run rsl adapt first.")
+    before = AdaptArtefact.load(path).start_positions
+    if before is None:
+        raise RslError(f"{path}: records no estimated start state (start_positions), which the loss sweep of a capture "
+                       f"filmed mid-motion starts from; run rsl adapt again.")
+    return before
 
 
 def _plot_sweep(path: Path, sw: dict) -> None:
