@@ -84,7 +84,7 @@ class AdaptConfig:
     workspace: Path
     """Workspace folder holding mesh.h5 and the other artefacts; adapt.h5 is written there."""
     window: int = 5
-    """Sliding-window size w: frames re-simulated and compared at each new frame."""
+    """Sliding-window size w: frames re-simulated and compared at each new frame.  The accuracy bench runs 3 (the paper's); one camera's images of a bar filmed mid-motion read 33.7 / 14.2 / 11.9 / 32.7 % at 3 / 5 / 6 / 12 (docs/results/accuracy_notes.md, twenty-ninth stop)."""
     space: Literal["reduced", "full"] = "reduced"
     """Simulate in the neural subspace (needs subspace.h5) or in the full FEM space."""
     mode: Literal["online", "offline", "static"] = "online"
@@ -352,7 +352,8 @@ def resolve_process_noise(config: AdaptConfig, estimator: str, loss: str, start:
 def single_camera_warning(cameras_path: Path, camera: str, moving: bool = False) -> str:
     """The warning of a run on one camera's images (the Gaussians): its E is measured less well than from several
     (docs/results/accuracy_one_camera/: the accuracy bench's image rows filmed by one camera); filmed mid-motion
-    (``moving``), the silhouettes measured the bar's steps of E better, the Gaussians the dinosaur and the beam."""
+    (``moving``), the silhouettes measured the bar's steps of E better, the Gaussians the dinosaur and the beam, and
+    longer windows held constant E closer."""
     text = (f"{cameras_path}: the images come from one camera ({camera}); on the accuracy bench one camera's images "
             f"left E several times further from the truth than three cameras' on the same bar captures, most of all "
             f"on one filmed mid-motion (docs/results/accuracy_one_camera/accuracy.md): a second camera or "
@@ -363,7 +364,9 @@ def single_camera_warning(cameras_path: Path, camera: str, moving: bool = False)
                  "but the dinosaur at 7.4 % where the Gaussians read 3.4 % and the two-region beam worse in both "
                  "regions, at about 4 times the time per frame: compare both on your capture, and the Gaussians with "
                  "--unseen-gaussians ignore, which read that bar at 12.8 and 29.9 % on two meshes where the default "
-                 "read 33.7 and 32.3 % (docs/results/accuracy_notes.md, twenty-sixth to twenty-eighth stops).")
+                 "read 33.7 and 32.3 % (the bench's figures are at --window 3). On a further mesh that bar read "
+                 "33.7 / 14.2 / 11.9 / 32.7 % at --window 3 / 5 (the default) / 6 / 12 and the dinosaur 5.4 / 4.2 % "
+                 "at 3 / 6, but every window left the bar's ×2 step of E 30–47 % off (docs/results/accuracy_notes.md, twenty-sixth to twenty-ninth stops).")
     return text
 
 
