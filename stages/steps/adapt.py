@@ -365,8 +365,8 @@ def single_camera_warning(cameras_path: Path, camera: str, moving: bool = False)
                  "regions, at about 4 times the time per frame: compare both on your capture, and the Gaussians with "
                  "--unseen-gaussians ignore, which read that bar at 12.8 and 29.9 % on two meshes where the default "
                  "read 33.7 and 32.3 % (the bench's figures are at --window 3). On a further mesh that bar read "
-                 "33.7 / 14.2 / 11.9 / 32.7 % at --window 3 / 5 (the default) / 6 / 12 and the dinosaur 5.4 / 4.2 % "
-                 "at 3 / 6, but every window left the bar's ×2 step of E 30–47 % off "
+                 "33.7 / 14.2 / 11.9 / 32.7 % at --window 3 / 5 (the default) / 6 / 12 and the dinosaur 5.4 / 3.9 / "
+                 "4.2 % at 3 / 5 / 6, but every window left the bar's ×2 step of E 30–47 % off "
                  "(docs/results/accuracy_notes.md, twenty-sixth to twenty-ninth stops).")
     return text
 
