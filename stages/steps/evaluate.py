@@ -294,12 +294,8 @@ def _sweep(config, ws, capture, truth, mesh, reporter) -> dict:
     if config.sweep_loss == "markers" and capture.markers() is None:
         raise RslError(f"{capture.root}: holds no markers.csv (or markers.c3d); use --sweep-loss vision.")
     before = _sweep_start(capture, ws) if capture.start == "moving" else None
-    past = None
-    if config.sweep_past == "truth" and f0 > 0:
-        if len(truth.young) < f0:
-            raise RslError(f"{capture.truth_dir / 'material.csv'}: lists fewer than the {f0} frames before the swept "
-                           f"ones (--sweep-past truth).")
-        past = truth.young[:f0, idx]
+    # (material.csv lists frame f0, checked above, so the frames before it too)
+    past = truth.young[:f0, idx] if config.sweep_past == "truth" and f0 > 0 else None
     what = f"E of region {region}" if region is not None else "E"
     with reporter.task(f"{config.sweep_loss} loss sweep over {len(grid)} values of {what}", len(grid)) as task:
         try:  # base_young = the truth's E: scaled together (its ratios between regions kept), or held but one
