@@ -254,10 +254,13 @@ def gauss_newton(evaluate: Callable[[np.ndarray, bool], tuple], p0: np.ndarray, 
         if r is not r_new:  # (the trial's own residuals, e.g. GNWindow.evaluate's ``ahead``: c is their cost)
             c = cost(p, r)
     # the covariance at the last linearisation (the final step is small: the same to first order)
-    JWJ = None if it == 0 else JWJ  # (Jᵀ W J at the last linearisation, formed in the loop)
+    if it == 0:  # no iteration: Jᵀ W J at p0, formed here as the loop forms it (once for the covariances, the result)
+        live = live_rows(J_lin)
+        Jl = J_lin[live]
+        JWJ = (Jl * W[live, None]).T @ Jl
     cov = posterior_cov(J_lin, W, s2, prior, JWJ)
     k2 = (residual_scale2(r_lin, sigma, huber, len(p)) if clusters is None else
-          cluster_scale2(r_lin, J_lin, sigma, huber, clusters, JWJ, None if it == 0 else live))
+          cluster_scale2(r_lin, J_lin, sigma, huber, clusters, JWJ, live))
     cov_scaled = posterior_cov(J_lin, W, float(sigma) ** 2 * k2, prior, JWJ) if np.isfinite(k2) else cov
     return GNResult(p=p, cov=cov, cost=c, iterations=it, evaluations=n_eval, residuals=r_lin, jacobian=J_lin,
                     p_lin=p_lin, weights=W, scale2=k2, cov_scaled=cov_scaled, checked=checked or it == 0, jtwj=JWJ)

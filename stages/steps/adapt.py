@@ -1154,9 +1154,7 @@ def _fit_sigma(loop: _Loop, frames: list[int], params: np.ndarray, before: np.nd
     sigma = max(obs.noise_scale(primed[0]), obs.noise_floor)
     res, _ = _gn_solve(gn, frames, p, Prior(p.copy(), np.eye(len(p)) * FLAT_PRIOR_VARIANCE), before, None, sigma, obs,
                        0, primed=primed)
-    W, J = res.weights, res.jacobian
-    information = np.einsum("mk,m,mk->k", J, W, J)[:R]  # diag(Jᵀ W J) of each log E (model_error_floors)
-    floors = model_error_floors(config.model_error, information)
+    floors = model_error_floors(config.model_error, np.diag(res.jtwj)[:R])  # diag(Jᵀ W J) of each log E
     sE, sN = sigma_from_cov(gn, res.p, res.cov_scaled[:gn.k_theta, :gn.k_theta], floors, config.model_error_poisson)
     return sE, sN, floors
 
