@@ -107,14 +107,16 @@ def scene_args(case: str, frames: int) -> list:
     raise ValueError(case)
 
 
-def settled_mask(young_true: np.ndarray, first: int = 0) -> np.ndarray:
-    """(T,) True at frames ≥ w + 5 after the first frame and after every change of E_true (any region)."""
+def settled_mask(young_true: np.ndarray, first: int = 0, window: int | None = None) -> np.ndarray:
+    """(T,) True at frames ≥ w + 5 after the first frame and after every change of E_true (any region); w the
+    row's window (None: the bench's, WINDOW)."""
+    w = WINDOW if window is None else int(window)
     T = len(young_true)
     ok = np.ones(T, bool)
-    ok[: first + WINDOW + 5] = False
+    ok[: first + w + 5] = False
     for t in range(1, T):
         if np.any(young_true[t] != young_true[t - 1]):
-            ok[t: t + WINDOW + 5] = False
+            ok[t: t + w + 5] = False
     return ok
 
 
@@ -221,7 +223,7 @@ def run_row(work: Path, row: tuple, frames: int, refine: int) -> dict:
     return {**out, "adapt_options": list(map(str, EXTRA)), "exported": EXPORT, "code": code_state(), "ended": datetime.datetime.now(datetime.timezone.utc).isoformat(
                 timespec="seconds"), "load_average": os.getloadavg()[0], "estimator": prov.get("config", {}).get("estimator", "?"),
             "substeps": prov.get("config", {}).get("substeps", 1), "dofs": dofs,
-            "frames": int(len(a.frames)), "settled_frames": int(ok.sum()),
+            "window": WINDOW, "frames": int(len(a.frames)), "settled_frames": int(ok.sum()),
             "median_error_per_region": med.tolist(), "median_error_worst": float(np.max(med)),
             "force_error": _force_error(ev), "force_source": (ev.get("forces") or {}).get("source"),
             "surface_error_mm": _surface_mm(ev),
@@ -301,7 +303,7 @@ def row_key(r) -> tuple:
 
 
 def main() -> None:
-    global EXTRA, EXPORT, TRUTH_SUBSTEPS, TRUTH_DAMPING, SUBSPACE_DIM, SCALE, SEQUENCES, CAMERAS
+    global EXTRA, EXPORT, TRUTH_SUBSTEPS, TRUTH_DAMPING, SUBSPACE_DIM, SCALE, SEQUENCES, CAMERAS, WINDOW
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
@@ -332,6 +334,9 @@ def main() -> None:
     ap.add_argument("--scale", choices=sorted(SCALES), default="table",
                     help="table: 3 cameras at 96², adapt mesh --max-tets 1500 (≈5K DOFs on the bar); paper: the "
                          "paper's Bar, 4 cameras at 128², --max-tets 2450 (≈10K DOFs), truth refined once")
+    ap.add_argument("--window", type=int, default=WINDOW,
+                    help="rsl adapt --window of every row (default 3, the issue's paper-scale case; rsl adapt's own "
+                         "default is 5); the settled frames follow it (≥ w + 5 after each step)")
     ap.add_argument("--cameras", type=int, default=0,
                     help="the captures' camera count instead of the scale's (a --work of its own; one camera: a "
                          "lab's usual capture)")
@@ -359,6 +364,7 @@ def main() -> None:
         SUBSPACE_DIM = int(runs[0]["plan"].get("dim", SUBSPACE_DIM))  # the header's r (a row with another: its own)
         SEQUENCES = int(runs[0]["plan"].get("sequences", 4))  # (runs before it was recorded: 4)
         CAMERAS = int(runs[0]["plan"].get("cameras", 0))
+        WINDOW = int(runs[0]["plan"].get("window", WINDOW))  # (runs before it was recorded: 3)
         if a.previous:
             old = json.loads(a.previous.read_text())
             done = {row_key(r) for r in rows}
@@ -380,7 +386,7 @@ def main() -> None:
             ap.error(f"--rows: {unknown} not in the plan")
         plan = want
     TRUTH_SUBSTEPS, TRUTH_DAMPING, SUBSPACE_DIM, SEQUENCES = a.truth_substeps, a.truth_damping, a.dim, a.sequences
-    CAMERAS = a.cameras
+    CAMERAS, WINDOW = a.cameras, a.window
     EXPORT = not a.no_export
     EXTRA = ((["--estimator", a.estimator] if a.estimator else []) + (["--substeps", a.substeps] if a.substeps else [])
              + a.adapt_option)
@@ -388,7 +394,7 @@ def main() -> None:
     rows = []
     meta = {"frames": frames, "refine": refine, "rows": plan, "scale": SCALE, "adapt_options": EXTRA, "truth_substeps": TRUTH_SUBSTEPS,
             "truth_damping": TRUTH_DAMPING,
-            "dim": SUBSPACE_DIM, "sequences": SEQUENCES, "cameras": CAMERAS}
+            "dim": SUBSPACE_DIM, "sequences": SEQUENCES, "cameras": CAMERAS, "window": WINDOW}
     for row in plan:
         rows.append(run_row(a.work, row, frames, refine))
         print(_row(rows[-1]), flush=True)

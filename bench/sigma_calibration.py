@@ -28,6 +28,7 @@ recorded floors is left out (its floors were spread over the regions by informat
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import platform
@@ -40,8 +41,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(Path(__file__).resolve().parent)]
 
 from accuracy import code_state, settled_mask  # noqa: E402
+from stages.steps.adapt import AdaptConfig  # noqa: E402
 
-FLOORS = (0.02, 0.03, 0.04, 0.05, 0.06, 0.08)
+DEFAULT_FLOOR = next(f.default for f in dataclasses.fields(AdaptConfig) if f.name == "model_error")
+"""rsl adapt's --model-error default: the floor the summary quotes each group's coverage at."""
+FLOORS = tuple(sorted({0.02, 0.03, 0.04, 0.05, 0.06, 0.08, DEFAULT_FLOOR}))
 TARGET = 0.90  # issue 13: the truth inside ±2σ on at least 90 % of the settled frames
 
 
@@ -88,7 +92,7 @@ def row_frames(row: dict, assumed: float) -> dict | None:
     if floor is None or not np.isfinite(S).any():
         return None
     floor = np.where(np.isfinite(floor), floor, np.nanmin(floor) if np.isfinite(floor).any() else assumed)
-    ok = settled_mask(Et) & np.all(np.isfinite(S), axis=1)  # (Adam: σ of its held fits only, NaN elsewhere)
+    ok = settled_mask(Et, window=row.get("window", 3)) & np.all(np.isfinite(S), axis=1)  # (Adam: σ of its held fits only, NaN elsewhere)
     base = float(np.min(floor))  # the run's e: the best-informed region's floor (e_i = e · min(√(I_max/I_i), 6))
     s_log2 = np.maximum((S / E) ** 2 - floor ** 2, 0.0)
     return {"rel": (np.abs(E - Et) / E)[ok].ravel(), "s_log2": s_log2[ok].ravel(),
@@ -199,7 +203,7 @@ def write(rows: list[dict], skipped: list[str], pages: list[Path], out: Path, cu
     for g, s in by_space_loss.items():
         if ", markers," not in g:
             lines.append(f"- {g}: {100 * s['coverage_ran']:.0f} % at the floors run, "
-                         f"{100 * s['coverage'][str(FLOORS[2])]:.0f} % at e′ = {FLOORS[2]:g}, the floor for "
+                         f"{100 * s['coverage'][str(DEFAULT_FLOOR)]:.0f} % at e′ = {DEFAULT_FLOOR:g} (rsl adapt's default), the floor for "
                          f"{100 * TARGET:.0f} %: {s['floor_for_target']:.3f} ({s['rows']} rows, {s['frames']} frames).")
     if skipped:
         lines += ["", "Left out (σ recorded, floors not recoverable): " + "; ".join(skipped) + "."]

@@ -6,6 +6,8 @@ import copy
 import json
 from pathlib import Path
 
+import numpy as np
+
 from test_bench_text import load_bench
 
 
@@ -105,3 +107,13 @@ def test_the_header_names_the_tolerances_the_rows_used(tmp_path: Path) -> None:
     md = (tmp_path / "accuracy.md").read_text()
     assert "`train-subspace --cubature-tol` bar 0.002 / 0.0005, beam 0.0005, dino 0.0005; each row's in its " \
            "cubature column)" in md
+
+
+def test_settled_frames_follow_the_window() -> None:
+    """Settled: ≥ w + 5 frames after the start and after each step of E_true, w the row's window (the bench's 3
+    unless given)."""
+    m = _accuracy()
+    young = np.array([[1.0]] * 20 + [[2.0]] * 20)
+    at3, at5 = m.settled_mask(young), m.settled_mask(young, window=5)
+    assert np.flatnonzero(~at3).tolist() == list(range(8)) + list(range(20, 28))
+    assert np.flatnonzero(~at5).tolist() == list(range(10)) + list(range(20, 30))
