@@ -114,7 +114,7 @@ def test_gn_on_images_from_half_the_modulus_reaches_it(tmp_path, rsl):
     fit-gaussians, full space, the capture's own one step per frame), from 0.5 E_true: E within 5 % over frames
     10–15.  (Before the fold integrated the "past" correction out and the images' change test was relative, the
     arrival cost took one frame's data as var(log E) → 0 far from the truth, or a false change held the anchor
-    there.)  The run warns that its images come from one camera."""
+    there.)  The run warns that its images come from one camera; its change probes find nothing and change nothing."""
     from stages.artefacts import AdaptArtefact
     from stages.steps import fit_gaussians
     from test_adapt_e2e import E_TRUE, _make_capture
@@ -128,3 +128,46 @@ def test_gn_on_images_from_half_the_modulus_reaches_it(tmp_path, rsl):
     assert np.all(np.abs(art.young[10:, 0] / E_TRUE - 1) < 0.05), art.young[:, 0] / E_TRUE
     # one camera's images: the run says how much less they measure (docs/results/accuracy_one_camera/)
     assert "the images come from one camera (cam0)" in " ".join(proc.stderr.split())
+    # the change probes (--change-probe, the default 0.5) saw no change here, and leave the window's record as the
+    # solve left it: without them the same estimates come out
+    assert not art.extra["material_changes_detected"]
+    assert max(v for v in art.extra["probe_ratio"] if v is not None) < 0.0
+    proc = rsl("adapt", cap, "-w", ws, "--space", "full", "--loss", "vision", "--window", "3", "--estimator", "gn",
+               "--young-init", str(E_TRUE / 2), "--substeps", "1", "--change-probe", "0")
+    assert proc.returncode == 0, proc.stderr
+    assert np.allclose(AdaptArtefact.load(ws / "adapt.h5").young, art.young, rtol=1e-6, atol=0)
+
+
+def test_gn_on_images_follows_a_step_the_linear_model_misses(tmp_path, rsl):
+    """The cable-pulled beam (2 cameras at 64², full space, one step per frame) with E ×2 at frame 12, gn on images
+    from 0.5 E_true.  The image Jacobian's linear model puts each window's minimum a few per cent from the old E, so
+    without the probes (--change-probe 0) no change is seen and E stays near half the new truth; with them
+    (the default) a probe at log E + 0.5 explains a window after the step better by a likelihood ratio above
+    --change-threshold², a change is declared within w + 1 frames of the step, and E after it sits at the same
+    ratio to the truth as before it (this capture's own bias, one Gaussians fit)."""
+    from stages.artefacts import AdaptArtefact
+    from stages.capture import load_capture, read_truth
+    from stages.steps import fit_gaussians
+    from test_adapt_e2e import E_TRUE, _make_capture
+
+    cap, ws = _make_capture(tmp_path, frames=24, cameras=2, resolution=64,
+                            young_schedule=f"{E_TRUE:g}@0,{2 * E_TRUE:g}@12")
+    fit_gaussians.run(fit_gaussians.FitGaussiansConfig(capture=cap, workspace=ws, iterations=80, gaussians=800))
+    truth = read_truth(load_capture(cap)).young[:, 0]
+    ratio = {}
+    for probe in ("0.5", "0"):
+        proc = rsl("adapt", cap, "-w", ws, "--space", "full", "--loss", "vision", "--window", "3", "--estimator",
+                   "gn", "--young-init", str(E_TRUE / 2), "--substeps", "1", "--change-probe", probe)
+        assert proc.returncode == 0, proc.stderr
+        art = AdaptArtefact.load(ws / "adapt.h5")
+        ratio[probe] = art.young[:, 0] / truth[np.asarray(art.frames)]
+        changes = art.extra["material_changes_detected"]
+        probed = [v for v in art.extra["probe_ratio"] if v is not None]
+        if probe == "0":
+            assert not probed
+            continue
+        assert len(changes) == 1 and 12 <= changes[0] <= 12 + 3 + 1, (changes, art.extra["probe_ratio"])
+        assert max(probed) > 9.0
+    before = np.median(ratio["0.5"][6:12])
+    assert abs(np.median(ratio["0.5"][18:]) - before) < 0.15, ratio["0.5"]
+    assert np.median(ratio["0"][18:]) < before - 0.25, ratio["0"]  # the linear model alone stays behind

@@ -58,7 +58,7 @@ from stages.capture import CaptureError, check_obstacles_clear, load_capture
 from stages.damping_profile import FLAT_PROFILE, DampingProfile, profile_damping
 from stages.errors import Interrupted, RslError
 from stages.estimator import (ChangeDetector, Prior, WindowFilter, condition, gauss_newton, huber_weights, marginal,
-                              matched_arrival, posterior_cov, process_noise, weakly_informed)
+                              matched_arrival, posterior_cov, process_noise, robust_cost, weakly_informed)
 from stages.interrupt import CheckedReporter, CtrlC
 from stages.parameters import Adam, params_from_theta, theta_from_params
 from stages.progress import Reporter, SilentReporter
@@ -195,6 +195,13 @@ class AdaptConfig:
     (stages/estimator.py matched_arrival)."""
     change_sigma: float = 0.5
     """gn: σ added to log E when a change of material is detected (0.5: a factor 1.65); ν's prior is kept."""
+    change_probe: float = 0.5
+    """gn, images and silhouettes: after each window's solve its data cost is probed at log E ± this (0.5: a factor
+    1.65, per region), simulated and rendered there; where a probe explains the window better than the estimate by
+    more than --change-threshold² in the likelihood ratio 2 [C(θ̂) − C(θ_probe)] / (σ² s²), the material changed
+    beyond what the image Jacobian's linear model sees (its minimum a few per cent from the estimate where the
+    window's cost is lowest at the new E), and the window is solved again from the probe under the widened prior
+    of a detected change (0: no probes)."""
     poisson_information: float = 1.0
     """gn: ν is estimated in a window only while the data of the window before informed it (its information
     marginalised over E and the state correction, from the Gauss–Newton normal matrix) at least this many times as
@@ -906,6 +913,7 @@ def _online(loop: _Loop, params: np.ndarray, adam: Adam) -> None:
     change_lo = loop.first + 1  # the earliest frame a later change may be located at (after the last calibration)
     holding = calibrating and _holds_fit(config)  # E(t) held at the last fit between changes
     fit_sigma = None  # with holding: (σ_E, σ_ν, floors) of the last fit (_fit_sigma)
+    calib_p = None  # the last calibration's fit (params), set by it: read only once the anchor is fixed
     iterations = resolve_iterations(config, "adam", config.loss, "")
     with loop.reporter.task(f"adapt online ({loop.backend.space}, {loop.obs.kind}, w={w})", loop.total()) as task:
         for T in loop.online_frames():
@@ -1349,6 +1357,49 @@ def _bind_late_markers(loop: _Loop, T: int, frames, states) -> None:
         loop.rec.late_bindings = getattr(loop.rec, "late_bindings", []) + [(int(T), n)]
 
 
+def _probing(config: AdaptConfig, kind: str, frames, T: int, changes: list, w: int, first: int) -> bool:
+    """Whether this frame's window is probed (AdaptConfig.change_probe): images or silhouettes, a full window of
+    two frames or more, and no change of material within the last w frames."""
+    return (config.change_probe > 0 and config.change_threshold > 0 and kind in ("vision", "silhouette")
+            and len(frames) > 1 and T >= first + w and (not changes or T - changes[-1] > w))
+
+
+def _probe_log_e(gn: GNWindow, frames, p_hat: np.ndarray, before, D, sigma: float, obs, scale: float,
+                 step: float) -> tuple[float, np.ndarray | None]:
+    """The window's data cost probed at each region's log E ± ``step`` (the other unknowns at the estimate
+    ``p_hat``, the observations' binding kept): (Λ, p) of the probe with the largest likelihood ratio
+
+        Λ = 2 [C(p̂) − C(p)] / (σ² s²),   C = Σ σ² ρ(r/σ) the robust data cost (estimator.robust_cost),
+
+    s² the data term's variance factor (``scale``); (−∞, None) when no probe could be simulated.  C(p̂) is the
+    solve's last evaluation (gn.last_rs); gn's record of the window (last_*) is left as the solve left it."""
+    keep = {name: getattr(gn, name, None) for name in gn._LINEARISATION + gn._EVALUATION + ("prediction",)}
+    traj = getattr(gn.obj.win, "_traj", None)
+    c_hat = robust_cost(np.concatenate(gn.last_rs), sigma, obs.huber)
+    lo, hi = (np.log(gn.young_range) if gn.young_range is not None else (-np.inf, np.inf))
+    best: tuple[float, np.ndarray | None] = (-np.inf, None)
+    try:
+        for j in range(gn.R):
+            for sign in (1.0, -1.0):
+                p = np.array(p_hat, float)
+                p[j] = float(np.clip(p[j] + sign * step, lo, hi))
+                if abs(p[j] - p_hat[j]) < 0.5 * step:  # at a bound of [material] young_range
+                    continue
+                try:
+                    r, _ = gn.evaluate(frames, p, before, D, False, rebind=False)
+                except SolveCollapsed:
+                    continue
+                lam = 2.0 * (c_hat - robust_cost(r, sigma, obs.huber)) / (sigma ** 2 * scale)
+                if lam > best[0]:
+                    best = (lam, p)
+    finally:
+        for name, v in keep.items():
+            setattr(gn, name, v)
+        if traj is not None:
+            gn.obj.win._traj = traj
+    return best
+
+
 def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     """Online moving-horizon estimation (stages.estimator): per new frame, Gauss–Newton on the window's
     unknowns against the arrival-cost prior; the frame leaving the window is folded into the prior, which then
@@ -1382,6 +1433,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     # exceeded the threshold (a false change, the anchor then held at a far-off θ: bar, 0.5 E_true, 80 % error)
     detector = ChangeDetector(config.change_threshold, relative=obs.kind == "vision")
     rec.innovation = []  # per frame: the normalised innovation z of the change test (NaN: not tested)
+    rec.probe = []  # per frame: the best probe's likelihood ratio (NaN: not probed; AdaptConfig.change_probe)
     start_w = first  # the window never reaches before the last change point
     modes_failed = False
     R = objective.R
@@ -1498,6 +1550,26 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             if loop.moving is not None and t0 == 0 and obs.kind == "markers":  # the markers' material points
                 res, (r_lin, J_lin) = _rebind_moving_start(gn, objective, res, (r_lin, J_lin), frames, solve_prior,
                                                            before, D, sigma, obs, scale, rec)
+            lam = float("nan")
+            if _probing(config, obs.kind, frames, T, changes, w, loop.first):
+                lam, p_probe = _probe_log_e(gn, frames, res.p, before, D, sigma, obs, scale, config.change_probe)
+                if lam > config.change_threshold ** 2:
+                    # a change of material the linear model missed: the prior of log E widened as at a detected
+                    # change (the arrival cost's too), the window solved again from the probe; the window keeps its
+                    # frames (they all prefer the probe) and later ones start no earlier
+                    widen = np.zeros(len(prior.mean))
+                    widen[:R] = config.change_sigma ** 2
+                    filt.prior = Prior(filt.prior.mean, filt.prior.cov + np.diag(widen[:k_th]))
+                    prior = Prior(prior.mean, prior.cov + np.diag(widen))
+                    solve_prior = Prior(solve_prior.mean, solve_prior.cov + np.diag(widen))
+                    changes.append(T)
+                    rec.changes = changes
+                    gn.rebind_anchor = False  # (the anchor frame showed the old material, as at a detected change)
+                    detector.g = 0.0
+                    start_w = t0
+                    res, (r_lin, J_lin) = _gn_solve(gn, frames, p_probe, solve_prior, before, D, sigma, obs,
+                                                    iterations, scale, None)
+            rec.probe.append(lam)
             if hold_nu.any():  # σ (and the information test) with ν's own prior: held, ν is not known better
                 res.cov_scaled = posterior_cov(res.jacobian, res.weights, sigma ** 2 * res.scale2, prior, res.jtwj)
             held_now = hold_nu.copy()
@@ -1671,6 +1743,8 @@ def _trim_record(rec: _Record) -> None:
         del getattr(rec, f)[k:]
     if hasattr(rec, "innovation"):  # gn: appended before the frame's other entries
         del rec.innovation[k:]
+    if hasattr(rec, "probe"):  # gn: likewise
+        del rec.probe[k:]
     if hasattr(rec, "anchor_young"):  # adam, --vision-anchor estimated: likewise (and the window's own E)
         del rec.anchor_young[k:]
         del rec.window_young[k:]
@@ -1715,6 +1789,8 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         "material_changes_detected": list(getattr(rec, "changes", [])),  # gn: frames whose innovation widened θ
         # gn: per frame, the change test's normalised innovation rᵀr/(mσ²) (None: not tested)
         "innovation_ratio": [None if not np.isfinite(z) else float(z) for z in getattr(rec, "innovation", [])],
+        # gn, images and silhouettes: per frame, the best probe's likelihood ratio (None: not probed; --change-probe)
+        "probe_ratio": [None if not np.isfinite(z) else float(z) for z in getattr(rec, "probe", [])],
         # adam, --vision-anchor estimated: per frame, E (per region) of the Gaussians' anchor (the fit frame's material)
         "anchor_young": list(getattr(rec, "anchor_young", [])),
         "anchor_apart_from": getattr(rec, "anchor_apart", None),  # the frame its own material began (None: never)
