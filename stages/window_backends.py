@@ -318,6 +318,18 @@ class Substepped:
         del self._traj[:-self.KEEP_TRAJ]
         return X
 
+    def records(self) -> tuple:
+        """A copy of the forwards' records (per frame, the committed ones, the substep trajectories):
+        :meth:`restore_records` puts it back, so that forwards that should leave no trace (adapt's change probes)
+        do not push the records of the states the run keeps out of :attr:`KEEP`."""
+        return ({t: list(v) for t, v in self._recent.items()}, dict(self._committed), list(self._traj), self._horizon)
+
+    def restore_records(self, saved: tuple) -> None:
+        """The records as :meth:`records` copied them."""
+        recent, committed, traj, horizon = saved
+        self._recent = {t: list(v) for t, v in recent.items()}
+        self._committed, self._traj, self._horizon = dict(committed), list(traj), horizon
+
     def commit(self, t: int, state: np.ndarray) -> None:
         """Frame t's state is now ``state`` (run()'s store): keep the record of the forward that made it; a
         state no forward made (a corrected one) keeps the record of the state it replaces."""

@@ -288,3 +288,21 @@ def test_adapt_cli_with_substeps_runs_end_to_end(tmp_path, rsl):
     assert art.young.shape == (10, 1)
     # the capture was simulated on this mesh with 2 substeps: the same model, so E is recovered closely
     assert abs(np.median(art.young[-4:, 0]) - 1e5) / 1e5 < 0.05, art.young[:, 0]
+
+
+def test_records_restored_leave_no_trace_of_forwards_in_between(full):
+    """Substepped.records / restore_records (adapt's change probes): forwards with another θ in between, more than
+    KEEP of them, would push the records of the stored states out — the next window would then start from the
+    frame states' restart rule instead of their substeps; restored, it starts as if they never ran."""
+    scene, at = full
+    b = _full_backend(scene, at, 2)
+    _, stored = _chain(b, [[0, 1, 2], [1, 2, 3], [2, 3, 4]])
+    before = np.stack([stored[3], stored[4]])
+    want = b.fine_before(5, before)
+    saved = b.records()
+    for k in range(b.KEEP + 1):
+        b.forward([3, 4], np.tile(YOUNG * (1.5 + 0.1 * k), (2, 1)), np.tile(POISSON, (2, 1)),
+                  np.stack([stored[1], stored[2]]))
+    assert not np.array_equal(b.fine_before(5, before), want)  # the stored state's record was pushed out
+    b.restore_records(saved)
+    assert np.array_equal(b.fine_before(5, before), want)

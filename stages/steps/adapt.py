@@ -1372,9 +1372,13 @@ def _probe_log_e(gn: GNWindow, frames, p_hat: np.ndarray, before, D, sigma: floa
         Λ = 2 [C(p̂) − C(p)] / (σ² s²),   C = Σ σ² ρ(r/σ) the robust data cost (estimator.robust_cost),
 
     s² the data term's variance factor (``scale``); (−∞, None) when no probe could be simulated.  C(p̂) is the
-    solve's last evaluation (gn.last_rs); gn's record of the window (last_*) is left as the solve left it."""
+    solve's last evaluation (gn.last_rs); gn's record of the window (last_*), the remembered trajectory and the
+    substeps' records are left as the solve left them: the run goes on as without the probes."""
     keep = {name: getattr(gn, name, None) for name in gn._LINEARISATION + gn._EVALUATION + ("prediction",)}
-    traj = getattr(gn.obj.win, "_traj", None)
+    traj = getattr(gn.obj.win, "_traj", None)  # (StartWindow.memo: the trajectory the next window continues)
+    backend = getattr(gn.obj, "backend", None)
+    records = getattr(backend, "records", None)  # (--substeps: Substepped's records of the forwards)
+    saved = records() if records is not None else None
     c_hat = robust_cost(np.concatenate(gn.last_rs), sigma, obs.huber)
     lo, hi = (np.log(gn.young_range) if gn.young_range is not None else (-np.inf, np.inf))
     best: tuple[float, np.ndarray | None] = (-np.inf, None)
@@ -1397,6 +1401,8 @@ def _probe_log_e(gn: GNWindow, frames, p_hat: np.ndarray, before, D, sigma: floa
             setattr(gn, name, v)
         if traj is not None:
             gn.obj.win._traj = traj
+        if saved is not None:
+            backend.restore_records(saved)
     return best
 
 
