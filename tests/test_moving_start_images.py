@@ -215,8 +215,8 @@ def test_adapt_identifies_young_from_the_masks_alone_of_a_capture_filmed_mid_mot
 
 def test_one_camera_warning_points_a_capture_filmed_mid_motion_to_the_silhouettes():
     """One camera's Gaussians filmed mid-motion read E 25–27 % off on the bench where the silhouettes read 2.5–4.7 %
-    (accuracy_notes.md, twenty-sixth stop), and held it closer with longer windows (twenty-ninth): the warning says
-    so there, and only there."""
+    (accuracy_notes.md, twenty-sixth stop), held it closer with longer windows (twenty-ninth), and follow the bar's
+    steps with the change probes (thirtieth): the warning says so there, and only there."""
     from stages.steps.adapt import single_camera_warning
 
     moving = " ".join(single_camera_warning(Path("ws/cameras.h5"), "cam0", moving=True).split())
@@ -224,3 +224,4 @@ def test_one_camera_warning_points_a_capture_filmed_mid_motion_to_the_silhouette
     assert moving.startswith("ws/cameras.h5: the images come from one camera (cam0)")
     assert "--loss silhouette" in moving and "--loss silhouette" not in still
     assert "--window 3 / 5 (the default) / 6 / 12" in moving and "--window" not in still
+    assert "--change-probe" in moving and "--change-probe" not in still

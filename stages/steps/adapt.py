@@ -84,7 +84,7 @@ class AdaptConfig:
     workspace: Path
     """Workspace folder holding mesh.h5 and the other artefacts; adapt.h5 is written there."""
     window: int = 5
-    """Sliding-window size w: frames re-simulated and compared at each new frame.  The accuracy bench runs 3 (the paper's); one camera's images of a bar filmed mid-motion read 33.7 / 14.2 / 11.9 / 32.7 % at 3 / 5 / 6 / 12 (docs/results/accuracy_notes.md, twenty-ninth stop)."""
+    """Sliding-window size w: frames re-simulated and compared at each new frame.  The accuracy bench runs 3 (the paper's); one camera's images of a bar filmed mid-motion read 33.7 / 14.2 / 11.9 / 32.7 % at 3 / 5 / 6 / 12 before the change probes (--change-probe), 14.7 / 17.8 % at 3 / 5 with them; on four rows from equilibrium or rest (three cameras) 3 read as well as 5 with images and better with markers (docs/results/accuracy_window/; accuracy_notes.md, twenty-ninth and thirtieth stops)."""
     space: Literal["reduced", "full"] = "reduced"
     """Simulate in the neural subspace (needs subspace.h5) or in the full FEM space."""
     mode: Literal["online", "offline", "static"] = "online"
@@ -359,22 +359,23 @@ def resolve_process_noise(config: AdaptConfig, estimator: str, loss: str, start:
 def single_camera_warning(cameras_path: Path, camera: str, moving: bool = False) -> str:
     """The warning of a run on one camera's images (the Gaussians): its E is measured less well than from several
     (docs/results/accuracy_one_camera/: the accuracy bench's image rows filmed by one camera); filmed mid-motion
-    (``moving``), the silhouettes measured the bar's steps of E better, the Gaussians the dinosaur and the beam, and
-    longer windows held constant E closer."""
+    (``moving``), the Gaussians follow the bar's steps of E since the change probes, the silhouettes measured them
+    better before, the Gaussians the dinosaur and the beam."""
     text = (f"{cameras_path}: the images come from one camera ({camera}); on the accuracy bench one camera's images "
             f"left E several times further from the truth than three cameras' on the same bar captures, most of all "
             f"on one filmed mid-motion (docs/results/accuracy_one_camera/accuracy.md): a second camera or "
             f"markers (--loss markers) measure E better.")
     if moving:
-        text += (" This capture is filmed mid-motion: there --loss silhouette (the outline against masks.h5) read "
-                 "the bench's bar with steps of E at 2.5–4.7 % on three meshes where the Gaussians read 25–34 %, "
-                 "but the dinosaur at 7.4 % where the Gaussians read 3.4 % and the two-region beam worse in both "
-                 "regions, at about 4 times the time per frame: compare both on your capture, and the Gaussians with "
-                 "--unseen-gaussians ignore, which read that bar at 12.8 and 29.9 % on two meshes where the default "
-                 "read 33.7 and 32.3 % (the bench's figures are at --window 3). On a further mesh that bar read "
-                 "33.7 / 14.2 / 11.9 / 32.7 % at --window 3 / 5 (the default) / 6 / 12 and the dinosaur 5.4 / 3.9 / "
-                 "4.2 % at 3 / 5 / 6, but every window left the bar's ×2 step of E 30–47 % off "
-                 "(docs/results/accuracy_notes.md, twenty-sixth to twenty-ninth stops).")
+        text += (" This capture is filmed mid-motion. Since the change probes (--change-probe) the Gaussians follow "
+                 "the bench's bar through its steps of E: 14.7 % where they read 27.9 % without them (three cameras "
+                 "4.8 % against 37.6 %; docs/results/change_probe_one_camera/, change_probe_three_cameras/). "
+                 "--loss silhouette (the outline against masks.h5) read that bar at 10.2 % on the same mesh and "
+                 "2.5–4.7 % on three earlier ones, but the dinosaur and the two-region beam worse than the Gaussians, "
+                 "at about 4 times the time per frame: compare both on your capture, and the Gaussians with "
+                 "--unseen-gaussians ignore (12.8 and 29.9 % on two meshes where the default then read 33.7 and "
+                 "32.3 %). The bench's figures are at --window 3; before the probes that bar read 33.7 / 14.2 / 11.9 "
+                 "/ 32.7 % at --window 3 / 5 (the default) / 6 / 12 on a further mesh, with them 14.7 / 17.8 % at 3 "
+                 "/ 5 (docs/results/accuracy_notes.md, twenty-sixth to thirtieth stops).")
     return text
 
 
