@@ -92,7 +92,7 @@ def row_frames(row: dict, assumed: float) -> dict | None:
     if floor is None or not np.isfinite(S).any():
         return None
     floor = np.where(np.isfinite(floor), floor, np.nanmin(floor) if np.isfinite(floor).any() else assumed)
-    ok = settled_mask(Et, window=row.get("window", 3)) & np.all(np.isfinite(S), axis=1)  # (Adam: σ of its held fits only, NaN elsewhere)
+    ok = settled_mask(Et, window=row.get("window")) & np.all(np.isfinite(S), axis=1)  # (Adam: σ of its held fits only, NaN elsewhere)
     base = float(np.min(floor))  # the run's e: the best-informed region's floor (e_i = e · min(√(I_max/I_i), 6))
     s_log2 = np.maximum((S / E) ** 2 - floor ** 2, 0.0)
     return {"rel": (np.abs(E - Et) / E)[ok].ravel(), "s_log2": s_log2[ok].ravel(),

@@ -1489,6 +1489,22 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             p0 = np.concatenate([p_th, start_c if start_c is not None and t0 == 0 else np.zeros(len(D))])
         return D, prior, p0, past_dirs
 
+    def declare_change(T: int, from_frame: int) -> np.ndarray:
+        """A change of material at frame T (the change test's, or a probe's): the arrival cost's variance of log E
+        widened by --change-sigma² (ν's kept: a one-frame window cannot tell ν from E, and ν wandered off with E
+        after a step: make demo), T recorded, windows from here on start no earlier than ``from_frame``, and the
+        anchor frame (0, or the Gaussians' fit frame), which showed the old material, keeps its binding instead of
+        being re-simulated with the new θ.  Returns the widening added to the θ unknowns' variances (k_θ,)."""
+        nonlocal start_w
+        widen = np.zeros(k_th)
+        widen[:R] = config.change_sigma ** 2
+        filt.prior = Prior(filt.prior.mean, filt.prior.cov + np.diag(widen))
+        changes.append(T)
+        rec.changes = changes
+        gn.rebind_anchor = False
+        start_w = from_frame
+        return widen
+
     with gn.blas_limit(obs.kind), loop.reporter.task(f"adapt online gn ({backend.space}, {obs.kind}, w={w})",
                                                     loop.total()) as task:
         for T in loop.online_frames():
@@ -1521,20 +1537,11 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
                 z_innov = ChangeDetector.ratio(rn, sigma)
                 if len(rn) and detector.update(z_innov):
                     # a change point: the window restarts at T (the frames before it saw the old material and
-                    # are not folded into the arrival cost) and the prior of log E is widened; ν's is kept (a
-                    # one-frame window cannot tell ν from E, and ν wandered off with E after a step: make demo)
-                    widen = np.zeros(k_th)
-                    widen[:objective.R] = config.change_sigma ** 2
-                    filt.prior = Prior(filt.prior.mean, filt.prior.cov + np.diag(widen))
-                    changes.append(T)
-                    # the anchor frame (0, or the Gaussians' fit frame) showed the old material: its binding is
-                    # kept as it is from here on instead of being re-simulated with the new θ
-                    gn.rebind_anchor = False
-                    start_w = T
+                    # are not folded into the arrival cost)
+                    declare_change(T, T)
                     frames = [T]
                     t0 = T
                     before = loop.before(t0)
-                    rec.changes = changes
                     primed = None
             rec.innovation.append(z_innov)
             if loop.moving is not None and t0 >= 1 and not moving_checked:
@@ -1561,19 +1568,14 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             if _probing(config, obs.kind, frames, T, changes, w, loop.first):
                 lam, p_probe = _probe_log_e(gn, frames, res.p, before, D, sigma, obs, scale, config.change_probe)
                 if lam > config.change_threshold ** 2:
-                    # a change of material the linear model missed: the prior of log E widened as at a detected
-                    # change (the arrival cost's too), the window solved again from the probe; the window keeps its
-                    # frames (they all prefer the probe) and later ones start no earlier
+                    # a change of material the linear model missed: declared as the change test declares one, the
+                    # window's own prior widened with the arrival cost's, the window solved again from the probe; it
+                    # keeps its frames (they all prefer the probe) and later ones start no earlier
                     widen = np.zeros(len(prior.mean))
-                    widen[:R] = config.change_sigma ** 2
-                    filt.prior = Prior(filt.prior.mean, filt.prior.cov + np.diag(widen[:k_th]))
+                    widen[:k_th] = declare_change(T, t0)
+                    detector.g = 0.0
                     prior = Prior(prior.mean, prior.cov + np.diag(widen))
                     solve_prior = Prior(solve_prior.mean, solve_prior.cov + np.diag(widen))
-                    changes.append(T)
-                    rec.changes = changes
-                    gn.rebind_anchor = False  # (the anchor frame showed the old material, as at a detected change)
-                    detector.g = 0.0
-                    start_w = t0
                     res, (r_lin, J_lin) = _gn_solve(gn, frames, p_probe, solve_prior, before, D, sigma, obs,
                                                     iterations, scale, None)
             rec.probe.append(lam)
