@@ -24,6 +24,8 @@ Variants (switched in this process only: VisionObservation.jacobian_mode, GNWind
 - gn default (at rsl adapt's default --iters-per-frame): gn as a user gets it — jvp, and --gn-trust left to
   AdaptConfig's default, which resolve_gn_trust sets from the loss (the value that ran is read back from adapt.h5's
   provenance); its twin with every step evaluated is the row "jvp" of the same iterations;
+- gn default no-probe: the same with --change-probe 0 (no probes of the window at log E ± the probe after the
+  solve): the probes' cost is its difference to gn default;
 - gn jvp separate-test: the change test simulating and rendering the new frame by itself before the solve
   (GNWindow.shared_innovation off: the slow twin of taking its residuals from the solve's first linearisation);
 - gn jvp blas-threads: numpy's BLAS with the threads the process has (GNWindow.blas_threads None: the twin of
@@ -87,7 +89,8 @@ BOTH_OFF = "jvp separate-test blas-threads"  # gn jvp with both switches off: th
 VARIANTS = (("adam", "default"), ("gn", "fd"), ("gn", "jvp"), ("gn", "jvp no-memo"), ("gn", "jvp 1-eval"),
             ("gn", "jvp separate-test"), ("gn", "jvp blas-threads"), ("gn", BOTH_OFF), ("adam", "blas-1"))
 # both estimators at rsl adapt's default --iters-per-frame (the rows above take 1), with rsl adapt's default substeps
-DEFAULTS = (("adam", "default"), ("gn", "default"), ("gn", "jvp"), ("gn", BOTH_OFF), ("adam", "blas-1"))
+DEFAULTS = (("adam", "default"), ("gn", "default"), ("gn", "default no-probe"), ("gn", "jvp"), ("gn", BOTH_OFF),
+            ("adam", "blas-1"))
 # AdaptConfig.gn_trust of a gn variant: None (AdaptConfig's default, resolve_gn_trust) for "default", else this
 TRUST = {"jvp 1-eval": 5.0}
 # with rsl adapt's default substeps S (every variant), and with 1 substep per frame — the discretisation the capture was
@@ -164,7 +167,9 @@ def run_once(cap: Path, ws: Path, out: Path, estimator: str, w: int, n_frames: i
     out.mkdir(parents=True, exist_ok=True)
     for f in ("mesh.h5", "cameras.h5", "gaussians.h5", "subspace.h5"):
         shutil.copy(ws / f, out / f)
-    trust = {} if name == "default" else {"gn_trust": TRUST.get(name, 0.0)}  # "default": AdaptConfig's own
+    trust = {} if name.startswith("default") else {"gn_trust": TRUST.get(name, 0.0)}  # "default": AdaptConfig's own
+    if "no-probe" in name:  # the change probes off (--change-probe 0): their cost is the difference to "default"
+        trust["change_probe"] = 0.0
     cfg = adapt.AdaptConfig(capture=cap, workspace=out, space="reduced", loss="vision", window=w,
                             iters_per_frame=iters, frames=f"0:{n_frames}", estimator=estimator, substeps=substeps,
                             anchor_calibration=0,  # (see the module's docstring: the sliding window is timed)
@@ -258,6 +263,14 @@ def markdown(data: dict) -> str:
                               f"{g['total_s'] / o['total_s']:.2f} wall, {g['cpu_s'] / o['cpu_s']:.2f} CPU)"
                               if (o := row.get((S0, it, "gn", BOTH_OFF))) else ""))
     twins = data.get("twins", {})
+    pr = data.get("probes_vs_none")
+    if pr and (d := row.get((pr["S"], pr["it"], "gn", "default"))) and \
+            (n := row.get((pr["S"], pr["it"], "gn", "default no-probe"))):
+        summary.append(f"the change probes (--change-probe {data['change_probe_default']:g}, row default against "
+                       f"default no-probe, it = {pr['it']}): {d['total_s'] - n['total_s']:+.3g} s wall, "
+                       f"{d['cpu_s'] - n['cpu_s']:+.3g} s CPU per frame ({d['total_s'] / n['total_s']:.2f}× wall); gn "
+                       f"without them {n['total_s']:.3g} s wall, gn / adam {n['over_adam_wall']:.2f}; E differs by at "
+                       f"most {100 * pr['max_rel']:.2g} %, {pr['max_in_sigma']:.2g} σ_E")
     lines += ["", f"At S = {S0}: " + "; ".join(summary) + ".", "",
               f"gn with the forward-mode J against gn with central differences, the same frames (round 1): E "
               f"differs by at most {100 * cmp_['max_rel']:.2f} % (median {100 * cmp_['median_rel']:.2f} %), at most "
@@ -343,6 +356,10 @@ def main() -> None:
     # the fast paths against their twins: E of gn jvp (all on) against each with one switched off
     twins = {name: compare(runs[(S0, "gn", name, 1)][0], runs[(S0, "gn", "jvp", 1)][0])
              for name in ("jvp separate-test", "jvp blas-threads", BOTH_OFF)}
+    # the change probes: gn as a user gets it against the same with --change-probe 0 (at the default iterations)
+    probes = ({"S": S0, "it": I0, **compare(runs[(S0, "gn", "default no-probe", I0)][0],
+                                            runs[(S0, "gn", "default", I0)][0])}
+              if (S0, "gn", "default no-probe", I0) in runs else None)
     per_round = [[runs[v][i]["cpu_s"] for v in plan] for i in range(rounds)]
     from stages.artefacts import MeshArtefact
 
@@ -351,7 +368,8 @@ def main() -> None:
                        f"load average {os.getloadavg()[0]:.1f} at the end (a shared machine)",
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "wall_s": time.perf_counter() - t0, "jvp_vs_fd": jvp_vs_fd, "memo_vs_no_memo": memo_vs_not,
-            "twins": twins, "iters_default": I0,
+            "twins": twins, "iters_default": I0, "probes_vs_none": probes,
+            "change_probe_default": adapt.AdaptConfig.change_probe,
             "one_vs_two": one_vs_two, "plan": [list(x) for x in plan],
             # --gn-trust as AdaptConfig's default resolves it with images (the "default" runs' adapt.h5)
             "gn_trust_default": next((r[0]["gn_trust"] for (S, e, n, it), r in runs.items() if n == "default"
