@@ -430,12 +430,13 @@ def _cusum_max(rows: list) -> float:
 
 
 def _default(field: str) -> float:
-    """The AdaptConfig default the runs used (0 for a field this version of rsl does not have; --process-noise: the
-    one markers take, adapt.PROCESS_NOISE)."""
+    """The AdaptConfig default the runs used (0 for a field this version of rsl does not have; --process-noise and
+    --model-error: the ones markers take, adapt.PROCESS_NOISE and adapt.MODEL_ERROR_MARKERS)."""
     from stages.steps import adapt
 
-    if field == "process_noise":
-        return float(getattr(adapt, "PROCESS_NOISE", 0.0))
+    if field in ("process_noise", "model_error"):
+        return float(getattr(adapt, {"process_noise": "PROCESS_NOISE", "model_error": "MODEL_ERROR_MARKERS"}[field],
+                             getattr(adapt.AdaptConfig, field, 0.0)))
     return float(getattr(adapt.AdaptConfig, field, 0.0))
 
 

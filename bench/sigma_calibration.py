@@ -1,5 +1,5 @@
 """σ of `rsl adapt --estimator gn` against truths simulated on another discretisation: the measurement behind
-the default model-error floor (`rsl adapt --model-error`).
+the default model-error floors (`rsl adapt --model-error`: one for markers, one for images and silhouettes).
 
 The gn estimator reports σ_E = E √(σ²_logE + e_i²) per frame and region (stages.windows.sigma_from_cov): σ_logE from
 the window's Gauss–Newton normal matrix, e_i the model-error floor, the error of rsl's discretisation (mesh, time
@@ -12,7 +12,9 @@ group of rows (space, loss):
 - the same with σ recomputed for other floors e′ (σ_logE kept: σ′ = E √(σ²_logE + (e′ e_i / e)²), a region's
   spread e_i / e kept);
 - the smallest floor that puts the truth inside ±2σ on 90 % of the group's settled frames: per frame the floor that
-  just covers it, e_t = √(max(0, (|E − E_true| / 2E)² − σ²_logE)), and its 90th percentile.
+  just covers it, e_t = √(max(0, (|E − E_true| / 2E)² − σ²_logE)), and its 90th percentile;
+- the same for the markers rows (one floor for every space) and for the images' and silhouettes' rows pooled
+  (every estimator and camera count): the two defaults (stages.steps.adapt.resolve_model_error).
 
 Rows read: rows with σ (gn; Adam on images: its held fits) on quadratic tets (P1 in adapt is a discretisation rsl
 does not default to: its E is biased by 15–25 %, docs/results/convergence.md), in the reduced space only at the
@@ -28,7 +30,6 @@ recorded floors is left out (its floors were spread over the regions by informat
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import datetime
 import json
 import platform
@@ -41,11 +42,17 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(Path(__file__).resolve().parent)]
 
 from accuracy import code_state, settled_mask  # noqa: E402
-from stages.steps.adapt import AdaptConfig  # noqa: E402
+from stages.steps.adapt import AdaptConfig, resolve_model_error  # noqa: E402
 
-DEFAULT_FLOOR = next(f.default for f in dataclasses.fields(AdaptConfig) if f.name == "model_error")
-"""rsl adapt's --model-error default: the floor the summary quotes each group's coverage at."""
-FLOORS = tuple(sorted({0.02, 0.03, 0.04, 0.05, 0.06, 0.08, DEFAULT_FLOOR}))
+
+def default_floor(loss: str) -> float:
+    """rsl adapt's --model-error default for a loss (markers, vision, silhouette): the floor the summary quotes a
+    group's coverage at."""
+    return resolve_model_error(AdaptConfig(capture="", workspace=""), loss)
+
+
+FLOORS = tuple(sorted({0.02, 0.03, 0.04, 0.05, 0.06, 0.07, 0.08, 0.09, 0.10} | {default_floor(loss) for loss in
+                                                                                ("markers", "vision", "silhouette")}))
 TARGET = 0.90  # issue 13: the truth inside ±2σ on at least 90 % of the settled frames
 
 
@@ -154,6 +161,8 @@ def write(rows: list[dict], skipped: list[str], pages: list[Path], out: Path, cu
     by_space = group_summary(rows, lambda r: r["space"])
     by_space_loss = group_summary(rows, lambda r: f"{r['space']}, {r['loss']}, {r['estimator']}")
     markers = group_summary([r for r in rows if r["loss"] == "markers"], lambda r: r["space"])
+    # the cameras' losses pooled (images and silhouettes, every estimator and camera count): one default floor
+    cameras = group_summary([r for r in rows if r["loss"] != "markers"], lambda r: "images and silhouettes")
     head = " | ".join(f"e′ = {e:g}" for e in FLOORS)
     lines = [
         "# σ of the gn estimator against truths on another discretisation",
@@ -180,7 +189,7 @@ def write(rows: list[dict], skipped: list[str], pages: list[Path], out: Path, cu
                      f"| {r['truth_substeps']} | {len(f['rel'])} | {100 * f['error']:.1f} % | {f['floor']:g} "
                      f"| {100 * np.mean(coverage(f)):.0f} % | {cov} |")
     for title, summary in (("By space", by_space), ("By space, loss and estimator", by_space_loss),
-                           ("Markers rows by space", markers)):
+                           ("Markers rows by space", markers), ("Images and silhouettes pooled", cameras)):
         lines += ["", f"## {title}", "",
                   f"| group | rows | settled frames | within ±2σ (e ran) | {head} | floor for 90 % |",
                   "| --- |" + " ---: |" * (4 + len(FLOORS))]
@@ -200,11 +209,19 @@ def write(rows: list[dict], skipped: list[str], pages: list[Path], out: Path, cu
                  f"{100 * TARGET:.0f} % or more: " + (f"{min(both):g} (" + ", ".join(
                      f"{g} {100 * s['coverage'][str(min(both))]:.0f} %" for g, s in markers.items()) + ")"
                      if both else "none") + ".")
+    for g, s in cameras.items():
+        grid = [e for e in FLOORS if s["coverage"][str(e)] >= TARGET]
+        lines.append(f"- {g.capitalize()} pooled ({s['rows']} rows, {s['frames']} settled frames): "
+                     f"{100 * s['coverage_ran']:.0f} % at the floors the rows ran with; the smallest floor of the grid "
+                     f"reaching {100 * TARGET:.0f} %: " + (f"{min(grid):g}" if grid else "none")
+                     + f"; the floor for {100 * TARGET:.0f} % exactly: {s['floor_for_target']:.3f}.")
     for g, s in by_space_loss.items():
-        if ", markers," not in g:
-            lines.append(f"- {g}: {100 * s['coverage_ran']:.0f} % at the floors run, "
-                         f"{100 * s['coverage'][str(DEFAULT_FLOOR)]:.0f} % at e′ = {DEFAULT_FLOOR:g} (rsl adapt's default), the floor for "
-                         f"{100 * TARGET:.0f} %: {s['floor_for_target']:.3f} ({s['rows']} rows, {s['frames']} frames).")
+        loss = g.split(", ")[1]
+        e = default_floor(loss)
+        lines.append(f"- {g}: {100 * s['coverage_ran']:.0f} % at the floors run, "
+                     f"{100 * s['coverage'][str(e)]:.0f} % at e′ = {e:g} (rsl adapt's default for {loss}), the floor "
+                     f"for {100 * TARGET:.0f} %: {s['floor_for_target']:.3f} ({s['rows']} rows, {s['frames']} "
+                     "frames).")
     if skipped:
         lines += ["", "Left out (σ recorded, floors not recoverable): " + "; ".join(skipped) + "."]
     lines += ["", "Pages read: " + ", ".join(f"`{p.relative_to(ROOT) if p.is_relative_to(ROOT) else p}`"
@@ -220,7 +237,9 @@ def write(rows: list[dict], skipped: list[str], pages: list[Path], out: Path, cu
                     "median_error": r["frames"]["error"], "floor_ran": r["frames"]["floor"],
                     "coverage_ran": float(np.mean(coverage(r["frames"]))),
                     "coverage": {str(e): float(np.mean(coverage(r["frames"], e))) for e in FLOORS}} for r in rows],
-          "by_space": by_space, "by_space_loss": by_space_loss, "markers_by_space": markers}
+          "by_space": by_space, "by_space_loss": by_space_loss, "markers_by_space": markers,
+          "images_and_silhouettes": cameras,
+          "defaults": {loss: default_floor(loss) for loss in ("markers", "vision", "silhouette")}}
     (out / "sigma_calibration.json").write_text(json.dumps(js, indent=1))
     _plot(out / "sigma_calibration.png", by_space_loss)
     print("\n".join(lines))

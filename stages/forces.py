@@ -293,12 +293,13 @@ class FilterModel:
 def filter_model(config: dict | None, poisson_range, extra: dict | None = None) -> FilterModel | None:
     """The FilterModel of an adapt.h5 from its provenance config (stages.artefacts.read_provenance(...)["config"])
     and the capture's [material] poisson_range; None when the config lacks one of the filter's settings (a run not
-    made by the gn estimator can lack them).  --process-noise left at its default (None in the config) is read from
-    the adapt.h5's ``extra`` (the value that ran).  A config from before --process-noise-change had one σ for all
-    frames."""
+    made by the gn estimator can lack them).  --process-noise and --model-error left at their defaults (None in the
+    config) are read from the adapt.h5's ``extra`` (the values that ran).  A config from before
+    --process-noise-change had one σ for all frames."""
     config = config or {}
-    if config.get("process_noise") is None and (extra or {}).get("process_noise") is not None:
-        config = {**config, "process_noise": extra["process_noise"]}
+    for key in ("process_noise", "model_error"):  # left at their defaults: the value that ran, from the extras
+        if config.get(key) is None and (extra or {}).get(key) is not None:
+            config = {**config, key: extra[key]}
     keys = ("window", "process_noise", "change_sigma", "model_error", "model_error_poisson")
     if any(config.get(k) is None for k in keys) or poisson_range is None:
         return None

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from stages.parameters import Adam
-from stages.steps.adapt import AdaptConfig, _calibrate_anchor, _holds_fit
+from stages.steps.adapt import AdaptConfig, _calibrate_anchor, _holds_fit, resolve_model_error
 from stages.vision_anchor import AnchorMaterial
 from stages.window_backends import SolveCollapsed
 from test_adapt_vision_rest import DELAY, _adapt, delayed  # noqa: F401  (the module's capture fixture)
@@ -245,7 +245,8 @@ def test_a_held_calibration_fit_reports_its_sigma(delayed):  # noqa: F811
     s = np.asarray(art.young_sigma, float)[:, 0]
     assert np.all(np.isnan(s[:T_c])) and np.all(np.isfinite(s[T_c:])), s
     assert np.all(s[T_c:] == s[T_c]) and np.all(E[T_c:] == E[T_c]), (E, s)  # held with the fit
-    floor = AdaptConfig(capture="c", workspace="w").model_error
+    floor = resolve_model_error(AdaptConfig(capture="c", workspace="w"), "vision")  # the images' default
+    assert art.extra["model_error"] == floor
     assert s[T_c] >= floor * E[T_c] * (1 - 1e-9) and abs(E[T_c] - E_TRUE) <= 2 * s[T_c], (E[T_c], s[T_c])
     floors = np.asarray(art.extra["young_model_error"], float)[:, 0]
     assert np.all(np.isnan(floors[:T_c])) and np.allclose(floors[T_c:], floor)

@@ -208,6 +208,21 @@ def test_sigma_of_a_parameter_held_at_its_bound_is_not_tiny():
     assert sE[0] >= 2e6 * np.log(100) / np.sqrt(12) * (1 - 1e-12)
 
 
+def test_model_error_default_resolves_from_the_loss():
+    """resolve_model_error: AdaptConfig's default --model-error (None) is MODEL_ERROR_MARKERS with markers and the
+    larger MODEL_ERROR_IMAGES with images and silhouettes (docs/results/sigma_calibration.md); a value given always
+    wins."""
+    from stages.steps.adapt import MODEL_ERROR_IMAGES, MODEL_ERROR_MARKERS, AdaptConfig, resolve_model_error
+
+    cfg = AdaptConfig(capture="c", workspace="w")
+    assert cfg.model_error is None and MODEL_ERROR_IMAGES > MODEL_ERROR_MARKERS > 0
+    assert resolve_model_error(cfg, "markers") == MODEL_ERROR_MARKERS
+    assert resolve_model_error(cfg, "vision") == resolve_model_error(cfg, "silhouette") == MODEL_ERROR_IMAGES
+    for given in (0.0, 0.03):
+        explicit = AdaptConfig(capture="c", workspace="w", model_error=given)
+        assert resolve_model_error(explicit, "vision") == given == resolve_model_error(explicit, "markers")
+
+
 def test_model_error_floors_grow_where_the_data_inform_a_region_weakly():
     """e_i = e √(max I / I_i), capped at MODEL_ERROR_SPREAD_MAX e: one region, equal information or none at all gives
     e; a region with 16× less information 4 e, one with none the cap.  sigma_from_cov adds each region's floor in
@@ -653,9 +668,10 @@ def test_adapt_gn_markers_recovers_young_with_sigma(beam, rsl):
     assert np.all(np.abs(art.young[20:, 0] / E_TRUE - 1) < 0.01), art.young[:, 0]
     assert np.all(np.abs(art.young[20:, 0] - E_TRUE) <= 3 * art.young_sigma[20:, 0]), art.young_sigma[:, 0]
     assert art.young_sigma[0, 0] > art.young_sigma[-1, 0] > 0  # it knows it has learnt
-    from stages.steps.adapt import AdaptConfig
+    from stages.steps.adapt import MODEL_ERROR_MARKERS
 
-    default = AdaptConfig(capture="c", workspace="w").model_error
+    default = MODEL_ERROR_MARKERS
+    assert art.extra["model_error"] == default  # the value that ran (the option left at its default)
     floors = np.asarray(art.extra["young_model_error"])  # one region: the --model-error default on every frame
     assert floors.shape == art.young.shape and np.allclose(floors, default)
     proc = rsl("adapt", cap, "-w", ws, "--space", "full", "--loss", "markers", "--mode", "offline",

@@ -120,6 +120,11 @@ def test_filter_model_from_the_adapt_config():
     assert filter_model(old, (0.3, 0.49)).process_noise_change == 0.005
     assert filter_model({k: v for k, v in cfg.items() if k != "window"}, (0.3, 0.49)) is None
     assert filter_model(None, (0.3, 0.49)) is None
+    # options left at their defaults (None in the config): the values that ran, from adapt.h5's extras
+    defaults = {**cfg, "process_noise": None, "model_error": None}
+    assert filter_model(defaults, (0.3, 0.49)) is None
+    ran = filter_model(defaults, (0.3, 0.49), {"process_noise": 0.005, "model_error": 0.08})
+    assert ran == _model(model_error_poisson=0.01, model_error=0.08)
 
 
 def test_rts_theta_smooths_log_e_within_the_filters_model():

@@ -227,15 +227,17 @@ class AdaptConfig:
     damping_frames: int = 12
     """--damping auto: the frames, from the first of the range, that each β tried is run over; the material should
     be constant over them, and they should show the object move."""
-    model_error: float = 0.04
+    model_error: float | None = None
     """gn: relative σ of E that the discretisation itself adds to the reported E ± σ (σ_E = E √(σ²_logE + e_i²)): the
     error of rsl's mesh, time step and reduced space against the material, which more frames do not average out.
-    Default 0.04: the smallest floor of the grid 0.02, 0.03, … that puts the truth inside ±2σ on at least 90 % of
-    the settled frames of the accuracy bench's gn marker rows, full space and reduced alike (truths on another
-    mesh, element order and time step: 94 % / 92 % of them at 0.04, 73 % / 73 % at the earlier 0.02;
-    docs/results/sigma_calibration.md).  With several regions, e_i = e √(I_max / I_i) (at most 6 e), I_i the
-    data's information on region i's log E summed over the windows so far: a region the data tell weakly carries
-    more of the model's error (stages.windows.model_error_floors, region_sweep.md)."""
+    Default (resolve_model_error; adapt.h5's extra model_error records the value that ran): 0.04 with markers,
+    MODEL_ERROR_IMAGES with images and silhouettes — each the smallest floor of the grid 0.02, 0.03, … that puts the
+    truth inside ±2σ on at least 90 % of the settled frames of the accuracy bench's rows with that loss (truths on
+    another mesh, element order and time step; markers: full space 94 %, reduced 92 % at 0.04; images and
+    silhouettes, one camera and three, gn and Adam's held fits pooled: docs/results/sigma_calibration.md).  With
+    several regions, e_i = e √(I_max / I_i) (at most 6 e), I_i the data's information on region i's log E summed
+    over the windows so far: a region the data tell weakly carries more of the model's error
+    (stages.windows.model_error_floors, region_sweep.md)."""
     model_error_poisson: float = 0.02
     """gn: σ of ν that the discretisation itself adds to the reported ν ± σ (in quadrature; ν is weakly identified
     and absorbs model error, calibrated in docs/results/estimator.md)."""
@@ -381,6 +383,20 @@ def single_camera_warning(cameras_path: Path, camera: str, moving: bool = False)
 
 GN_TRUST_IMAGES = 5.0
 """--gn-trust's default with images (docs/results/adapt_speed.md, rows "1-eval")."""
+
+
+MODEL_ERROR_MARKERS = 0.04
+"""--model-error's default with markers (docs/results/sigma_calibration.md, the markers rows)."""
+MODEL_ERROR_IMAGES = 0.08
+"""--model-error's default with images and silhouettes (docs/results/sigma_calibration.md, their rows pooled)."""
+
+
+def resolve_model_error(config: AdaptConfig, obs_kind: str) -> float:
+    """The --model-error a run takes: the config's when given, else MODEL_ERROR_MARKERS with markers and
+    MODEL_ERROR_IMAGES with images and silhouettes (AdaptConfig.model_error)."""
+    if config.model_error is not None:
+        return float(config.model_error)
+    return MODEL_ERROR_MARKERS if obs_kind == "markers" else MODEL_ERROR_IMAGES
 
 
 def resolve_gn_trust(config: AdaptConfig, obs_kind: str) -> float:
@@ -1163,7 +1179,7 @@ def _fit_sigma(loop: _Loop, frames: list[int], params: np.ndarray, before: np.nd
     sigma = max(obs.noise_scale(primed[0]), obs.noise_floor)
     res, _ = _gn_solve(gn, frames, p, Prior(p.copy(), np.eye(len(p)) * FLAT_PRIOR_VARIANCE), before, None, sigma, obs,
                        0, primed=primed)
-    floors = model_error_floors(config.model_error, np.diag(res.jtwj)[:R])  # diag(Jᵀ W J) of each log E
+    floors = model_error_floors(resolve_model_error(config, obs.kind), np.diag(res.jtwj)[:R])  # diag(Jᵀ W J)
     sE, sN = sigma_from_cov(gn, res.p, res.cov_scaled[:gn.k_theta, :gn.k_theta], floors, config.model_error_poisson)
     return sE, sN, floors
 
@@ -1616,7 +1632,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             # model's error biases the run's estimate by (Σ Jᵀ W J)⁻¹ Σ Jᵀ δ, so the floor is spread over the
             # regions by the data's information on each log E summed over the windows so far (model_error_floors)
             info_run += np.nan_to_num(np.diag(res.jtwj)[:R])  # Jᵀ W J without σ (σ changes between windows)
-            floors = model_error_floors(config.model_error, info_run)
+            floors = model_error_floors(resolve_model_error(config, obs.kind), info_run)
             sE, sN = sigma_from_cov(gn, res.p, res.cov_scaled[:k_th, :k_th], floors, config.model_error_poisson)
             rec.model_error.append(floors.tolist())
             if len(frames) == w:  # frame t0 leaves the window: fold it into the arrival cost
@@ -1677,7 +1693,7 @@ def _offline_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     cov = np.array(res.cov_scaled, dtype=float)
     if hasattr(obs, "sigma_floor"):  # silhouettes: a mask outline's error no residual shows (stages/silhouette.py)
         cov[np.arange(gn.R), np.arange(gn.R)] += obs.sigma_floor()[:gn.R] ** 2
-    floors = model_error_floors(config.model_error, np.diag(np.asarray(res.jtwj, float))[:gn.R])
+    floors = model_error_floors(resolve_model_error(config, obs.kind), np.diag(np.asarray(res.jtwj, float))[:gn.R])
     sE, sN = sigma_from_cov(gn, res.p, cov, floors, config.model_error_poisson)
     per_frame = tuple(np.asarray(gn.times) / len(frames))
     for i, t in enumerate(frames):
@@ -1795,6 +1811,8 @@ def _save(loop: _Loop, ws: Path, mesh: MeshArtefact, names: list[str], inputs_us
         "gn_trust": resolve_gn_trust(config, obs.kind),
         # gn: the --process-noise that ran (its default resolved from the loss and the start), as gn_trust
         "process_noise": resolve_process_noise(config, estimator, obs.kind, start),
+        # gn: the --model-error that ran (its default resolved from the loss), as gn_trust
+        "model_error": resolve_model_error(config, obs.kind),
         "material_changes_detected": list(getattr(rec, "changes", [])),  # gn: frames whose innovation widened θ
         # gn: per frame, the change test's normalised innovation rᵀr/(mσ²) (None: not tested)
         "innovation_ratio": [None if not np.isfinite(z) else float(z) for z in getattr(rec, "innovation", [])],
