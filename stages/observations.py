@@ -14,7 +14,8 @@ from stages.artefacts import (KIND_FILES, CamerasArtefact, GaussiansArtefact, Ma
 from stages.capture import IMAGE_SUFFIXES, Capture, CaptureError, read_image
 from stages.errors import RslError
 from stages.occluders import has_occluders, ignore_mask
-from stages.sim.markers import MarkerBinding, bind_markers, fit_binding_to_tracks, marker_residuals
+from stages.sim.markers import (MarkerBinding, bind_markers, closest_points_on_triangles, fit_binding_to_tracks,
+                                 marker_residuals)
 
 
 class MarkerObservation:
@@ -35,13 +36,14 @@ class MarkerObservation:
         self.bound = self.anchored.copy()  # (M,) whose residuals count (a later marker: once bind_late placed it)
         self._mask()
         M = self._raw.shape[1]
-        self.binding = MarkerBinding(np.zeros((M, 3), np.int64), np.tile([1.0, 0.0, 0.0], (M, 1)), np.zeros(M))
-        self.rebind(vertices)
-        self.far = self._far(vertices)
         # the smallest marker noise σ the estimator assumes: 10⁻⁴ of the object's size (0.02 mm on a 0.2 m
         # object; mocap is rarely better) — without a floor, noise-free synthetic markers give σ → 0 and the
         # arrival cost becomes rigid against the slightest model or linearisation error
         self.noise_floor = 1e-4 * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+        self.binding = MarkerBinding(np.zeros((M, 3), np.int64), np.tile([1.0, 0.0, 0.0], (M, 1)), np.zeros(M))
+        self._triangles_chosen = False  # (rebind: no triangle to keep yet)
+        self.rebind(vertices)
+        self.far = self._far(vertices)
 
     def _mask(self) -> None:
         """P (T, M, 3): the markers as read, with the ones not bound yet as gaps."""
@@ -61,13 +63,28 @@ class MarkerObservation:
         """Bind each anchored marker to the triangle of the frame-0 surface x0 (n, 3) nearest its frame-0 position,
         at the projection of that position on the triangle's plane (the nearest point itself when it projects
         inside the triangle; unclamped at an edge, so that the binding is a smooth function of x0 for a given
-        triangle — the Gauss–Newton Jacobian differentiates it, :meth:`binding_jacobian`).  Markers bound by
-        :meth:`bind_late` keep their binding."""
+        triangle — the Gauss–Newton Jacobian differentiates it, :meth:`binding_jacobian`).  A marker keeps the
+        triangle it is bound to while that one is within :attr:`noise_floor` of the nearest: near a tie (a marker
+        as far from two triangles) the choice would otherwise follow the last bits of x0, and the residuals jump
+        between two close θ.  Markers bound by :meth:`bind_late` keep their binding."""
         a = self.anchored
-        b = bind_markers(x0[:self.n], self.faces, self._raw[0][a])
+        x, p = x0[:self.n], self._raw[0][a]
+        b = bind_markers(x, self.faces, p)
         faces, dist = self.binding.faces.copy(), self.binding.distance.copy()
-        faces[a], dist[a] = b.faces, b.distance
-        self.binding = MarkerBinding(faces, self._plane_bary(x0[:self.n], faces), dist)
+        new_faces, new_dist = b.faces, b.distance
+        if self._triangles_chosen and a.any():
+            held = faces[a]
+            d_held = np.empty(len(p))
+            for s in range(0, len(p), 64):  # in chunks: marker i against triangle j of the chunk, i = j kept
+                closest, _ = closest_points_on_triangles(p[s:s + 64], x[held[s:s + 64]])
+                i = np.arange(len(closest))
+                d_held[s:s + 64] = np.linalg.norm(closest[i, i] - p[s:s + 64], axis=-1)
+            keep = d_held <= new_dist + self.noise_floor
+            new_faces = np.where(keep[:, None], held, new_faces)
+            new_dist = np.where(keep, d_held, new_dist)
+        faces[a], dist[a] = new_faces, new_dist
+        self._triangles_chosen = True
+        self.binding = MarkerBinding(faces, self._plane_bary(x, faces), dist)
 
     def fit_to_tracks(self, frames: Sequence[int], X: np.ndarray) -> float:
         """Bind each bound marker seen in ``frames`` again, at the material point whose track over them fits its
