@@ -24,8 +24,9 @@ Variants (switched in this process only: VisionObservation.jacobian_mode, GNWind
 - gn default (at rsl adapt's default --iters-per-frame): gn as a user gets it — jvp, and --gn-trust left to
   AdaptConfig's default, which resolve_gn_trust sets from the loss (the value that ran is read back from adapt.h5's
   provenance); its twin with every step evaluated is the row "jvp" of the same iterations;
-- gn default no-probe: the same with --change-probe 0 (no probes of the window at log E ± the probe after the
-  solve): the probes' cost is its difference to gn default;
+- gn default no-probe, gn jvp no-probe (S = 1): the same with --change-probe 0 (no probes of the window at
+  log E ± the probe after the solve): the probes' cost is the difference to the twin with them (where a probe
+  declares a change, the runs part: their E are compared);
 - gn jvp separate-test: the change test simulating and rendering the new frame by itself before the solve
   (GNWindow.shared_innovation off: the slow twin of taking its residuals from the solve's first linearisation);
 - gn jvp blas-threads: numpy's BLAS with the threads the process has (GNWindow.blas_threads None: the twin of
@@ -95,7 +96,7 @@ DEFAULTS = (("adam", "default"), ("gn", "default"), ("gn", "default no-probe"), 
 TRUST = {"jvp 1-eval": 5.0}
 # with rsl adapt's default substeps S (every variant), and with 1 substep per frame — the discretisation the capture was
 # synthesised with (bench/table1.py), where E is not biased by the model's time step (the main variants)
-VARIANTS_S1 = (("adam", "default"), ("gn", "jvp"), ("gn", "jvp 1-eval"))
+VARIANTS_S1 = (("adam", "default"), ("gn", "jvp"), ("gn", "jvp no-probe"), ("gn", "jvp 1-eval"))
 E_TRUE = 1e5  # the Young's modulus bench/table1.py's build() synthesises the Bar with (and capture.toml's, the start)
 
 
@@ -168,7 +169,7 @@ def run_once(cap: Path, ws: Path, out: Path, estimator: str, w: int, n_frames: i
     for f in ("mesh.h5", "cameras.h5", "gaussians.h5", "subspace.h5"):
         shutil.copy(ws / f, out / f)
     trust = {} if name.startswith("default") else {"gn_trust": TRUST.get(name, 0.0)}  # "default": AdaptConfig's own
-    if "no-probe" in name:  # the change probes off (--change-probe 0): their cost is the difference to "default"
+    if "no-probe" in name:  # the change probes off (--change-probe 0): their cost is the difference to the twin
         trust["change_probe"] = 0.0
     cfg = adapt.AdaptConfig(capture=cap, workspace=out, space="reduced", loss="vision", window=w,
                             iters_per_frame=iters, frames=f"0:{n_frames}", estimator=estimator, substeps=substeps,
@@ -263,14 +264,16 @@ def markdown(data: dict) -> str:
                               f"{g['total_s'] / o['total_s']:.2f} wall, {g['cpu_s'] / o['cpu_s']:.2f} CPU)"
                               if (o := row.get((S0, it, "gn", BOTH_OFF))) else ""))
     twins = data.get("twins", {})
-    pr = data.get("probes_vs_none")
-    if pr and (d := row.get((pr["S"], pr["it"], "gn", "default"))) and \
-            (n := row.get((pr["S"], pr["it"], "gn", "default no-probe"))):
-        summary.append(f"the change probes (--change-probe {data['change_probe_default']:g}, row default against "
-                       f"default no-probe, it = {pr['it']}): {d['total_s'] - n['total_s']:+.3g} s wall, "
-                       f"{d['cpu_s'] - n['cpu_s']:+.3g} s CPU per frame ({d['total_s'] / n['total_s']:.2f}× wall); gn "
-                       f"without them {n['total_s']:.3g} s wall, gn / adam {n['over_adam_wall']:.2f}; E differs by at "
-                       f"most {100 * pr['max_rel']:.2g} %, {pr['max_in_sigma']:.2g} σ_E")
+    for pr in data.get("probes_vs_none") or []:
+        d = row.get((pr["S"], pr["it"], "gn", pr["variant"]))
+        n = row.get((pr["S"], pr["it"], "gn", pr["variant"] + " no-probe"))
+        if d and n:
+            summary.append(f"the change probes (--change-probe {data['change_probe_default']:g}; row {pr['variant']} "
+                           f"against {pr['variant']} no-probe, S = {pr['S']}, it = {pr['it']}): "
+                           f"{d['total_s'] - n['total_s']:+.3g} s wall, {d['cpu_s'] - n['cpu_s']:+.3g} s CPU per "
+                           f"frame ({d['cpu_s'] / n['cpu_s']:.2f}× CPU); gn without them {n['total_s']:.3g} s wall, "
+                           f"gn / adam {n['over_adam_wall']:.2f}; E differs by at most {100 * pr['max_rel']:.2g} %, "
+                           f"{pr['max_in_sigma']:.2g} σ_E")
     lines += ["", f"At S = {S0}: " + "; ".join(summary) + ".", "",
               f"gn with the forward-mode J against gn with central differences, the same frames (round 1): E "
               f"differs by at most {100 * cmp_['max_rel']:.2f} % (median {100 * cmp_['median_rel']:.2f} %), at most "
@@ -310,7 +313,8 @@ def main() -> None:
     t0 = time.perf_counter()
     runs: dict = {}
     S0 = adapt.AdaptConfig.substeps
-    I0 = adapt.AdaptConfig.iters_per_frame  # rsl adapt's default: steps (adam) / at most iterations (gn) per frame
+    # rsl adapt's default on this capture (start equilibrium, images): steps (adam) / at most iterations (gn) per frame
+    I0 = adapt.resolve_iterations(adapt.AdaptConfig(capture=cap, workspace=ws), "gn", "vision", "")
     plan = ([(S0, est, name, 1) for est, name in VARIANTS]
             + ([(1, est, name, 1) for est, name in VARIANTS_S1] if S0 != 1 else [])
             + ([(S0, est, name, I0) for est, name in DEFAULTS] if I0 != 1 else []))
@@ -356,10 +360,10 @@ def main() -> None:
     # the fast paths against their twins: E of gn jvp (all on) against each with one switched off
     twins = {name: compare(runs[(S0, "gn", name, 1)][0], runs[(S0, "gn", "jvp", 1)][0])
              for name in ("jvp separate-test", "jvp blas-threads", BOTH_OFF)}
-    # the change probes: gn as a user gets it against the same with --change-probe 0 (at the default iterations)
-    probes = ({"S": S0, "it": I0, **compare(runs[(S0, "gn", "default no-probe", I0)][0],
-                                            runs[(S0, "gn", "default", I0)][0])}
-              if (S0, "gn", "default no-probe", I0) in runs else None)
+    # the change probes: each "… no-probe" run (--change-probe 0) against its twin with the default probes
+    probes = [{"S": S, "it": it, "variant": name.replace(" no-probe", ""),
+               **compare(runs[(S, "gn", name, it)][0], runs[(S, "gn", name.replace(" no-probe", ""), it)][0])}
+              for S, est, name, it in plan if "no-probe" in name]
     per_round = [[runs[v][i]["cpu_s"] for v in plan] for i in range(rounds)]
     from stages.artefacts import MeshArtefact
 
