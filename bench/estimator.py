@@ -434,9 +434,9 @@ def _default(field: str) -> float:
     --model-error: the ones markers take, adapt.PROCESS_NOISE and adapt.MODEL_ERROR_MARKERS)."""
     from stages.steps import adapt
 
-    if field in ("process_noise", "model_error"):
-        return float(getattr(adapt, {"process_noise": "PROCESS_NOISE", "model_error": "MODEL_ERROR_MARKERS"}[field],
-                             getattr(adapt.AdaptConfig, field, 0.0)))
+    resolved = {"process_noise": "PROCESS_NOISE", "model_error": "MODEL_ERROR_MARKERS"}  # None in AdaptConfig
+    if field in resolved:
+        return float(getattr(adapt, resolved[field]))
     return float(getattr(adapt.AdaptConfig, field, 0.0))
 
 

@@ -231,7 +231,7 @@ class AdaptConfig:
     """gn: relative σ of E that the discretisation itself adds to the reported E ± σ (σ_E = E √(σ²_logE + e_i²)): the
     error of rsl's mesh, time step and reduced space against the material, which more frames do not average out.
     Default (resolve_model_error; adapt.h5's extra model_error records the value that ran): 0.04 with markers,
-    MODEL_ERROR_IMAGES with images and silhouettes — each the smallest floor of the grid 0.02, 0.03, … that puts the
+    0.08 with images and silhouettes — each the smallest floor of the grid 0.02, 0.03, … that puts the
     truth inside ±2σ on at least 90 % of the settled frames of the accuracy bench's rows with that loss (truths on
     another mesh, element order and time step; markers: full space 94 %, reduced 92 % at 0.04; images and
     silhouettes, one camera and three, gn and Adam's held fits pooled: docs/results/sigma_calibration.md).  With
