@@ -84,7 +84,7 @@ class AdaptConfig:
     workspace: Path
     """Workspace folder holding mesh.h5 and the other artefacts; adapt.h5 is written there."""
     window: int = 5
-    """Sliding-window size w: frames re-simulated and compared at each new frame.  The accuracy bench runs 3 (the paper's); one camera's images of a bar filmed mid-motion read 33.7 / 14.2 / 11.9 / 32.7 % at 3 / 5 / 6 / 12 before the change probes (--change-probe), 14.7 / 17.8 % at 3 / 5 with them; on four rows from equilibrium or rest (three cameras) 3 read as well as 5 with images and better with markers (docs/results/accuracy_window/; accuracy_notes.md, twenty-ninth and thirtieth stops)."""
+    """Sliding-window size w: frames re-simulated and compared at each new frame.  The accuracy bench runs 3 (the paper's); one camera's images of a bar filmed mid-motion read 33.7 / 14.2 / 11.9 / 32.7 % at 3 / 5 / 6 / 12 before the change probes (--change-probe), 14.7 / 17.8 % at 3 / 5 with them (three cameras' bar filmed mid-motion with them 7.6 / 6.1 %); on four rows from equilibrium or rest (three cameras) 3 read as well as 5 with images and better with markers (docs/results/accuracy_window/; accuracy_notes.md, twenty-ninth and thirtieth stops)."""
     space: Literal["reduced", "full"] = "reduced"
     """Simulate in the neural subspace (needs subspace.h5) or in the full FEM space."""
     mode: Literal["online", "offline", "static"] = "online"
