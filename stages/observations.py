@@ -41,8 +41,7 @@ class MarkerObservation:
         # arrival cost becomes rigid against the slightest model or linearisation error
         self.noise_floor = 1e-4 * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
         self.binding = MarkerBinding(np.zeros((M, 3), np.int64), np.tile([1.0, 0.0, 0.0], (M, 1)), np.zeros(M))
-        self._triangles_chosen = False  # (rebind: no triangle to keep yet)
-        self.rebind(vertices)
+        self.rebind(vertices, keep=False)  # (no triangle to keep yet)
         self.far = self._far(vertices)
 
     def _mask(self) -> None:
@@ -59,31 +58,31 @@ class MarkerObservation:
         """(M,) markers first seen after frame 0 that are not bound yet."""
         return ~self.bound
 
-    def rebind(self, x0: np.ndarray) -> None:
+    def rebind(self, x0: np.ndarray, keep: bool = True) -> None:
         """Bind each anchored marker to the triangle of the frame-0 surface x0 (n, 3) nearest its frame-0 position,
         at the projection of that position on the triangle's plane (the nearest point itself when it projects
         inside the triangle; unclamped at an edge, so that the binding is a smooth function of x0 for a given
         triangle — the Gauss–Newton Jacobian differentiates it, :meth:`binding_jacobian`).  A marker keeps the
         triangle it is bound to while that one is within :attr:`noise_floor` of the nearest: near a tie (a marker
         as far from two triangles) the choice would otherwise follow the last bits of x0, and the residuals jump
-        between two close θ.  Markers bound by :meth:`bind_late` keep their binding."""
+        between two close θ (``keep`` False: the nearest, whatever the binding before).  Markers bound by
+        :meth:`bind_late` keep their binding."""
         a = self.anchored
         x, p = x0[:self.n], self._raw[0][a]
         b = bind_markers(x, self.faces, p)
         faces, dist = self.binding.faces.copy(), self.binding.distance.copy()
         new_faces, new_dist = b.faces, b.distance
-        if self._triangles_chosen and a.any():
+        if keep and a.any():
             held = faces[a]
             d_held = np.empty(len(p))
             for s in range(0, len(p), 64):  # in chunks: marker i against triangle j of the chunk, i = j kept
                 closest, _ = closest_points_on_triangles(p[s:s + 64], x[held[s:s + 64]])
                 i = np.arange(len(closest))
                 d_held[s:s + 64] = np.linalg.norm(closest[i, i] - p[s:s + 64], axis=-1)
-            keep = d_held <= new_dist + self.noise_floor
-            new_faces = np.where(keep[:, None], held, new_faces)
-            new_dist = np.where(keep, d_held, new_dist)
+            kept = d_held <= new_dist + self.noise_floor
+            new_faces = np.where(kept[:, None], held, new_faces)
+            new_dist = np.where(kept, d_held, new_dist)
         faces[a], dist[a] = new_faces, new_dist
-        self._triangles_chosen = True
         self.binding = MarkerBinding(faces, self._plane_bary(x, faces), dist)
 
     def fit_to_tracks(self, frames: Sequence[int], X: np.ndarray) -> float:

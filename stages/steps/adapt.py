@@ -1436,6 +1436,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
     gn = GNWindow(objective, config.fit_poisson, s_nu)
     gn.young_range = loop.young_range
     gn.trust = resolve_gn_trust(config, obs.kind)
+    model_error = resolve_model_error(config, obs.kind)  # the floor of the reported σ (AdaptConfig.model_error)
     start = "moving" if loop.moving is not None else ""
     iterations = resolve_iterations(config, "gn", obs.kind, start)
     k_th = gn.k_theta
@@ -1632,7 +1633,7 @@ def _online_gn(loop: _Loop, log_e: np.ndarray, s_nu: np.ndarray) -> None:
             # model's error biases the run's estimate by (Σ Jᵀ W J)⁻¹ Σ Jᵀ δ, so the floor is spread over the
             # regions by the data's information on each log E summed over the windows so far (model_error_floors)
             info_run += np.nan_to_num(np.diag(res.jtwj)[:R])  # Jᵀ W J without σ (σ changes between windows)
-            floors = model_error_floors(resolve_model_error(config, obs.kind), info_run)
+            floors = model_error_floors(model_error, info_run)
             sE, sN = sigma_from_cov(gn, res.p, res.cov_scaled[:k_th, :k_th], floors, config.model_error_poisson)
             rec.model_error.append(floors.tolist())
             if len(frames) == w:  # frame t0 leaves the window: fold it into the arrival cost
