@@ -153,7 +153,8 @@ def group_summary(rows: list[dict], key) -> dict:
         cov = {str(e): float(np.mean(np.concatenate([coverage(r["frames"], e) for r in rs]))) for e in FLOORS}
         ran = float(np.mean(np.concatenate([coverage(r["frames"]) for r in rs])))
         need = float(np.quantile(np.concatenate([needed_floor(r["frames"]) for r in rs]), TARGET))
-        out[g] = {"rows": len(rs), "frames": frames, "coverage_ran": ran, "coverage": cov, "floor_for_target": need}
+        out[g] = {"rows": len(rs), "frames": frames, "coverage_ran": ran, "coverage": cov, "floor_for_target": need,
+                  "losses": sorted({r["loss"] for r in rs})}
     return out
 
 
@@ -216,7 +217,7 @@ def write(rows: list[dict], skipped: list[str], pages: list[Path], out: Path, cu
                      f"reaching {100 * TARGET:.0f} %: " + (f"{min(grid):g}" if grid else "none")
                      + f"; the floor for {100 * TARGET:.0f} % exactly: {s['floor_for_target']:.3f}.")
     for g, s in by_space_loss.items():
-        loss = g.split(", ")[1]
+        (loss,) = s["losses"]  # (grouped by loss: one per group)
         e = default_floor(loss)
         lines.append(f"- {g}: {100 * s['coverage_ran']:.0f} % at the floors run, "
                      f"{100 * s['coverage'][str(e)]:.0f} % at e′ = {e:g} (rsl adapt's default for {loss}), the floor "
