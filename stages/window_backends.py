@@ -156,6 +156,14 @@ class ReducedSpace:
     def z(self, states: np.ndarray) -> np.ndarray:
         return np.asarray(states)
 
+    def records(self) -> tuple:
+        """What the forwards carry from one solve to the next (the reduced Newton's memory,
+        ReducedModel.solver_memory): :meth:`restore_records` puts it back (adapt's change probes)."""
+        return (self.model.solver_memory(),)
+
+    def restore_records(self, saved: tuple) -> None:
+        self.model.restore_solver_memory(saved[0])
+
     def forward(self, frames, young, poisson, before):
         return np.asarray(self.model.simulate([self.inputs(t) for t in frames], young, poisson,
                                               z_prev=before[1], z_prev2=before[0], rtol=self.rtol))
@@ -322,13 +330,17 @@ class Substepped:
         """A copy of the forwards' records (per frame, the committed ones, the substep trajectories):
         :meth:`restore_records` puts it back, so that forwards that should leave no trace (adapt's change probes)
         do not push the records of the states the run keeps out of :attr:`KEEP`."""
-        return ({t: list(v) for t, v in self._recent.items()}, dict(self._committed), list(self._traj), self._horizon)
+        return ({t: list(v) for t, v in self._recent.items()}, dict(self._committed), list(self._traj), self._horizon,
+                tuple(b.records() if hasattr(b, "records") else None for b in (self._coarse, self.fine)))
 
     def restore_records(self, saved: tuple) -> None:
         """The records as :meth:`records` copied them."""
-        recent, committed, traj, horizon = saved
+        recent, committed, traj, horizon, solvers = saved
         self._recent = {t: list(v) for t, v in recent.items()}
         self._committed, self._traj, self._horizon = dict(committed), list(traj), horizon
+        for b, rec in zip((self._coarse, self.fine), solvers):
+            if rec is not None:
+                b.restore_records(rec)
 
     def commit(self, t: int, state: np.ndarray) -> None:
         """Frame t's state is now ``state`` (run()'s store): keep the record of the forward that made it; a

@@ -1394,7 +1394,7 @@ def _probe_log_e(gn: GNWindow, frames, p_hat: np.ndarray, before, D, sigma: floa
     keep = {name: getattr(gn, name, None) for name in gn._LINEARISATION + gn._EVALUATION + ("prediction",)}
     traj = getattr(gn.obj.win, "_traj", None)  # (StartWindow.memo: the trajectory the next window continues)
     backend = getattr(gn.obj, "backend", None)
-    records = getattr(backend, "records", None)  # (--substeps: Substepped's records of the forwards)
+    records = getattr(backend, "records", None)  # (Substepped's records of the forwards, the reduced Newton's memory)
     saved = records() if records is not None else None
     c_hat = robust_cost(np.concatenate(gn.last_rs), sigma, obs.huber)
     lo, hi = (np.log(gn.young_range) if gn.young_range is not None else (-np.inf, np.inf))

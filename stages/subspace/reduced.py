@@ -284,6 +284,17 @@ class ReducedModel:
         return np.asarray(self._GN(*args))
 
     # ------------------------------------------------------------------ forward
+    def solver_memory(self) -> np.ndarray | None:
+        """What one solve hands the next (:meth:`step`'s reuse_hessian: the last inverse reduced Hessian, (r, r)),
+        a copy; :meth:`restore_solver_memory` puts it back, so that solves which should leave no trace (adapt's
+        change probes) do not change the iterations, and so the last bits, of the solves after them."""
+        inv = getattr(self, "_inv", None)
+        return None if inv is None else np.array(inv, copy=True)
+
+    def restore_solver_memory(self, memory: np.ndarray | None) -> None:
+        """The memory as :meth:`solver_memory` copied it."""
+        self._inv = None if memory is None else np.array(memory, copy=True)
+
     def step(self, inputs, young, poisson, z_prev, z_prev2, z_init=None, rtol: float = 1e-8,
              max_iterations: int = 200, frame: int | None = None, reuse_hessian: bool = True,
              contraction: float = 0.1, refresh_every: int = 10
