@@ -116,12 +116,13 @@ def test_pose_jacobian_matches_finite_differences(filmed):
     J_dx = pp.obs.jacobian([0], pp.pose(p)[1][None], dx[None, None])[0][:, 0]
     assert np.linalg.norm(J_d[:, 0] - J_dx) <= 1e-6 * np.linalg.norm(J_dx)
     errors = {}
-    for j, rel in [(0, 1e-4)] + [(j, 1e-3) for j in range(1, len(p))]:
+    modes = sorted({1, len(p) // 2, len(p) - 1})  # the first, a middle and the last mode (each costs 2 dense renders)
+    for j, rel in [(0, 1e-4)] + [(j, 1e-3) for j in modes]:
         h = rel * sd[j] * np.eye(len(p))[j]
         fd = (pp.evaluate(p + h, False)[0] - pp.evaluate(p - h, False)[0]) / (2 * h[j])
         assert np.linalg.norm(fd) > 0
         errors[j] = float(np.linalg.norm(J_d[:, j] - fd) / np.linalg.norm(fd))
-    assert errors[0] <= 1e-2 and max(errors[j] for j in range(1, len(p))) <= 3e-3, errors
+    assert len(p) >= 4 and errors[0] <= 1e-2 and max(errors[j] for j in modes) <= 3e-3, errors
 
 
 def test_adapt_identifies_young_from_the_images_of_a_capture_filmed_mid_motion(filmed):
@@ -135,13 +136,14 @@ def test_adapt_identifies_young_from_the_images_of_a_capture_filmed_mid_motion(f
 
     cap, ws, e_true = filmed
     art = AdaptArtefact.load(adapt.run(adapt.AdaptConfig(capture=cap, workspace=ws, loss="vision", window=3,
-                                                         space="full", young_init=0.5 * e_true, substeps=1)))
+                                                         space="full", young_init=0.5 * e_true, substeps=1,
+                                                         frames="0:12")))
     assert art.extra["estimator"] == "gn" and art.extra["iters_per_frame"] == 6  # (adapt.MOVING_IMAGE_ITERATIONS)
     assert art.extra["process_noise"] == 0.03  # (adapt.MOVING_IMAGE_PROCESS_NOISE)
     err = _surface_error(ws, cap, art.positions, art.frames)
     assert np.all(err <= 2e-3), err
     settled = art.young[8:, 0] / e_true
-    assert np.all(np.abs(settled - 1.0) <= 0.1), settled
+    assert len(settled) == 4 and np.all(np.abs(settled - 1.0) <= 0.1), settled
     assert art.start_positions is not None and np.allclose(art.start_positions[1], art.positions[0])
     assert 1e-4 <= art.extra["moving_start_motion_m"] <= 2e-2
     # evaluate, report and export render the Gaussians as adapt did: bound as fitted, not re-bound at frame 0
@@ -193,9 +195,9 @@ def test_adapt_refuses_gaussians_fitted_to_another_frame_of_a_moving_start(filme
 def test_adapt_identifies_young_from_the_masks_alone_of_a_capture_filmed_mid_motion(filmed, tmp_path):
     """--loss silhouette on the same capture, without its Gaussians: frame 0 posed from its masks by adapt itself
     (stages.moving_start.silhouette_pose, capture.toml's E half the truth's), gn (auto's choice on a moving start),
-    full space, from 0.5 E_true: every frame's surface within 2 mm of the truth's (0.07–0.58 mm when this test was
-    written) and the settled E (frames ≥ 8) within 10 % of the truth (0.969–0.991 E_true, 2 iterations per
-    frame)."""
+    full space, from 0.5 E_true, frames 0–11 (the capture's 16 cost twice the test's time): every frame's surface
+    within 2 mm of the truth's (0.07–0.58 mm when this test was written) and the settled E (frames 8–11) within 10 %
+    of the truth (0.969–0.991 E_true over frames 8–15, 2 iterations per frame)."""
     from stages.artefacts import AdaptArtefact
     from stages.steps import adapt
 
@@ -204,12 +206,13 @@ def test_adapt_identifies_young_from_the_masks_alone_of_a_capture_filmed_mid_mot
     shutil.copytree(ws0, ws)
     (ws / "gaussians.h5").unlink()
     art = AdaptArtefact.load(adapt.run(adapt.AdaptConfig(capture=cap, workspace=ws, loss="silhouette", window=3,
-                                                         space="full", young_init=0.5 * e_true, substeps=1)))
+                                                         space="full", young_init=0.5 * e_true, substeps=1,
+                                                         frames="0:12")))
     err = _surface_error(ws, cap, art.positions, art.frames)
     assert art.extra["estimator"] == "gn" and art.loss_kind == "silhouette" and art.extra["process_noise"] == 0.03
     assert np.all(err <= 2e-3), err
     settled = art.young[8:, 0] / e_true
-    assert np.all(np.abs(settled - 1.0) <= 0.1), settled
+    assert len(settled) == 4 and np.all(np.abs(settled - 1.0) <= 0.1), settled
     assert art.start_positions is not None and np.allclose(art.start_positions[1], art.positions[0])
 
 
