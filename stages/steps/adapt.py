@@ -182,9 +182,11 @@ class AdaptConfig:
     from what is observed.  states: every latent coordinate of both states in the reduced space (2r unknowns),
     the 12 lowest vibration modes of both in full space (24 unknowns), each with its own prior (markers; with
     images, where each unknown costs renders, as past); past: along their sensitivities to θ only (the past
-    re-simulated with another θ, 2R unknowns); off: kept as stored.  A capture filmed mid-motion ([capture] start =
-    "moving") has the windows that hold frame 0 estimate its shape and velocity offsets whatever this says
-    (stages/moving_start.py, docs/capture.md)."""
+    re-simulated with another θ, 2R unknowns); off: kept as stored.  Images, past against off on captures filmed
+    mid-motion: three cameras' bar 3.3 / 9.4 %, one camera's bar 22.0 / 20.6 % and dinosaur 6.3 / 4.3 %
+    (accuracy_notes.md, thirty-second stop).  A capture filmed mid-motion ([capture] start = "moving") has the
+    windows that hold frame 0 estimate its shape and velocity offsets whatever this says (stages/moving_start.py,
+    docs/capture.md)."""
     change_threshold: float = 3.0
     """gn: the change-of-material test (a CUSUM of the new frame's innovation z = rᵀr/(mσ²) at the predicted θ, σ the
     noise level the windows reach): a frame whose residual RMS exceeds this many σ, or a smaller excess that
