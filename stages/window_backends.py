@@ -331,9 +331,10 @@ class Substepped:
         return X
 
     def records(self) -> tuple:
-        """A copy of the forwards' records (per frame, the committed ones, the substep trajectories):
-        :meth:`restore_records` puts it back, so that forwards that should leave no trace (adapt's change probes)
-        do not push the records of the states the run keeps out of :attr:`KEEP`."""
+        """A copy of the forwards' records (per frame, the committed ones, the substep trajectories) and of its two
+        backends' (a reduced one's Newton memory, :meth:`ReducedSpace.records`): :meth:`restore_records` puts them
+        back, so that forwards that should leave no trace (adapt's change probes) do not push the records of the
+        states the run keeps out of :attr:`KEEP`, nor change the last bits of the solves after them."""
         return ({t: list(v) for t, v in self._recent.items()}, dict(self._committed), list(self._traj), self._horizon,
                 tuple(b.records() if hasattr(b, "records") else None for b in (self._coarse, self.fine)))
 
