@@ -136,14 +136,13 @@ def test_adapt_identifies_young_from_the_images_of_a_capture_filmed_mid_motion(f
 
     cap, ws, e_true = filmed
     art = AdaptArtefact.load(adapt.run(adapt.AdaptConfig(capture=cap, workspace=ws, loss="vision", window=3,
-                                                         space="full", young_init=0.5 * e_true, substeps=1,
-                                                         frames="0:12")))
+                                                         space="full", young_init=0.5 * e_true, substeps=1)))
     assert art.extra["estimator"] == "gn" and art.extra["iters_per_frame"] == 6  # (adapt.MOVING_IMAGE_ITERATIONS)
     assert art.extra["process_noise"] == 0.03  # (adapt.MOVING_IMAGE_PROCESS_NOISE)
     err = _surface_error(ws, cap, art.positions, art.frames)
     assert np.all(err <= 2e-3), err
     settled = art.young[8:, 0] / e_true
-    assert len(settled) == 4 and np.all(np.abs(settled - 1.0) <= 0.1), settled
+    assert np.all(np.abs(settled - 1.0) <= 0.1), settled
     assert art.start_positions is not None and np.allclose(art.start_positions[1], art.positions[0])
     assert 1e-4 <= art.extra["moving_start_motion_m"] <= 2e-2
     # evaluate, report and export render the Gaussians as adapt did: bound as fitted, not re-bound at frame 0
