@@ -31,6 +31,14 @@ class FullSpace:
     def z(self, states: np.ndarray) -> np.ndarray:
         return np.zeros((len(states), 0))
 
+    def records(self) -> tuple:
+        """What the forwards carry from one solve to the next: nothing (each Newton solve starts from its own
+        states; :meth:`ReducedSpace.records` has a memory to keep)."""
+        return ()
+
+    def restore_records(self, saved: tuple) -> None:
+        pass
+
     def forward(self, frames: Sequence[int], young: np.ndarray, poisson: np.ndarray,
                 before: np.ndarray) -> np.ndarray:
         """States (w, n, 3) of ``frames`` from ``before`` = [x_{t0−2}, x_{t0−1}]; young/poisson (w, R)."""
@@ -336,7 +344,7 @@ class Substepped:
         back, so that forwards that should leave no trace (adapt's change probes) do not push the records of the
         states the run keeps out of :attr:`KEEP`, nor change the last bits of the solves after them."""
         return ({t: list(v) for t, v in self._recent.items()}, dict(self._committed), list(self._traj), self._horizon,
-                tuple(b.records() if hasattr(b, "records") else None for b in (self._coarse, self.fine)))
+                (self._coarse.records(), self.fine.records()))
 
     def restore_records(self, saved: tuple) -> None:
         """The records as :meth:`records` copied them."""
@@ -344,8 +352,7 @@ class Substepped:
         self._recent = {t: list(v) for t, v in recent.items()}
         self._committed, self._traj, self._horizon = dict(committed), list(traj), horizon
         for b, rec in zip((self._coarse, self.fine), solvers):
-            if rec is not None:
-                b.restore_records(rec)
+            b.restore_records(rec)
 
     def commit(self, t: int, state: np.ndarray) -> None:
         """Frame t's state is now ``state`` (run()'s store): keep the record of the forward that made it; a

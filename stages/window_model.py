@@ -76,6 +76,12 @@ class WindowBackend(Protocol):
                       dL_dstate0: np.ndarray, frame: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """(dL/dE, dL/dν) (R,) through state0(θ)."""
 
+    def records(self) -> tuple:
+        """A copy of what the forwards carry from one solve to the next (a solver's memory, substeps' records)."""
+
+    def restore_records(self, saved: tuple) -> None:
+        """Put back what :meth:`records` copied: forwards in between (adapt's change probes) leave no trace."""
+
 
 @runtime_checkable
 class Window(Protocol):
