@@ -165,8 +165,10 @@ def _check_window(b, stored, scale_before: float, seed: int):
     Sens = b.state_sensitivity(W_FRAMES, Ew, nw, states, before, de, dn, db)
     assert Sens.shape == (len(de), w) + states.shape[1:]
     h = 1e-4
+    saved = b.records()  # every solve from the same Newton memory (the reduced one's; its order moves last bits)
     for j in range(len(de)):
         def sim(sign):
+            b.restore_records(saved)
             return b.forward(W_FRAMES, np.tile(YOUNG + sign * h * de[j], (w, 1)),
                              np.tile(POISSON + sign * h * dn[j], (w, 1)), before + sign * h * db[j])
         plus, minus = sim(1), sim(-1)

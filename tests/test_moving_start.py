@@ -74,8 +74,10 @@ def test_moving_window_gradient_and_sensitivity_match_finite_differences(held, r
     de, dn, db = _directions(shape, rng)
     Sens = win.sensitivity(frames, YOUNG, POISSON, states, before, de, dn, db)  # positions (k, w, n, 3)
     h = 1e-4
+    saved = b.records()  # every solve from the same Newton memory (the reduced one's; its order moves last bits)
     for j in range(len(de)):
         def at_h(s):
+            b.restore_records(saved)
             return b.decode(window().forward(frames, YOUNG + s * h * de[j], POISSON + s * h * dn[j],
                                              before + s * h * db[j]))
         fd = (at_h(1) - at_h(-1)) / (2 * h)
