@@ -38,7 +38,7 @@ demo: setup
 	bash docs/demo.sh $(OUT)
 
 test: setup
-	$(PY) -m pytest -q -n 2 --dist loadfile
+	$(PY) -m pytest -q -n 2 --dist loadfile --durations=15
 
 test-slow: setup
 	$(PY) -m pytest -q -m slow
