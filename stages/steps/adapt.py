@@ -183,8 +183,10 @@ class AdaptConfig:
     the 12 lowest vibration modes of both in full space (24 unknowns), each with its own prior (markers; with
     images, where each unknown costs renders, as past); past: along their sensitivities to θ only (the past
     re-simulated with another θ, 2R unknowns); off: kept as stored.  Images, past against off on captures filmed
-    mid-motion: three cameras' bar 3.3 / 9.4 %, one camera's bar 22.0 / 20.6 % and dinosaur 6.3 / 4.3 %
-    (accuracy_notes.md, thirty-second stop).  A capture filmed mid-motion ([capture] start = "moving") has the
+    mid-motion: three cameras' bar (E steps) 3.3 / 9.4 % and dinosaur 5.4 / 4.7 %, one camera's bar 22.0 / 20.6 %,
+    dinosaur 6.3 / 4.3 % and two-region beam (its stiff half started 6× low) 9.5 / 11.6 % and 37.6 / 64.5 %: past
+    gains most where the past was simulated far from the truth, and loses up to 2 points elsewhere
+    (accuracy_notes.md, thirty-second and thirty-third stops).  A capture filmed mid-motion ([capture] start = "moving") has the
     windows that hold frame 0 estimate its shape and velocity offsets whatever this says (stages/moving_start.py,
     docs/capture.md)."""
     change_threshold: float = 3.0
