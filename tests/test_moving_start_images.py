@@ -225,5 +225,5 @@ def test_one_camera_warning_points_a_capture_filmed_mid_motion_to_the_silhouette
     still = " ".join(single_camera_warning(Path("ws/cameras.h5"), "cam0").split())
     assert moving.startswith("ws/cameras.h5: the images come from one camera (cam0)")
     assert "--loss silhouette" in moving and "--loss silhouette" not in still
-    assert "--window 3 / 5 (the default) / 6 / 12" in moving and "--window" not in still
+    assert "--window 3 (the default is 5)" in moving and "--window" not in still
     assert "--change-probe" in moving and "--change-probe" not in still

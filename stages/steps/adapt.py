@@ -372,16 +372,11 @@ def single_camera_warning(cameras_path: Path, camera: str, moving: bool = False)
             f"on one filmed mid-motion (docs/results/accuracy_one_camera/accuracy.md): a second camera or "
             f"markers (--loss markers) measure E better.")
     if moving:
-        text += (" This capture is filmed mid-motion. Since the change probes (--change-probe) the Gaussians follow "
-                 "the bench's bar through its steps of E: 14.7 % where they read 27.9 % without them (three cameras "
-                 "4.8 % against 37.6 %; docs/results/change_probe_one_camera/, change_probe_three_cameras/). "
-                 "--loss silhouette (the outline against masks.h5) read that bar at 10.2 % on the same mesh and "
-                 "2.5–4.7 % on three earlier ones, but the dinosaur and the two-region beam worse than the Gaussians, "
-                 "at about 4 times the time per frame: compare both on your capture, and the Gaussians with "
-                 "--unseen-gaussians ignore (12.8 and 29.9 % on two meshes where the default then read 33.7 and "
-                 "32.3 %). The bench's figures are at --window 3; before the probes that bar read 33.7 / 14.2 / 11.9 "
-                 "/ 32.7 % at --window 3 / 5 (the default) / 6 / 12 on a further mesh, with them 14.7 / 17.8 % at 3 "
-                 "/ 5 (docs/results/accuracy_notes.md, twenty-sixth to thirtieth stops).")
+        text += (" This capture is filmed mid-motion: there one camera's Gaussians read the bench's bar 14.7–22.0 % "
+                 "off with the change probes (--change-probe), its silhouettes (--loss silhouette) 2.5–10.2 % but the "
+                 "dinosaur and the two-region beam worse, at about 4 times the time per frame; --unseen-gaussians "
+                 "ignore and --window 3 (the default is 5) read better on some meshes and worse on others: compare them "
+                 "on your capture (docs/results/accuracy_notes.md, twenty-sixth to thirty-third stops).")
     return text
 
 
