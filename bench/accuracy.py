@@ -204,6 +204,9 @@ def run_row(work: Path, row: tuple, frames: int, refine: int) -> dict:
     ok = settled_mask(yt)
     err = np.abs(a.young - yt) / yt  # (T, R)
     med = np.median(err[ok], axis=0) if ok.any() else np.full(yt.shape[1], np.nan)
+    nut = truth.poisson[np.asarray(a.frames)]
+    nu_err = np.abs(np.asarray(a.poisson) - nut)  # (T, R), absolute
+    nu_med = np.median(nu_err[ok], axis=0) if ok.any() else np.full(nut.shape[1], np.nan)
     import h5py
 
     with h5py.File(ws / "mesh.h5", "r") as f:
@@ -229,6 +232,10 @@ def run_row(work: Path, row: tuple, frames: int, refine: int) -> dict:
             "surface_error_mm": _surface_mm(ev),
             "time_per_frame_s": float(np.median(a.time_total_s)), "adapt_s": t_adapt,
             "young": np.asarray(a.young).tolist(), "young_true": yt.tolist(),
+            "poisson": np.asarray(a.poisson).tolist(), "poisson_true": nut.tolist(),
+            "poisson_abs_error_per_region": nu_med.tolist(),
+            "poisson_sigma": (np.asarray(a.poisson_sigma).tolist() if getattr(a, "poisson_sigma", None) is not None
+                              else None),
             "young_sigma": (np.asarray(a.young_sigma).tolist() if getattr(a, "young_sigma", None) is not None
                             else None),
             # gn: the model-error floor in young_sigma per frame and region (bench/sigma_calibration.py)
@@ -264,10 +271,16 @@ def _views(r: dict) -> str:
 def _row(r: dict) -> str:
     key = f"| {_case(r)} | {r['start']} | P{r['order']} | {r['loss']} | {r['space']} |"
     if "error" in r:
-        return key + " — | — | — | — | failed | — | — | — | — | — | — | — |"
+        return key + " — | — | — | — | failed | — | — | — | — | — | — | — | — |"
     names = r.get("regions") or []
-    per = ", ".join((f"{names[j]} " if len(names) > 1 and j < len(names) else "") + f"{100 * e:.1f}"
-                    for j, e in enumerate(r["median_error_per_region"]))
+
+    def per_region(values, fmt) -> str:
+        return ", ".join((f"{names[j]} " if len(names) > 1 and j < len(names) else "") + fmt(e)
+                         for j, e in enumerate(values))
+
+    per = per_region(r["median_error_per_region"], lambda e: f"{100 * e:.1f}")
+    nu = ("—" if r.get("poisson_abs_error_per_region") is None  # (rows from before ν was recorded)
+          else per_region(r["poisson_abs_error_per_region"], lambda e: f"{e:.3f}"))
     cub = (f"{r['cubature_points'] if r.get('cubature_points') is not None else 'all'} ({r['cubature_tol']:g})"
            + (f", r = {r['dim']}" if r.get("dim") is not None and r["dim"] != SUBSPACE_DIM else "")
            + (f", {r.get('sequences', 4)} sequences" if r.get("sequences", 4) != SEQUENCES else "")
@@ -277,7 +290,7 @@ def _row(r: dict) -> str:
     shown = " ".join(o for i, o in enumerate(opts)  # options other than --estimator / --substeps (own columns)
                      if o not in ("--estimator", "--substeps") and (i == 0 or opts[i - 1] not in ("--estimator",
                                                                                               "--substeps")))
-    return (f"{key} {r['estimator']}{' ' + shown if shown else ''} | {r['dofs']} | {_views(r)} | {cub} | {per} | "
+    return (f"{key} {r['estimator']}{' ' + shown if shown else ''} | {r['dofs']} | {_views(r)} | {cub} | {per} | {nu} | "
             f"{r['settled_frames']} | "
             f"{_fmt(r['force_error'])} | {_fmt(r['surface_error_mm'], 1.0, 2)} | {r['time_per_frame_s']:.2f} | "
             f"{load} | {r['substeps']} | {r.get('ended', '—')} |")
@@ -403,9 +416,10 @@ def main() -> None:
 
 
 HEAD = ("| case | start | adapt mesh | loss | space | estimator | DOFs | cameras | cubature points (tol) | "
-        "median |E−E_true|/E_true per region (%) | settled frames | force error (%) | surface error (mm) | s / frame | "
-        "load average | adapt substeps | ended (UTC) |\n"
-        "| --- | --- | --- | --- | --- | --- | ---: | --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |")
+        "median \\|E−E_true\\|/E_true per region (%) | median \\|ν−ν_true\\| per region | settled frames | force error (%) | "
+        "surface error (mm) | s / frame | load average | adapt substeps | ended (UTC) |\n"
+        "| --- | --- | --- | --- | --- | --- | ---: | --- | ---: | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: "
+        "| --- |")
 
 
 def _tolerances(rows: list[dict]) -> str:
@@ -476,7 +490,8 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
           f"{plan['refine']} --substeps {TRUTH_SUBSTEPS} --handles hard"
           f"{f' --damping {TRUTH_DAMPING:g}' if TRUTH_DAMPING else ''}`), "
           f"{f'viscous damping β = {TRUTH_DAMPING:g} s declared in capture.toml, ' if TRUTH_DAMPING else ''}"
-          f"{plan['frames']} frames, ν = {POISSON}, "
+          f"{plan['frames']} frames, ν = {POISSON} (rsl adapt starts ν there, capture.toml's value, unless the options "
+          f"say --poisson-init), "
           f"{cams} camera{'s' if cams != 1 else ''} at {side}², 40 markers. rsl: fTetWild mesh (`--max-tets {max_tets}`), reduced space r = {SUBSPACE_DIM} "
           f"(generate-data {SEQUENCES} sequences; `train-subspace --cubature-tol` "
           f"{_tolerances(rows)}), adapt online, window "

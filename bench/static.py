@@ -350,7 +350,7 @@ def table(cases: list[dict]) -> str:
     if tim:
         lines += ["", "Silhouette per frame (coverage + jvp + vjp, compiled), sparse vs dense twin, same run:", "",
                   "| object | px | faces | pairs sparse | pairs dense | sparse s | dense s | dense / sparse | "
-                  "sparse CPU s | dense CPU s | CPU dense / sparse | max |ΔA| | sparse first call s | "
+                  "sparse CPU s | dense CPU s | CPU dense / sparse | max \\|ΔA\\| | sparse first call s | "
                   "dense first call s |",
                   "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for c in tim:

@@ -117,3 +117,19 @@ def test_settled_frames_follow_the_window() -> None:
     at3, at5 = m.settled_mask(young), m.settled_mask(young, window=5)
     assert np.flatnonzero(~at3).tolist() == list(range(8)) + list(range(20, 28))
     assert np.flatnonzero(~at5).tolist() == list(range(10)) + list(range(20, 30))
+
+
+def test_the_poisson_column_shows_the_rows_nu_error_and_a_dash_before_it_was_recorded(tmp_path: Path) -> None:
+    m = _accuracy()
+    new = {**_row("beam", "reduced", [0.02, 0.12], 0.3), "poisson_abs_error_per_region": [0.0123, 0.0456]}
+    old = _row("bar", "reduced", [0.04], 0.09)  # a row from before ν was recorded
+    plan = {"frames": 4, "refine": 0, "rows": [], "adapt_options": []}
+    m.write([new, old], tmp_path, False, plan, quiet=True)
+    md = (tmp_path / "accuracy.md").read_text()
+    header = next(line for line in md.splitlines() if line.startswith("| case |"))
+    lines = [line for line in md.splitlines() if line.startswith("| beam |") or line.startswith("| bar |")]
+    col = header.split(" | ").index("median \\|ν−ν_true\\| per region")  # (escaped: a table cell)
+    cells = {line.split(" | ")[0]: line.split(" | ")[col] for line in lines}
+    assert cells["| beam"] == "r0 0.012, r1 0.046" and cells["| bar"] == "—"
+    cells_in = lambda line: line.replace("\\|", "").count("|")  # noqa: E731  (cell borders)
+    assert all(cells_in(line) == cells_in(header) for line in lines) and "|E" not in header.replace("\\|E", "")
