@@ -186,9 +186,9 @@ class AdaptConfig:
     mid-motion: three cameras' bar (E steps) 3.3 / 9.4 % and dinosaur 5.4 / 4.7 %, one camera's bar 22.0 / 20.6 %,
     dinosaur 6.3 / 4.3 % and two-region beam (its stiff half started 6× low) 9.5 / 11.6 % and 37.6 / 64.5 %: past
     gains most where the past was simulated far from the truth, and loses up to 2 points elsewhere
-    (accuracy_notes.md, thirty-second and thirty-third stops).  A capture filmed mid-motion ([capture] start = "moving") has the
-    windows that hold frame 0 estimate its shape and velocity offsets whatever this says (stages/moving_start.py,
-    docs/capture.md)."""
+    (accuracy_notes.md, thirty-second and thirty-third stops).  A capture filmed mid-motion ([capture] start =
+    "moving") has the windows that hold frame 0 estimate its shape and velocity offsets whatever this says
+    (stages/moving_start.py, docs/capture.md)."""
     change_threshold: float = 3.0
     """gn: the change-of-material test (a CUSUM of the new frame's innovation z = rᵀr/(mσ²) at the predicted θ, σ the
     noise level the windows reach): a frame whose residual RMS exceeds this many σ, or a smaller excess that
