@@ -216,6 +216,7 @@ def run_row(work: Path, row: tuple, frames: int, refine: int) -> dict:
     synth = tomllib.loads((cap / "capture.toml").read_text()).get("synth", {})  # what rsl synth made
     out["cameras"], out["resolution"] = int(synth["cameras"]), int(synth["resolution"])
     out["truth_refine"], out["truth_tets"] = int(synth["truth_refine"]), int(synth["truth_tets"])
+    out["truth_substeps"] = int(synth.get("substeps", 1))
     if space == "reduced":
         from stages.artefacts import SubspaceArtefact
 
@@ -271,7 +272,7 @@ def _views(r: dict) -> str:
 def _row(r: dict) -> str:
     key = f"| {_case(r)} | {r['start']} | P{r['order']} | {r['loss']} | {r['space']} |"
     if "error" in r:
-        return key + " — | — | — | — | failed | — | — | — | — | — | — | — | — |"
+        return key + " — | — | — | — | — | failed | — | — | — | — | — | — | — | — |"
     names = r.get("regions") or []
 
     def per_region(values, fmt) -> str:
@@ -290,7 +291,7 @@ def _row(r: dict) -> str:
     shown = " ".join(o for i, o in enumerate(opts)  # options other than --estimator / --substeps (own columns)
                      if o not in ("--estimator", "--substeps") and (i == 0 or opts[i - 1] not in ("--estimator",
                                                                                               "--substeps")))
-    return (f"{key} {r['estimator']}{' ' + shown if shown else ''} | {r['dofs']} | {_views(r)} | {cub} | {per} | {nu} | "
+    return (f"{key} {r['estimator']}{' ' + shown if shown else ''} | {r['dofs']} | {_views(r)} | {r.get('truth_substeps', '—')} | {cub} | {per} | {nu} | "
             f"{r['settled_frames']} | "
             f"{_fmt(r['force_error'])} | {_fmt(r['surface_error_mm'], 1.0, 2)} | {r['time_per_frame_s']:.2f} | "
             f"{load} | {r['substeps']} | {r.get('ended', '—')} |")
@@ -415,11 +416,11 @@ def main() -> None:
     write(rows, a.out, a.quick, meta)
 
 
-HEAD = ("| case | start | adapt mesh | loss | space | estimator | DOFs | cameras | cubature points (tol) | "
+HEAD = ("| case | start | adapt mesh | loss | space | estimator | DOFs | cameras | truth substeps | cubature points (tol) | "
         "median \\|E−E_true\\|/E_true per region (%) | median \\|ν−ν_true\\| per region | settled frames | force error (%) | "
         "surface error (mm) | s / frame | load average | adapt substeps | ended (UTC) |\n"
-        "| --- | --- | --- | --- | --- | --- | ---: | --- | ---: | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: "
-        "| --- |")
+        "| --- | --- | --- | --- | --- | --- | ---: | --- | ---: | ---: | --- | --- | ---: | ---: | ---: | ---: | ---: "
+        "| ---: | --- |")
 
 
 def _tolerances(rows: list[dict]) -> str:
@@ -485,9 +486,13 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
                   f"{SCALES['paper'][0]} cameras at {SCALES['paper'][1]}², adapt mesh `--max-tets {SCALES['paper'][2]}`, "
                   f"the truth's mesh refined once (`--truth-refine {SCALES['paper'][3]}`, "
                   f"{paper[0].get('truth_tets', '?')} P2 tets).")
+    recorded = {r.get("truth_substeps") for r in rows + previous}
+    substeps = (f"{TRUTH_SUBSTEPS} substeps per frame" if recorded == {TRUTH_SUBSTEPS} else
+                f"substeps per frame as the truth-substeps column says (— : a row from before the bench recorded "
+                f"them; the first merged run's truths had {TRUTH_SUBSTEPS})")
     md = (f"# Accuracy on captures rsl did not make\n\nTruth: P2 tets{' on the mesh refined once' if plan['refine'] else ''}, "
-          f"{TRUTH_SUBSTEPS} substeps per frame, hard handles (`rsl synth --truth-order 2 --truth-refine "
-          f"{plan['refine']} --substeps {TRUTH_SUBSTEPS} --handles hard"
+          f"{substeps}, hard handles (`rsl synth --truth-order 2 --truth-refine "
+          f"{plan['refine']} --substeps {TRUTH_SUBSTEPS if recorded == {TRUTH_SUBSTEPS} else 'N'} --handles hard"
           f"{f' --damping {TRUTH_DAMPING:g}' if TRUTH_DAMPING else ''}`), "
           f"{f'viscous damping β = {TRUTH_DAMPING:g} s declared in capture.toml, ' if TRUTH_DAMPING else ''}"
           f"{plan['frames']} frames, ν = {POISSON} (rsl adapt starts ν there, capture.toml's value, unless the options "

@@ -133,3 +133,20 @@ def test_the_poisson_column_shows_the_rows_nu_error_and_a_dash_before_it_was_rec
     assert cells["| beam"] == "r0 0.012, r1 0.046" and cells["| bar"] == "—"
     cells_in = lambda line: line.replace("\\|", "").count("|")  # noqa: E731  (cell borders)
     assert all(cells_in(line) == cells_in(header) for line in lines) and "|E" not in header.replace("\\|E", "")
+
+
+def test_rows_of_truths_with_other_substeps_say_so(tmp_path: Path, monkeypatch) -> None:
+    m = _accuracy()
+    monkeypatch.setattr(m, "TRUTH_SUBSTEPS", 3)
+    plan = {"frames": 4, "refine": 0, "rows": [], "adapt_options": []}
+    m.write([{**_row("bar", "reduced", [0.04], 0.09), "truth_substeps": 3}], tmp_path, False, plan, quiet=True)
+    md = (tmp_path / "accuracy.md").read_text()
+    assert "Truth: P2 tets, 3 substeps per frame" in md and "--substeps 3 " in md
+    old = _row("dino", "reduced", [0.02], 0.05)  # a row from before the substeps were recorded
+    m.write([{**_row("bar", "reduced", [0.04], 0.09), "truth_substeps": 24}, old], tmp_path, False, plan, quiet=True)
+    md = (tmp_path / "accuracy.md").read_text()
+    assert "as the truth-substeps column says" in md and "--substeps N " in md
+    header = next(line for line in md.splitlines() if line.startswith("| case |"))
+    col = header.split(" | ").index("truth substeps")
+    cells = {line.split(" | ")[0]: line.split(" | ")[col] for line in md.splitlines() if line.startswith("| ")}
+    assert cells["| bar"] == "24" and cells["| dino"] == "—"
