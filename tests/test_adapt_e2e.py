@@ -13,7 +13,7 @@ import pytest
 
 from stages.parameters import params_from_theta, theta_from_params
 from stages.artefacts import AdaptArtefact, CamerasArtefact, GaussiansArtefact, MeshArtefact, read_provenance
-from stages.capture import load_capture, read_markers, write_markers
+from stages.capture import load_capture, read_markers, read_truth, write_markers
 from stages.domain.rotations import axis_angle_matrix
 
 BEAM = Path(__file__).resolve().parents[2] / "shared" / "data" / "autodef_fulton" / "Coarse_beam.mesh"
@@ -102,6 +102,37 @@ def test_online_markers_full_space_recovers_young_from_4x_off(beam, rsl):
     assert 0 < ev["vertex_error_rel_mean"] < 0.05
     assert ev["psnr_mean"] is None  # no gaussians.h5
     assert (ws / "evaluation_young.png").stat().st_size > 1000
+
+
+def test_poisson_started_at_an_end_of_its_range_moves(beam, rsl, tmp_path):
+    """ν = ν_lo + w·sigmoid(s) barely moves from an end of poisson_range (dν/ds 1/2500 of its middle value): from
+    --poisson-init 0.49, the end of [0.3, 0.49], ν stayed at 0.49 and E at 0.60 E_true on every frame of this
+    same-model beam.  ν now starts POISSON_START_MARGIN of the range inside it, with a warning, and reaches the truth."""
+    from stages.steps.adapt import POISSON_START_MARGIN
+
+    cap, ws = beam
+    out = tmp_path / "ws"
+    out.mkdir()
+    for f in ("mesh.h5", "cameras.h5"):
+        shutil.copy(ws / f, out / f)
+    proc = rsl("adapt", cap, "-w", out, "--space", "full", "--loss", "markers", "--window", "3", "--estimator", "gn",
+               "--substeps", "1", "--poisson-init", "0.49", "--frames", "0:6")
+    assert proc.returncode == 0, proc.stderr
+    start = 0.49 - POISSON_START_MARGIN * (0.49 - 0.3)
+    assert f"ν starts at {start:.4g} instead of 0.49" in " ".join(proc.stderr.split())
+    art = AdaptArtefact.load(out / "adapt.h5")
+    nu_true = read_truth(load_capture(cap)).poisson[0, 0]
+    assert abs(art.poisson[-1, 0] - nu_true) < 0.01 and abs(art.young[-1, 0] / E_TRUE - 1) < 0.05, (art.poisson,
+                                                                                                  art.young)
+
+
+def test_poisson_start_clips_to_the_margin_inside_the_range():
+    from stages.steps.adapt import poisson_start
+
+    nu = poisson_start(np.array([0.3, 0.35, 0.49, 0.2]), (0.3, 0.49), margin=0.05)
+    assert np.allclose(nu, [0.3095, 0.35, 0.4805, 0.3095])
+    per_region = poisson_start(np.array([0.49, 0.49]), (np.array([0.3, 0.4]), np.array([0.49, 0.45])), margin=0.1)
+    assert np.allclose(per_region, [0.471, 0.45 - 0.005])
 
 
 def test_offline_markers_fits_one_theta_and_writes_a_valid_artefact(beam, tmp_path):

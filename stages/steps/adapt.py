@@ -130,7 +130,8 @@ class AdaptConfig:
     young_init: float | None = None
     """Initial E in Pa for every region (default: capture.toml's material and regions tables)."""
     poisson_init: float | None = None
-    """Initial ν for every region (default: capture.toml)."""
+    """Initial ν for every region (default: capture.toml).  With ν adapted it starts at least 5 % of poisson_range's
+    width inside the range (at an end the estimator cannot move it; a warning says so)."""
     fit_poisson: bool = True
     """Adapt ν as well as E (ν stays inside capture.toml's poisson_range)."""
     refine: int = 0
@@ -351,6 +352,21 @@ reduced space, median settled E error at 0.005 / 0.01 / 0.02 / 0.03: one camera'
 (docs/results/accuracy_notes.md, twenty-fifth stop).  On another mesh of that one-camera bar at 0.005 / 0.03 /
 0.05 (docs/results/process_noise_one_camera/): images 22.6 / 25.3 / 25.2 %, silhouettes 47.1 / 3.3 / 4.9 % before
 they took the matched arrival cost and 2.7 / 2.5 / 2.1 % with it."""
+
+
+POISSON_START_MARGIN = 0.05
+"""ν starts at least this fraction of poisson_range's width inside it (:func:`poisson_start`)."""
+
+
+def poisson_start(poisson: np.ndarray, poisson_range: tuple, margin: float = POISSON_START_MARGIN) -> np.ndarray:
+    """The ν an estimate starts from: ``poisson`` clipped to [ν_lo + m w, ν_hi − m w], w = ν_hi − ν_lo.  ν = ν_lo +
+    w·sigmoid(s) has dν/ds = w σ(1 − σ), 1/2500 of its middle value at an end (where params_from_theta clips σ to
+    1 − 10⁻⁴), so a ν started there never moved: the bench's bar (markers, reduced) from ν = 0.49, the end of
+    [0.3, 0.49], held 0.49 with E 6.7 % off; from 0.48 ν went to 0.407 and E read 2.9 % (from the truth's 0.45:
+    0.399 and 3.2 %; accuracy_notes.md, thirty-third stop)."""
+    lo, hi = (np.broadcast_to(np.asarray(v, float), np.shape(poisson)) for v in poisson_range)
+    inset = margin * (hi - lo)
+    return np.clip(np.asarray(poisson, float), lo + inset, hi - inset)
 
 
 def resolve_process_noise(config: AdaptConfig, estimator: str, loss: str, start: str) -> float:
@@ -685,6 +701,18 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
     backend = Guarded(backend, SolveGuard(sim_mesh.vertices, sim_mesh.tets, names, capture.toml_path, mat.young))
     poisson0 = np.array([config.poisson_init if config.poisson_init is not None else mat.region_poisson(r)
                          for r in names], float)
+    if config.fit_poisson and config.poisson_init is not None and not (
+            mat.poisson_range[0] <= config.poisson_init <= mat.poisson_range[1]):
+        raise RslError(f"{capture.toml_path}: --poisson-init {config.poisson_init} lies outside "
+                       f"poisson_range {list(mat.poisson_range)}.")
+    if config.fit_poisson:
+        start = poisson_start(poisson0, mat.poisson_range)
+        if not np.array_equal(start, poisson0):
+            reporter.warn(f"{capture.toml_path}: ν starts at {', '.join(f'{v:.4g}' for v in start)} instead of "
+                          f"{', '.join(f'{v:.4g}' for v in poisson0)}: at an end of poisson_range "
+                          f"{list(mat.poisson_range)} the estimator cannot move ν (the slope of its sigmoid vanishes "
+                          f"there); widen poisson_range to start at that value, or hold ν there with --fixed-poisson.")
+        poisson0 = start
     moving = None  # start = "moving": the directions of frame 0's estimated offsets (stages/moving_start.py)
     if config.loss == "markers":
         # Markers bind to the simulated frame-0 surface; the binding is refreshed as θ changes
@@ -735,9 +763,6 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
         prange = (poisson0.copy(), poisson0.copy())
     if np.any(young0 <= 0):
         raise RslError(f"{capture.toml_path}: the initial Young's modulus must be positive.")
-    if config.fit_poisson and config.poisson_init is not None and not prange[0] <= config.poisson_init <= prange[1]:
-        raise RslError(f"{capture.toml_path}: --poisson-init {config.poisson_init} lies outside "
-                       f"poisson_range {list(prange)}.")
     log_e, s_nu = params_from_theta(young0, np.clip(poisson0, *prange), prange)
 
     n_avail = None if config.follow else (obs.count_checked() if hasattr(obs, "count_checked") else obs.available())
