@@ -150,6 +150,9 @@ CASES = {
          "more than a capture filmed mid-motion (start = \"moving\") may press it (10% of the object's size)"]),
     "--young-init outside young_range": (None, None, [*MARKERS, "--frames", "0:2", "--young-init", "1"],
                                          ["capture.toml: --young-init 1 Pa lies outside [material] young_range"]),
+    "--poisson-init outside poisson_range": (None, None, [*MARKERS, "--frames", "0:2", "--poisson-init", "0.495"],
+                                             ["capture.toml: --poisson-init 0.495 lies outside poisson_range "
+                                              "[0.3, 0.49]"]),
     "--young-init 1 collapses the start state": (WIDE, None, [*MARKERS, "--frames", "0:2", "--young-init", "1"],
                                                  ["capture.toml: the simulation failed at frame 0 with E = body 1 Pa",
                                                   "start from a larger E (--young-init"]),
