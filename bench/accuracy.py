@@ -291,8 +291,8 @@ def _row(r: dict) -> str:
     shown = " ".join(o for i, o in enumerate(opts)  # options other than --estimator / --substeps (own columns)
                      if o not in ("--estimator", "--substeps") and (i == 0 or opts[i - 1] not in ("--estimator",
                                                                                               "--substeps")))
-    return (f"{key} {r['estimator']}{' ' + shown if shown else ''} | {r['dofs']} | {_views(r)} | {r.get('truth_substeps', '—')} | {cub} | {per} | {nu} | "
-            f"{r['settled_frames']} | "
+    return (f"{key} {r['estimator']}{' ' + shown if shown else ''} | {r['dofs']} | {_views(r)} | "
+            f"{r.get('truth_substeps', '—')} | {cub} | {per} | {nu} | {r['settled_frames']} | "
             f"{_fmt(r['force_error'])} | {_fmt(r['surface_error_mm'], 1.0, 2)} | {r['time_per_frame_s']:.2f} | "
             f"{load} | {r['substeps']} | {r.get('ended', '—')} |")
 
