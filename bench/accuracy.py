@@ -486,13 +486,13 @@ def write(rows: list[dict], out: Path, quick: bool, plan: dict, quiet: bool = Fa
                   f"{SCALES['paper'][0]} cameras at {SCALES['paper'][1]}², adapt mesh `--max-tets {SCALES['paper'][2]}`, "
                   f"the truth's mesh refined once (`--truth-refine {SCALES['paper'][3]}`, "
                   f"{paper[0].get('truth_tets', '?')} P2 tets).")
-    recorded = {r.get("truth_substeps") for r in rows + previous}
-    substeps = (f"{TRUTH_SUBSTEPS} substeps per frame" if recorded == {TRUTH_SUBSTEPS} else
+    one_truth = {r.get("truth_substeps") for r in rows + previous} == {TRUTH_SUBSTEPS}  # every row recorded it
+    substeps = (f"{TRUTH_SUBSTEPS} substeps per frame" if one_truth else
                 f"substeps per frame as the truth-substeps column says (— : a row from before the bench recorded "
                 f"them; the first merged run's truths had {TRUTH_SUBSTEPS})")
     md = (f"# Accuracy on captures rsl did not make\n\nTruth: P2 tets{' on the mesh refined once' if plan['refine'] else ''}, "
           f"{substeps}, hard handles (`rsl synth --truth-order 2 --truth-refine "
-          f"{plan['refine']} --substeps {TRUTH_SUBSTEPS if recorded == {TRUTH_SUBSTEPS} else 'N'} --handles hard"
+          f"{plan['refine']} --substeps {TRUTH_SUBSTEPS if one_truth else 'N'} --handles hard"
           f"{f' --damping {TRUTH_DAMPING:g}' if TRUTH_DAMPING else ''}`), "
           f"{f'viscous damping β = {TRUTH_DAMPING:g} s declared in capture.toml, ' if TRUTH_DAMPING else ''}"
           f"{plan['frames']} frames, ν = {POISSON} (rsl adapt starts ν there, capture.toml's value, unless the options "

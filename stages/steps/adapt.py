@@ -701,11 +701,10 @@ def _adapt(config: AdaptConfig, reporter: Reporter, damping_profile: DampingProf
     backend = Guarded(backend, SolveGuard(sim_mesh.vertices, sim_mesh.tets, names, capture.toml_path, mat.young))
     poisson0 = np.array([config.poisson_init if config.poisson_init is not None else mat.region_poisson(r)
                          for r in names], float)
-    if config.fit_poisson and config.poisson_init is not None and not (
-            mat.poisson_range[0] <= config.poisson_init <= mat.poisson_range[1]):
-        raise RslError(f"{capture.toml_path}: --poisson-init {config.poisson_init} lies outside "
-                       f"poisson_range {list(mat.poisson_range)}.")
     if config.fit_poisson:
+        if config.poisson_init is not None and not mat.poisson_range[0] <= config.poisson_init <= mat.poisson_range[1]:
+            raise RslError(f"{capture.toml_path}: --poisson-init {config.poisson_init} lies outside "
+                           f"poisson_range {list(mat.poisson_range)}.")
         start = poisson_start(poisson0, mat.poisson_range)
         if not np.array_equal(start, poisson0):
             reporter.warn(f"{capture.toml_path}: ν starts at {', '.join(f'{v:.4g}' for v in start)} instead of "
